@@ -1,0 +1,1 @@
+"""slam-gym's estimation library: numpy/scipy only, importing nothing else of the project."""

@@ -1,0 +1,143 @@
+"""Evaluation metrics (DESIGN section 6).
+
+* Vehicle NEES ``e^T P^-1 e`` with the heading error wrapped, its 95 % chi-square band for one run
+  and for the average of N runs (ANEES: ``chi2(3N)/N``).
+* BB's failure criterion (BB 5.2, Table 1): the true pose more than 10 standard deviations from the
+  estimate (Mahalanobis distance over the 3-D pose, i.e. NEES > 100) for more than 20 consecutive
+  iterations.
+* Map error (CM IV.B): the mean distance between estimated features and the true landmarks they
+  stand for. A feature stands for the true landmark that most of the observations associated with it
+  came from (the simulator's truth ids); :class:`FeatureTruth` keeps those votes, following the
+  filters' ``last_associations`` and the ``id_map`` of each fusion. A feature whose votes are mostly
+  false alarms is *spurious*; a true landmark that was detected but has no feature is *missed*.
+"""
+
+from __future__ import annotations
+
+from collections import Counter, defaultdict
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2
+
+from filters.geometry import wrap_angle
+
+POSE_DOF = 3
+FAILURE_SIGMA = 10.0
+FAILURE_CONSECUTIVE_ITERATIONS = 20
+
+
+def pose_error(true_pose, est_pose) -> np.ndarray:
+    """true - estimate, heading wrapped."""
+    e = np.asarray(true_pose, dtype=float) - np.asarray(est_pose, dtype=float)
+    e[..., 2] = wrap_angle(e[..., 2])
+    return e
+
+
+def nees(true_pose, est_pose, cov) -> float:
+    """Normalised estimation error squared of a pose; inf if the covariance is singular."""
+    e = pose_error(true_pose, est_pose)
+    try:
+        return float(e @ np.linalg.solve(cov, e))
+    except np.linalg.LinAlgError:
+        return float("inf")
+
+
+def nees_band(
+    n_runs: int = 1, dof: int = POSE_DOF, confidence: float = 0.95
+) -> tuple[float, float]:
+    """Two-sided ``confidence`` band for the average NEES of ``n_runs`` independent runs."""
+    lo_q, hi_q = (1.0 - confidence) / 2.0, 1.0 - (1.0 - confidence) / 2.0
+    return (
+        float(chi2.ppf(lo_q, dof * n_runs) / n_runs),
+        float(chi2.ppf(hi_q, dof * n_runs) / n_runs),
+    )
+
+
+class FailureDetector:
+    """BB's criterion: Mahalanobis distance > 10 for more than 20 consecutive iterations."""
+
+    def __init__(
+        self,
+        sigma: float = FAILURE_SIGMA,
+        consecutive: int = FAILURE_CONSECUTIVE_ITERATIONS,
+    ):
+        self.threshold_nees = sigma**2
+        self.consecutive = consecutive
+        self.run_length = 0
+        self.failed = False
+        self.failure_iteration: int | None = None
+
+    def update(self, nees_value: float, iteration: int) -> bool:
+        """Feed one iteration's NEES; returns whether the run has failed (so far)."""
+        if not (nees_value <= self.threshold_nees):  # NaN and inf count as outside
+            self.run_length += 1
+        else:
+            self.run_length = 0
+        if not self.failed and self.run_length > self.consecutive:
+            self.failed = True
+            self.failure_iteration = iteration
+        return self.failed
+
+
+class FeatureTruth:
+    """Which true landmark each estimated feature stands for, by majority of its observations."""
+
+    def __init__(self):
+        self.votes: dict[int, Counter] = defaultdict(Counter)
+
+    def record(self, feature_ids: np.ndarray, truth_ids: np.ndarray) -> None:
+        """One update: the feature id each observation went to (-1 clutter) and its truth id."""
+        for fid, tid in zip(np.asarray(feature_ids), np.asarray(truth_ids), strict=True):
+            if fid >= 0:
+                self.votes[int(fid)][int(tid)] += 1
+
+    def merge(self, id_map: dict[int, int]) -> None:
+        """A fusion renamed features: fold the votes of each local id into its global id."""
+        for local_id, global_id in id_map.items():
+            if local_id != global_id and local_id in self.votes:
+                self.votes[global_id].update(self.votes.pop(local_id))
+
+    def landmark_of(self, feature_id: int) -> int:
+        """The true landmark index a feature stands for, -1 if mostly clutter or unknown."""
+        counts = self.votes.get(int(feature_id))
+        if not counts:
+            return -1
+        return int(counts.most_common(1)[0][0])
+
+
+@dataclass
+class MapScore:
+    map_error_m: float
+    n_features: int
+    n_matched: int
+    n_spurious: int
+    n_missed: int
+
+
+def score_map(
+    feature_ids: np.ndarray,
+    feature_means: np.ndarray,
+    truth: FeatureTruth,
+    landmarks_true: np.ndarray,
+    detected_landmarks: set[int] | np.ndarray,
+) -> MapScore:
+    """CM's map error over the features that stand for a true landmark; spurious and missed."""
+    errors = []
+    matched = set()
+    n_spurious = 0
+    for fid, mean in zip(np.asarray(feature_ids), np.asarray(feature_means), strict=True):
+        lm = truth.landmark_of(int(fid))
+        if lm < 0 or lm >= len(landmarks_true):
+            n_spurious += 1
+            continue
+        errors.append(float(np.linalg.norm(mean - landmarks_true[lm])))
+        matched.add(lm)
+    detected = {int(i) for i in detected_landmarks}
+    return MapScore(
+        map_error_m=float(np.mean(errors)) if errors else float("nan"),
+        n_features=len(feature_ids),
+        n_matched=len(matched),
+        n_spurious=n_spurious,
+        n_missed=len(detected - matched),
+    )

@@ -1,0 +1,252 @@
+"""The cluttered 2-D world simulator (DESIGN section 2).
+
+:func:`simulate` turns a :class:`slam_gym.scenarios.Scenario` and a seed into a
+:class:`slam_gym.stream.Stream`. Randomness comes from three independent generators spawned from
+the seed (world and path, odometry noise, sensor), so a given seed yields the same world, path and
+odometry at every clutter level (BB 5.2: "identical worlds, odometry, and observations were used
+for all filters"), and one seed reproduces the stream bit for bit.
+
+Odometry noise, as each paper states it:
+* ``proportional`` (BB 5.2: "vehicle linear and rotational velocity was noisy, perturbed with
+  standard deviations equal to 0.25 v and 0.35 omega, where v and omega are commanded"): the
+  vehicle truly moves with commanded + N(0, diag((0.25 v)^2, (0.35 omega)^2)) and the odometry the
+  filters receive is the commanded (v, omega); the filters' noise covariance is then exact;
+* ``chong-kleeman`` (CM (14)): truth moves with the commanded wheel travel; at each encoder tick,
+  each wheel's measured travel is the true travel plus N(0, K |travel|); the ticks of a filter
+  step are summed and converted to (v, omega).
+The sensor (BB 5.1): each landmark inside range and field of view is detected with probability
+alpha (range and bearing with Gaussian noise) and triggers, with probability beta, one false
+alarm uniform in range over [0, max range] and in bearing over the field of view; the
+observations of a scan are shuffled.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from filters.geometry import wrap_angle
+from filters.models import (
+    ChongKleemanNoise,
+    ClutterModel,
+    ProportionalVelocityNoise,
+    RangeBearingSensor,
+    observe,
+)
+from slam_gym.scenarios import Scenario
+from slam_gym.stream import Step, StepTruth, Stream, steps_from_list
+
+WAYPOINT_SWITCH_RADIUS_M = 2.0
+
+
+def sensor_of(scenario: Scenario) -> RangeBearingSensor:
+    return RangeBearingSensor(
+        range_std_m=scenario.range_std_m,
+        bearing_std_rad=scenario.bearing_std_rad,
+        max_range_m=scenario.max_range_m,
+        fov_rad=scenario.fov_rad,
+    )
+
+
+def odometry_noise_of(scenario: Scenario):
+    if scenario.odometry_model == "chong-kleeman":
+        return ChongKleemanNoise(k_m=scenario.chong_kleeman_k_m, wheel_base_m=scenario.wheel_base_m)
+    return ProportionalVelocityNoise(
+        v_fraction=scenario.v_noise_fraction,
+        omega_fraction=scenario.omega_noise_fraction,
+        v_floor_mps=scenario.v_noise_floor_mps,
+        omega_floor_radps=scenario.omega_noise_floor_radps,
+    )
+
+
+def landmark_field(scenario: Scenario, rng: np.random.Generator) -> np.ndarray:
+    """Landmarks uniform over the square world [0, W]^2 (BB 5.2)."""
+    return rng.uniform(0.0, scenario.world_size_m, size=(scenario.n_landmarks, 2))
+
+
+def loop_waypoints(scenario: Scenario, rng: np.random.Generator) -> np.ndarray:
+    """Perturbed waypoints of one counter-clockwise square loop centred in the world.
+
+    The loop starts in the middle of its bottom edge and runs counter-clockwise; every waypoint
+    except the start is moved uniformly by up to ``path_perturbation_m`` in x and y.
+    """
+    side = scenario.loop_side_m
+    centre = 0.5 * scenario.world_size_m
+    lo, hi = centre - 0.5 * side, centre + 0.5 * side
+    corners = np.array([[centre, lo], [hi, lo], [hi, hi], [lo, hi], [lo, lo], [centre, lo]])
+    points = [corners[0]]
+    for a, b in zip(corners[:-1], corners[1:], strict=True):
+        n = max(1, int(math.ceil(np.linalg.norm(b - a) / scenario.waypoint_spacing_m)))
+        for k in range(1, n + 1):
+            points.append(a + (b - a) * k / n)
+    waypoints = np.array(points[:-1])  # the last point is the start again
+    p = scenario.path_perturbation_m
+    waypoints[1:] += rng.uniform(-p, p, size=waypoints[1:].shape)
+    return waypoints
+
+
+def route(scenario: Scenario, waypoints: np.ndarray) -> np.ndarray:
+    """The loop, then its start again, up to the first waypoint at ``path_length_m`` along it.
+
+    The driven path is a little shorter than this polyline (corners are cut) and varies with the
+    perturbation of the waypoints.
+    """
+    loop = np.vstack([waypoints, waypoints[:1]])
+    loop_length = float(np.sum(np.linalg.norm(np.diff(loop, axis=0), axis=1)))
+    repeats = 2 + int(scenario.path_length_m // max(loop_length, 1e-9))
+    polyline = np.vstack([waypoints] * repeats + [waypoints[:1]])
+    along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(polyline, axis=0), axis=1))])
+    last = int(np.searchsorted(along, scenario.path_length_m))
+    return polyline[: min(last, len(polyline) - 1) + 1]
+
+
+def drive(scenario: Scenario, waypoints: np.ndarray, rng: np.random.Generator):
+    """Drive through the waypoints in order until the last one is reached.
+
+    Returns the true poses at every filter step (n_steps + 1, 3), the commanded velocities of
+    every odometry tick (n_steps, ticks_per_step, 2) and the true velocities of every tick (the
+    commanded ones, perturbed with the ``proportional`` noise model when that is the scenario's).
+    The integration is the scalar form of :func:`filters.models.motion` (the same mid-point model
+    the filters use), inlined because this loop runs at the encoder rate.
+    """
+    dt_tick = 1.0 / scenario.odometry_rate_hz
+    ticks = scenario.ticks_per_step
+    noise = odometry_noise_of(scenario)
+    perturb = isinstance(noise, ProportionalVelocityNoise)
+    x, y = float(waypoints[0, 0]), float(waypoints[0, 1])
+    theta = math.atan2(waypoints[1, 1] - y, waypoints[1, 0] - x)
+    target = 1
+    v = scenario.speed_mps
+    w_max = scenario.max_turn_rate_radps
+    gain = scenario.heading_gain
+    max_steps = int(3 * scenario.path_length_m / (v * scenario.dt_s))
+    poses = [(x, y, theta)]
+    commands, true_velocities = [], []
+    while target < len(waypoints) and len(commands) < max_steps:
+        step_commands = np.empty((ticks, 2))
+        step_true = np.empty((ticks, 2))
+        for tick in range(ticks):
+            tx, ty = waypoints[min(target, len(waypoints) - 1)]
+            if math.hypot(tx - x, ty - y) < WAYPOINT_SWITCH_RADIUS_M:
+                target += 1
+                tx, ty = waypoints[min(target, len(waypoints) - 1)]
+            err = (math.atan2(ty - y, tx - x) - theta + math.pi) % (2.0 * math.pi) - math.pi
+            w = max(-w_max, min(w_max, gain * err))
+            step_commands[tick] = (v, w)
+            vt, wt = v, w
+            if perturb:
+                # per-tick std scaled by sqrt(ticks): the step's mean velocity has the model's std
+                sv, sw = noise.std(step_commands[tick]) * math.sqrt(ticks)
+                vt, wt = v + sv * rng.standard_normal(), w + sw * rng.standard_normal()
+            step_true[tick] = (vt, wt)
+            heading = theta + 0.5 * wt * dt_tick
+            x += vt * dt_tick * math.cos(heading)
+            y += vt * dt_tick * math.sin(heading)
+            theta = (theta + wt * dt_tick + math.pi) % (2.0 * math.pi) - math.pi
+        poses.append((x, y, theta))
+        commands.append(step_commands)
+        true_velocities.append(step_true)
+    return np.array(poses), np.array(commands), np.array(true_velocities)
+
+
+def measured_odometry(
+    scenario: Scenario, commands: np.ndarray, true_velocities: np.ndarray, rng
+) -> np.ndarray:
+    """The (v, omega) each filter step reports (see the module docstring for the two models)."""
+    noise = odometry_noise_of(scenario)
+    if isinstance(noise, ChongKleemanNoise):
+        dt_tick = 1.0 / scenario.odometry_rate_hz
+        travel = noise.wheel_travel(true_velocities, dt_tick)  # (n, ticks, 2)
+        measured = travel + rng.standard_normal(travel.shape) * np.sqrt(
+            noise.wheel_variance(travel)
+        )
+        return noise.velocities(measured.sum(axis=1), scenario.dt_s)
+    return commands.mean(axis=1)
+
+
+def scan(
+    pose: np.ndarray,
+    landmarks: np.ndarray,
+    sensor: RangeBearingSensor,
+    clutter: ClutterModel,
+    rng: np.random.Generator,
+):
+    """One scan from ``pose``: shuffled observations (K, 2), their truth ids, visible ids."""
+    z_true = observe(pose, landmarks) if len(landmarks) else np.zeros((0, 2))
+    visible = np.flatnonzero(sensor.in_view(z_true))
+    detected = visible[rng.random(len(visible)) < clutter.alpha]
+    z_det = z_true[detected] + rng.standard_normal((len(detected), 2)) * [
+        sensor.range_std_m,
+        sensor.bearing_std_rad,
+    ]
+    n_false = int(np.count_nonzero(rng.random(len(visible)) < clutter.beta))
+    z_false = np.column_stack(
+        [
+            rng.uniform(0.0, sensor.max_range_m, n_false),
+            rng.uniform(-0.5 * sensor.fov_rad, 0.5 * sensor.fov_rad, n_false),
+        ]
+    )
+    z = np.vstack([z_det, z_false])
+    z[:, 1] = wrap_angle(z[:, 1])
+    ids = np.concatenate([detected, np.full(n_false, -1)]).astype(np.int64)
+    order = rng.permutation(len(z))
+    return z[order], ids[order], visible.astype(np.int64)
+
+
+def simulate(scenario: Scenario, seed: int) -> Stream:
+    """Simulate ``scenario`` for ``seed`` (a non-negative integer)."""
+    if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or seed < 0:
+        raise ValueError(f"seed={seed!r} is invalid: must be a non-negative integer")
+    world_rng, odometry_rng, sensor_rng = (
+        np.random.default_rng(s) for s in np.random.SeedSequence(int(seed)).spawn(3)
+    )
+    landmarks = landmark_field(scenario, world_rng)
+    waypoints = loop_waypoints(scenario, world_rng)
+    poses, commands, true_velocities = drive(scenario, route(scenario, waypoints), odometry_rng)
+    odometry = measured_odometry(scenario, commands, true_velocities, odometry_rng)
+    sensor = sensor_of(scenario)
+    clutter = ClutterModel(alpha=scenario.alpha, beta=scenario.beta)
+    n_steps = len(commands) if scenario.n_steps is None else min(scenario.n_steps, len(commands))
+    dt = scenario.dt_s
+    every = scenario.steps_per_scan
+    empty_z, empty_ids = np.zeros((0, 2)), np.zeros(0, dtype=np.int64)
+    steps = []
+    for k in range(n_steps):
+        pose = poses[k + 1]
+        if (k + 1) % every == 0:
+            z, ids, visible = scan(pose, landmarks, sensor, clutter, sensor_rng)
+        else:
+            z, ids, visible = empty_z, empty_ids, None
+        compass = None
+        if scenario.compass_std_rad is not None:
+            compass = float(wrap_angle(pose[2] + scenario.compass_std_rad * sensor_rng.normal()))
+        steps.append(
+            Step(
+                index=k,
+                t_s=(k + 1) * dt,
+                dt_s=dt,
+                odometry=odometry[k],
+                compass_rad=compass,
+                z=z,
+                truth=StepTruth(pose=pose, landmark_ids=ids, visible_ids=visible),
+            )
+        )
+    return Stream(
+        name=scenario.name,
+        sensor=sensor,
+        clutter=clutter,
+        odometry_noise=odometry_noise_of(scenario),
+        initial_pose=poses[0].copy(),
+        landmarks_true=landmarks,
+        n_steps=n_steps,
+        dt_s=dt,
+        make_steps=steps_from_list(steps),
+        compass_std_rad=scenario.compass_std_rad,
+        metadata={
+            "scenario": scenario,
+            "seed": int(seed),
+            "waypoints": waypoints,
+            "true_poses": poses[: n_steps + 1],
+        },
+    )
