@@ -1,0 +1,29 @@
+#!/usr/bin/env bash
+# Create .venv (Python >= 3.11) and install slam-gym with its test extras, once per change of
+# pyproject.toml / constraints.txt. Sourced by scripts/main.sh and scripts/test.sh.
+set -euo pipefail
+root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$root"
+python_bin="${PYTHON:-}"
+if [ -z "$python_bin" ]; then
+  for candidate in python3.11 python3.12 python3.13 python3; do
+    if command -v "$candidate" >/dev/null 2>&1; then python_bin="$candidate"; break; fi
+  done
+fi
+if [ -z "$python_bin" ] || ! "$python_bin" -c 'import sys; sys.exit(sys.version_info < (3, 11))'; then
+  echo "slam-gym needs Python >= 3.11 (set PYTHON=/path/to/python3.11)" >&2
+  exit 1
+fi
+if [ ! -x .venv/bin/python ]; then
+  "$python_bin" -m venv .venv
+fi
+stamp=".venv/.slam-gym-installed"
+want="$(cat pyproject.toml constraints.txt | sha256sum | cut -d' ' -f1)"
+if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
+  echo "installing slam-gym and its dependencies into .venv (first run only) ..." >&2
+  .venv/bin/python -m pip install --quiet --upgrade pip
+  # torch first, pinned to the CPU build, then everything else under the same constraint
+  .venv/bin/python -m pip install --quiet -c constraints.txt "torch==2.13.0"
+  .venv/bin/python -m pip install --quiet -c constraints.txt -e ".[test]"
+  echo "$want" > "$stamp"
+fi

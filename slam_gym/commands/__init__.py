@@ -1,0 +1,1 @@
+"""One module per ``slam-gym`` subcommand; each offers ``add_parser(subparsers)``."""
