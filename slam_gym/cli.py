@@ -6,7 +6,7 @@ import argparse
 import importlib
 import sys
 
-COMMAND_MODULES = ("simulate",)
+COMMAND_MODULES = ("simulate", "reproduce")
 
 
 def build_parser() -> argparse.ArgumentParser:

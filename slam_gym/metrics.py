@@ -34,13 +34,23 @@ def pose_error(true_pose, est_pose) -> np.ndarray:
     return e
 
 
+NEES_REGULARISATION = 1e-9
+"""Added to the covariance's diagonal before NEES (a std of 3e-5 m / rad): keeps numerically
+singular covariances (a filter's first iteration, particle sets with one distinct pose) from
+producing garbage, far below any uncertainty a filter actually reports."""
+
+
 def nees(true_pose, est_pose, cov) -> float:
-    """Normalised estimation error squared of a pose; inf if the covariance is singular."""
+    """Normalised estimation error squared ``e^T P^-1 e`` of a pose (heading error wrapped)."""
     e = pose_error(true_pose, est_pose)
+    cov = np.asarray(cov, dtype=float)
+    cov = 0.5 * (cov + cov.T) + NEES_REGULARISATION * np.eye(len(e))
     try:
-        return float(e @ np.linalg.solve(cov, e))
+        L = np.linalg.cholesky(cov)
     except np.linalg.LinAlgError:
         return float("inf")
+    w = np.linalg.solve(L, e)
+    return float(w @ w)
 
 
 def nees_band(

@@ -188,6 +188,7 @@ def scan(
         ]
     )
     z = np.vstack([z_det, z_false])
+    z[:, 0] = np.maximum(z[:, 0], 0.0)  # a range sensor reports no negative range
     z[:, 1] = wrap_angle(z[:, 1])
     ids = np.concatenate([detected, np.full(n_false, -1)]).astype(np.int64)
     order = rng.permutation(len(z))

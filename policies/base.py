@@ -1,0 +1,241 @@
+"""The policy interface for the local-to-global interface decisions (DESIGN section 5).
+
+A policy maps what the environment shows at a decision to the pair of interface decisions::
+
+    act(obs, info) -> np.ndarray, int64, shape (2,) = (fuse now?, optimise now?)
+
+the action of the env's ``MultiDiscrete([2, 2])`` space, and ``reset()`` clears any state kept
+between decisions at the start of an episode. ``obs`` is the env's float32 observation vector;
+``info["features"]`` holds the same interface features by name (docs/ARCHITECTURE.md, "Interface
+features"). Heuristics read only ``info["features"]``, learned policies only ``obs``.
+
+The fusion decision is BB's local-to-global interface (BB section 6: "fusing in a moment of
+transient ambiguity can result in an incorrect decision being irreversibly fused into the
+back-end"); the optimisation decision is CM's switch from the filter to the nonlinear optimiser
+(CM section III.B-C). When both are 1 at one decision the env fuses first and then optimises, so
+the optimiser sees the sub-map that was just fused.
+
+This package imports nothing else of the project: the helpers below (feature reading, option
+validation, the Discrete(4) mapping) are self-contained on purpose.
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+from collections.abc import Iterable, Mapping
+from typing import Any, ClassVar
+
+import numpy as np
+
+INTERFACE_FEATURES: tuple[str, ...] = (
+    "local_map_age_s",
+    "local_map_distance_m",
+    "ess_ratio",
+    "particle_position_spread_m",
+    "particle_heading_spread_rad",
+    "local_feature_count",
+    "local_confirmed_count",
+    "vote_margin",
+    "innovation_ratio",
+    "global_features_in_view",
+    "global_position_std_m",
+    "global_heading_std_rad",
+    "time_since_optimise_s",
+    "fusions_since_optimise",
+    "clutter_rate",
+    "loop_closure_flag",
+    "local_map_budget_ratio",
+)
+"""The interface-feature names of docs/ARCHITECTURE.md, in table order: the contract between the
+env (which fills ``info["features"]``) and the heuristics (which declare the subset they read)."""
+
+N_DISCRETE_ACTIONS = 4
+"""Size of the flat action space of the env's ``Discrete(4)`` wrapper (for DQN)."""
+
+
+# ----------------------------------------------------------------------------------------------
+# Option validation (same message format as filters/validation.py, which we may not import)
+# ----------------------------------------------------------------------------------------------
+def require(condition: bool, field: str, value: Any, allowed: str) -> None:
+    """Raise ``ValueError("<field>=<value> is invalid: must be <allowed>")`` unless true."""
+    if not condition:
+        raise ValueError(f"{field}={value!r} is invalid: must be {allowed}")
+
+
+def check_range(
+    field: str,
+    value: Any,
+    low: float,
+    high: float,
+    *,
+    low_open: bool = False,
+    high_open: bool = False,
+    why: str = "",
+) -> float:
+    """Require a finite number (not bool) in [low, high] (open ends by flag); return it as float.
+
+    An infinite bound is shown open in the message (``[0.0, inf)``); the value must be finite.
+    ``why`` is appended to the message (e.g. which other option sets a bound).
+    """
+    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
+        value, (bool, np.bool_)
+    )
+    if ok:
+        v = float(value)
+        ok = (
+            math.isfinite(v)
+            and (v > low if low_open else v >= low)
+            and (v < high if high_open else v <= high)
+        )
+    lo = "(" if (low_open or math.isinf(low)) else "["
+    hi = ")" if (high_open or math.isinf(high)) else "]"
+    suffix = f" ({why})" if why else ""
+    require(ok, field, value, f"a number in {lo}{low}, {high}{hi}{suffix}")
+    return float(value)
+
+
+def check_int_range(field: str, value: Any, low: int, high: int | None = None) -> int:
+    """Require an integer (not bool) in [low, high] (``high=None``: no upper bound); return it."""
+    ok = isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+    if ok:
+        ok = value >= low and (high is None or value <= high)
+    upper = "inf)" if high is None else f"{high}]"
+    require(ok, field, value, f"an integer in [{low}, {upper}")
+    return int(value)
+
+
+def check_choice(field: str, value: Any, choices: Iterable[str]) -> str:
+    """Require ``value`` to be one of the strings ``choices``; return it."""
+    choices = tuple(choices)
+    require(
+        isinstance(value, str) and value in choices,
+        field,
+        value,
+        "one of " + ", ".join(repr(c) for c in choices),
+    )
+    return value
+
+
+# ----------------------------------------------------------------------------------------------
+# Actions
+# ----------------------------------------------------------------------------------------------
+def make_action(fuse: bool, optimise: bool) -> np.ndarray:
+    """The env's ``MultiDiscrete([2, 2])`` action ``(fuse, optimise)`` as int64 of shape (2,)."""
+    return np.array([1 if fuse else 0, 1 if optimise else 0], dtype=np.int64)
+
+
+def discrete_to_multi(a: Any) -> np.ndarray:
+    """Map a ``Discrete(4)`` action to the ``(fuse, optimise)`` pair.
+
+    The mapping is ``a = 2 * fuse + optimise``, i.e.::
+
+        0 -> (0, 0)  keep the local map, no optimisation
+        1 -> (0, 1)  optimise only
+        2 -> (1, 0)  fuse only
+        3 -> (1, 1)  fuse, then optimise
+
+    The env's ``Discrete(4)`` wrapper (for DQN) and :mod:`policies.learned` both use it, so a
+    model trained through the wrapper acts identically when loaded as a policy.
+    """
+    arr = np.asarray(a)
+    ok = arr.size == 1 and np.issubdtype(arr.dtype, np.integer) and not isinstance(a, bool)
+    value = int(arr.reshape(())) if ok else -1
+    require(
+        0 <= value < N_DISCRETE_ACTIONS,
+        "discrete action",
+        a,
+        f"an integer in [0, {N_DISCRETE_ACTIONS - 1}]",
+    )
+    return np.array([value // 2, value % 2], dtype=np.int64)
+
+
+def multi_to_discrete(pair: Any) -> int:
+    """Inverse of :func:`discrete_to_multi`: ``(fuse, optimise) -> 2 * fuse + optimise``."""
+    arr = np.asarray(pair)
+    ok = (
+        arr.shape == (2,)
+        and (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.bool_))
+        and bool(np.all((arr == 0) | (arr == 1)))
+    )
+    require(ok, "action pair", pair, "two integers in {0, 1} (fuse, optimise)")
+    return int(2 * arr[0] + arr[1])
+
+
+# ----------------------------------------------------------------------------------------------
+# Reading features
+# ----------------------------------------------------------------------------------------------
+def read_features(info: Any, names: Iterable[str], policy: str) -> dict[str, float]:
+    """Return ``{name: float}`` for ``names`` from ``info["features"]``.
+
+    A missing ``info["features"]`` or a missing name raises ``KeyError`` naming what is missing and
+    every name the policy needs; a value that is not a real number (or is NaN) raises
+    ``ValueError`` naming the feature.
+    """
+    names = tuple(names)
+    needed = ", ".join(names) if names else "(none)"
+    if not isinstance(info, Mapping) or "features" not in info:
+        raise KeyError(
+            f"policy {policy!r} reads info['features'] (a dict of interface features by name) "
+            f"but info has no 'features' entry; it needs: {needed}"
+        )
+    features = info["features"]
+    missing = [n for n in names if n not in features]
+    if missing:
+        raise KeyError(
+            f"policy {policy!r} needs interface feature(s) {', '.join(missing)} missing from "
+            f"info['features']; it needs: {needed}"
+        )
+    out: dict[str, float] = {}
+    for n in names:
+        raw = features[n]
+        try:
+            v = float(raw)
+        except (TypeError, ValueError):
+            v = math.nan
+        require(not math.isnan(v), f"info['features'][{n!r}]", raw, "a real number (not NaN)")
+        out[n] = v
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# The interface
+# ----------------------------------------------------------------------------------------------
+class Policy(abc.ABC):
+    """A decision rule for the local-to-global interface: ``act(obs, info)`` and ``reset()``.
+
+    Subclasses set the class attribute ``name`` (registry name) and the instance attribute
+    ``required_features`` (the names of ``info["features"]`` they read; empty for policies that
+    read only ``obs``). ``options`` records the validated constructor options (for logs and
+    results files).
+    """
+
+    name: ClassVar[str] = "policy"
+
+    def __init__(self) -> None:
+        self.required_features: tuple[str, ...] = ()
+        self.options: dict[str, Any] = {}
+
+    @abc.abstractmethod
+    def act(self, obs: Any, info: Mapping[str, Any]) -> np.ndarray:
+        """The action ``(fuse, optimise)``: ``np.ndarray`` of int64, shape (2,)."""
+
+    def reset(self) -> None:  # noqa: B027 - stateless policies need nothing
+        """Forget any state kept between decisions (call at the start of every episode)."""
+
+    def __repr__(self) -> str:
+        opts = ", ".join(f"{k}={v!r}" for k, v in self.options.items())
+        return f"{type(self).__name__}({opts})"
+
+
+class HeuristicPolicy(Policy):
+    """A rule on named interface features: reads ``info["features"]``, never ``obs``."""
+
+    def act(self, obs: Any, info: Mapping[str, Any]) -> np.ndarray:
+        f = read_features(info, self.required_features, self.name)
+        fuse, optimise = self.decide(f)
+        return make_action(fuse, optimise)
+
+    @abc.abstractmethod
+    def decide(self, f: Mapping[str, float]) -> tuple[bool, bool]:
+        """``(fuse, optimise)`` from the required features ``f`` (already read and checked)."""

@@ -1,0 +1,193 @@
+"""Learned interface policies: a stable-baselines3 model loaded from its zip (DESIGN section 5).
+
+``LearnedPolicy(path=..., algo=...)`` loads a model saved by stable-baselines3 (``model.save``;
+``slam-gym train`` writes one) and acts with ``model.predict(obs, deterministic=True)`` on the
+env's observation vector; it never reads ``info``. stable-baselines3 (and torch) are imported only
+when a model is loaded, so ``import policies`` stays light.
+
+Algorithms: PPO (default of ``slam-gym train``), A2C and DQN. Without ``algo`` the algorithm is
+read from the zip's ``data`` entry: DQN saves a ``stable_baselines3.dqn`` policy class, PPO is the
+actor-critic model with a ``clip_range``, A2C the one without. An explicit ``algo`` that
+contradicts the zip raises ``ValueError``.
+
+Action spaces: a model trained on the env itself has ``MultiDiscrete([2, 2])`` and its action is
+the (fuse, optimise) pair; a model trained through the env's ``Discrete(4)`` wrapper (DQN) acts in
+``{0, 1, 2, 3}`` and is mapped by :func:`policies.base.discrete_to_multi` (``a = 2 fuse +
+optimise``), the helper the wrapper itself uses.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import zipfile
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from policies.base import N_DISCRETE_ACTIONS, Policy, discrete_to_multi, require
+
+logger = logging.getLogger(__name__)
+
+MODELS_DIR = Path(__file__).resolve().parent / "models"
+"""Directory of the models shipped with the package (package data ``models/*.zip``)."""
+
+DEFAULT_MODEL_PATH = MODELS_DIR / "learned-default.zip"
+"""The model ``policies.make("learned")`` loads when no ``path`` is given."""
+
+ALGORITHMS: tuple[str, ...] = ("ppo", "a2c", "dqn")
+"""Values of the ``algo`` option (case-insensitive)."""
+
+_TRAIN_HINT = (
+    "train one with `slam-gym train --algo ppo --timesteps N --out DIR` and pass "
+    "path='DIR/model.zip' (or copy that file to {default})"
+)
+
+
+def _resolve_path(path: str | Path | None) -> Path:
+    """The model file: ``path`` (``.zip`` appended if needed) or the packaged default."""
+    hint = _TRAIN_HINT.format(default=DEFAULT_MODEL_PATH)
+    if path is None:
+        candidate = Path(DEFAULT_MODEL_PATH)
+        if not candidate.is_file():
+            raise FileNotFoundError(
+                f"no default learned model at {candidate} (none ships yet): {hint}"
+            )
+        return candidate
+    require(isinstance(path, (str, Path)) and str(path) != "", "path", path, "a file path")
+    candidate = Path(path).expanduser()
+    if not candidate.is_file() and candidate.suffix != ".zip":
+        with_zip = candidate.with_name(candidate.name + ".zip")
+        if with_zip.is_file():
+            candidate = with_zip
+    if not candidate.is_file():
+        raise FileNotFoundError(f"no learned model at {candidate}: {hint}")
+    return candidate
+
+
+def detect_algorithm(path: str | Path) -> str:
+    """Read which algorithm saved a stable-baselines3 zip: ``"ppo"``, ``"a2c"`` or ``"dqn"``."""
+    try:
+        with zipfile.ZipFile(path) as archive:
+            data = json.loads(archive.read("data"))
+    except (zipfile.BadZipFile, KeyError, json.JSONDecodeError) as exc:
+        raise ValueError(
+            f"path={str(path)!r} is invalid: must be a stable-baselines3 model zip "
+            f"(with a JSON 'data' entry): {exc}"
+        ) from exc
+    policy_class = data.get("policy_class", {})
+    module = policy_class.get("__module__", "") if isinstance(policy_class, dict) else ""
+    if ".dqn." in module or "exploration_final_eps" in data:
+        return "dqn"
+    if "clip_range" in data:
+        return "ppo"
+    if "gae_lambda" in data:
+        return "a2c"
+    raise ValueError(
+        f"path={str(path)!r} is invalid: must be a model saved by one of "
+        f"{', '.join(ALGORITHMS)} (could not tell the algorithm from its data)"
+    )
+
+
+def _algorithm_class(algo: str):
+    """The stable-baselines3 class for ``algo`` (imported here, lazily)."""
+    import stable_baselines3
+
+    classes = {
+        "ppo": stable_baselines3.PPO,
+        "a2c": stable_baselines3.A2C,
+        "dqn": stable_baselines3.DQN,
+    }
+    return classes[algo]
+
+
+class LearnedPolicy(Policy):
+    """A stable-baselines3 model as an interface policy: ``act(obs, info)`` reads only ``obs``.
+
+    Options: ``path`` (model zip; default :data:`DEFAULT_MODEL_PATH`), ``algo`` (one of
+    :data:`ALGORITHMS`; default: detected from the zip), ``deterministic`` (default True: the
+    mode of the policy's action distribution / the greedy Q action), ``device`` (default
+    ``"cpu"``). The model is loaded on construction, so a missing file or a model with the wrong
+    spaces fails at ``policies.make`` rather than mid-episode.
+    """
+
+    name = "learned"
+
+    def __init__(
+        self,
+        *,
+        path: str | Path | None = None,
+        algo: str | None = None,
+        deterministic: bool = True,
+        device: str = "cpu",
+    ) -> None:
+        super().__init__()
+        require(isinstance(deterministic, bool), "deterministic", deterministic, "True or False")
+        require(isinstance(device, str) and device != "", "device", device, "a torch device name")
+        model_path = _resolve_path(path)
+        detected = detect_algorithm(model_path)
+        if algo is None:
+            algo = detected
+        else:
+            require(
+                isinstance(algo, str) and algo.lower() in ALGORITHMS,
+                "algo",
+                algo,
+                "one of " + ", ".join(repr(a) for a in ALGORITHMS),
+            )
+            algo = algo.lower()
+            require(
+                algo == detected,
+                "algo",
+                algo,
+                f"{detected!r}, the algorithm that saved {model_path}",
+            )
+        self.path = model_path
+        self.algo = algo
+        self.deterministic = deterministic
+        self.model = _algorithm_class(algo).load(str(model_path), device=device)
+        self._check_spaces()
+        self.options = {
+            "path": str(model_path),
+            "algo": algo,
+            "deterministic": deterministic,
+            "device": device,
+        }
+        logger.info("loaded %s model from %s", algo.upper(), model_path)
+
+    def _check_spaces(self) -> None:
+        from gymnasium import spaces
+
+        obs_space = self.model.observation_space
+        require(
+            isinstance(obs_space, spaces.Box) and len(obs_space.shape) == 1,
+            "model observation_space",
+            obs_space,
+            "a 1-D Box (the env's interface-feature vector)",
+        )
+        act_space = self.model.action_space
+        multi = isinstance(act_space, spaces.MultiDiscrete) and list(act_space.nvec) == [2, 2]
+        flat = isinstance(act_space, spaces.Discrete) and int(act_space.n) == N_DISCRETE_ACTIONS
+        require(
+            multi or flat,
+            "model action_space",
+            act_space,
+            f"MultiDiscrete([2, 2]) or Discrete({N_DISCRETE_ACTIONS})",
+        )
+        self.observation_shape: tuple[int, ...] = tuple(obs_space.shape)
+        self.discrete = flat
+
+    def act(self, obs: Any, info: Mapping[str, Any] | None = None) -> np.ndarray:
+        x = np.asarray(obs, dtype=np.float32)
+        require(
+            x.shape == self.observation_shape,
+            "obs shape",
+            x.shape,
+            f"{self.observation_shape}, the observation shape the model was trained on",
+        )
+        action, _ = self.model.predict(x, deterministic=self.deterministic)
+        if self.discrete:
+            return discrete_to_multi(action)
+        return np.asarray(action, dtype=np.int64).reshape(2)

@@ -1,0 +1,31 @@
+"""Gymnasium environments of slam-gym and their registration.
+
+``import slam_gym`` registers every id (idempotently), and ``gym.make("slam_gym:<id>")`` imports
+the package first, so the ids also resolve in a fresh interpreter and in spawned workers.
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+
+ENTRY_POINT = "slam_gym.envs.hybrid_slam:HybridSLAMEnv"
+
+#: id -> default keyword arguments (each overridable in gym.make)
+ENV_VARIANTS: dict[str, dict] = {
+    "SlamGym/HybridSLAM-v0": {},
+    "SlamGym/HybridSLAM-Clutter0-v0": {"clutter_level": 0},
+    "SlamGym/HybridSLAM-Clutter1-v0": {"clutter_level": 1},
+    "SlamGym/HybridSLAM-Clutter2-v0": {"clutter_level": 2},
+    "SlamGym/HybridSLAM-Clutter3-v0": {"clutter_level": 3},
+    "SlamGym/HybridSLAM-Compass-v0": {"scenario": "brooks-bailey-compass", "clutter_level": 0},
+    "SlamGym/EKFSubmap-v0": {"front_end": "ekf"},
+    "SlamGym/HybridSLAM-Relative-v0": {"back_end": "relative"},
+}
+
+
+def register_envs() -> list[str]:
+    """Register every variant that is not registered yet; returns the ids."""
+    for env_id, kwargs in ENV_VARIANTS.items():
+        if env_id not in gym.registry:
+            gym.register(id=env_id, entry_point=ENTRY_POINT, kwargs=dict(kwargs))
+    return list(ENV_VARIANTS)

@@ -1,0 +1,67 @@
+"""Drawing the env's state: truth, global map, local map, particles (headless by default)."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from filters.existence import CONFIRMED_PROBABILITY
+
+logger = logging.getLogger(__name__)
+
+FRAME_SIZE_IN = (6.4, 6.4)
+FRAME_DPI = 80
+
+
+def _particles_of(system):
+    front = getattr(system, "front_end", None)
+    poses = getattr(front, "poses", None)
+    origin = getattr(system, "local_origin", None)
+    if poses is None or origin is None:
+        return None
+    from filters.geometry import compose
+
+    return compose(np.asarray(origin)[None, :], np.asarray(poses))
+
+
+def render_frame(env, figure, render_mode):
+    """Draw the current state into ``figure`` (made on first use); returns (frame, figure)."""
+    import matplotlib.pyplot as plt
+
+    from slam_gym.render import draw_map, figure_to_rgb
+
+    if figure is None:
+        figure = plt.figure(figsize=FRAME_SIZE_IN, dpi=FRAME_DPI)
+    figure.clf()
+    ax = figure.add_subplot(111)
+    ep = env.episode
+    trace = ep.trace
+    lm = env.system.landmarks()
+    confirmed = np.asarray(lm.existence) >= CONFIRMED_PROBABILITY
+    mean, cov = env.system.pose()
+    draw_map(
+        ax,
+        landmarks_true=env.stream.landmarks_true,
+        true_path=np.array(trace.true_poses) if trace and trace.true_poses else None,
+        est_path=np.array(trace.est_poses) if trace and trace.est_poses else None,
+        est_landmarks=np.asarray(lm.means)[confirmed],
+        est_landmark_covs=np.asarray(lm.covs)[confirmed],
+        pose_ellipses=[(mean, cov)],
+        particles=_particles_of(env.system),
+        local_boundary=(mean[:2], env.stream.sensor.max_range_m),
+        world_size_m=env.stream.metadata["scenario"].world_size_m,
+    )
+    ax.set_title(
+        f"t = {ep.t_s:5.1f} s   fusions {ep.n_fusions}   optimisations {ep.n_optimisations}",
+        fontsize=9,
+    )
+    ax.legend(loc="upper right", fontsize=6)
+    figure.tight_layout()
+    frame = figure_to_rgb(figure)
+    if render_mode == "human":
+        try:
+            plt.pause(0.001)
+        except Exception:  # noqa: BLE001 - a headless backend cannot show a window
+            logger.warning("render_mode='human' needs an interactive matplotlib backend")
+    return frame, figure

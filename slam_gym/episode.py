@@ -1,0 +1,171 @@
+"""Play a :class:`~slam_gym.stream.Stream` through a SLAM system and measure it.
+
+:class:`Episode` is the one place where filters meet truth: it hands each step's odometry,
+compass and observations to the system, keeps the truth apart, and tracks the metrics of DESIGN
+section 6 (NEES against the chi-square band, BB's failure criterion, pose error, map error through
+:class:`~slam_gym.metrics.FeatureTruth`). The fixed-schedule runner, the evaluation and the
+Gymnasium env all drive systems through it, so the env adds no behaviour of its own.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from filters.existence import CONFIRMED_PROBABILITY
+from slam_gym.metrics import FailureDetector, FeatureTruth, nees, nees_band, score_map
+
+
+@dataclass
+class Trace:
+    """Per-iteration records of a run (for plots): time, NEES, pose error, covariance trace."""
+
+    t_s: list = field(default_factory=list)
+    nees: list = field(default_factory=list)
+    position_error_m: list = field(default_factory=list)
+    cov_trace: list = field(default_factory=list)
+    est_poses: list = field(default_factory=list)
+    true_poses: list = field(default_factory=list)
+
+
+class Episode:
+    """One run of ``system`` over ``stream``.
+
+    ``known_association``: hand the truth landmark ids to systems that accept them (CM's setting,
+    and the comparison mode on real data). ``record_trace``: keep per-iteration arrays.
+    """
+
+    def __init__(self, system, stream, *, known_association: bool = False, record_trace=True):
+        self.system = system
+        self.stream = stream
+        self.known_association = known_association
+        self._steps = iter(stream)
+        self.iteration = 0
+        self.t_s = 0.0
+        self.done = False
+        self.feature_truth = FeatureTruth()
+        self.failure = FailureDetector()
+        self.detected_landmarks: set[int] = set()
+        self.n_fusions = 0
+        self.n_optimisations = 0
+        self.compute_time_s = 0.0
+        self.band = nees_band(1)
+        self._nees_sum = 0.0
+        self._nees_count = 0
+        self._in_band = 0
+        self._pos_err_sum = 0.0
+        self.last_nees = float("nan")
+        self.last_position_error_m = float("nan")
+        self.last_step = None
+        self.trace = Trace() if record_trace else None
+
+    # ------------------------------------------------------------------ stepping
+    def advance(self, n_iterations: int = 1) -> int:
+        """Process up to ``n_iterations`` steps; returns how many were processed."""
+        done = 0
+        while done < n_iterations:
+            step = next(self._steps, None)
+            if step is None:
+                self.done = True
+                break
+            self._process(step)
+            done += 1
+        if self.iteration >= len(self.stream):
+            self.done = True
+        return done
+
+    def _process(self, step) -> None:
+        system = self.system
+        start = time.perf_counter()
+        system.predict(step.odometry, step.dt_s)
+        if step.compass_rad is not None and self.stream.compass_std_rad is not None:
+            system.update_heading(step.compass_rad, self.stream.compass_std_rad)
+        if self.known_association:
+            system.update(step.z, known_ids=step.truth.landmark_ids)
+        else:
+            system.update(step.z)
+        self.compute_time_s += time.perf_counter() - start
+        truth_ids = step.truth.landmark_ids
+        associations = np.asarray(system.last_associations)
+        if len(associations) == len(truth_ids) and len(truth_ids):
+            self.feature_truth.record(associations, truth_ids)
+        self.detected_landmarks.update(int(i) for i in truth_ids[truth_ids >= 0])
+        self.iteration += 1
+        self.t_s = step.t_s
+        self.last_step = step
+        self._measure(step)
+
+    def _measure(self, step) -> None:
+        true_pose = step.truth.pose
+        if not np.all(np.isfinite(true_pose)):
+            return
+        mean, cov = self.system.pose()
+        value = nees(true_pose, mean, cov)
+        self.last_nees = value
+        self.failure.update(value, self.iteration)
+        self._nees_sum += value
+        self._nees_count += 1
+        self._in_band += int(self.band[0] <= value <= self.band[1])
+        err = float(np.linalg.norm(np.asarray(true_pose[:2]) - mean[:2]))
+        self.last_position_error_m = err
+        self._pos_err_sum += err
+        if self.trace is not None:
+            self.trace.t_s.append(step.t_s)
+            self.trace.nees.append(value)
+            self.trace.position_error_m.append(err)
+            self.trace.cov_trace.append(float(np.trace(cov)))
+            self.trace.est_poses.append(np.array(mean))
+            self.trace.true_poses.append(np.array(true_pose))
+
+    # ------------------------------------------------------------------ interface decisions
+    def fuse(self):
+        start = time.perf_counter()
+        report = self.system.fuse()
+        self.compute_time_s += time.perf_counter() - start
+        if report is not None:
+            self.feature_truth.merge(report.id_map)
+        self.n_fusions += 1
+        return report
+
+    def optimise(self):
+        start = time.perf_counter()
+        result = self.system.optimise()
+        self.compute_time_s += time.perf_counter() - start
+        self.n_optimisations += 1
+        return result
+
+    # ------------------------------------------------------------------ metrics
+    def map_score(self, min_existence: float = CONFIRMED_PROBABILITY):
+        lm = self.system.landmarks()
+        keep = np.asarray(lm.existence) >= min_existence
+        return score_map(
+            np.asarray(lm.ids)[keep],
+            np.asarray(lm.means)[keep],
+            self.feature_truth,
+            self.stream.landmarks_true,
+            self.detected_landmarks,
+        )
+
+    def metrics(self) -> dict:
+        """The metrics of DESIGN section 6 for the run so far."""
+        score = self.map_score()
+        n = max(self._nees_count, 1)
+        return {
+            "iterations": self.iteration,
+            "success": not self.failure.failed,
+            "failure_iteration": self.failure.failure_iteration,
+            "anees": self._nees_sum / n if self._nees_count else float("nan"),
+            "nees_in_band_fraction": self._in_band / n if self._nees_count else float("nan"),
+            "final_pose_error_m": self.last_position_error_m,
+            "mean_pose_error_m": self._pos_err_sum / n if self._nees_count else float("nan"),
+            "map_error_m": score.map_error_m,
+            "n_features": score.n_features,
+            "n_matched_landmarks": score.n_matched,
+            "n_spurious": score.n_spurious,
+            "n_missed": score.n_missed,
+            "n_fusions": self.n_fusions,
+            "n_optimisations": self.n_optimisations,
+            "filter_time_s": self.compute_time_s,
+        }

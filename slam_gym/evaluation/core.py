@@ -1,0 +1,155 @@
+"""The evaluation core: run one (system or policy, scenario, clutter level, seed).
+
+:func:`run_job` is the single run function behind ``slam-gym benchmark``, every ``slam-gym
+reproduce`` and the training callback. It builds the stream, the system (or the env and the
+policy), plays the whole path through :class:`~slam_gym.episode.Episode`, and returns the metrics
+of DESIGN section 6.
+
+System jobs (BB Table 1, CM) take options:
+``n_particles`` (500), ``fusion_interval_s`` (10, BB's rule; sub-map systems only),
+``optimise`` (``"never"``, ``"at-end"``: once after the last fusion, or ``"every-fusion"``),
+``back_end`` (``"ekf"``/``"relative"``), ``known_association`` (False; forced on for the ESDFs),
+``stop_on_failure`` (True: stop at BB's failure, the outcome is known), ``n_steps`` (cut the path).
+Policy jobs take ``n_particles`` (500), ``decision_interval`` (10), ``front_end``, ``back_end``,
+``model_path`` (for ``learned``); the env ends an episode at BB's failure.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from filters.validation import require
+from slam_gym.episode import Episode
+
+SYSTEM_OPTIONS = {
+    "n_particles": 500,
+    "fusion_interval_s": 10.0,
+    "optimise": "never",
+    "back_end": "ekf",
+    "known_association": False,
+    "stop_on_failure": True,
+    "n_steps": None,
+}
+POLICY_OPTIONS = {
+    "n_particles": 500,
+    "decision_interval": 10,
+    "front_end": "fastslam",
+    "back_end": "ekf",
+    "model_path": None,
+    "n_steps": None,
+}
+OPTIMISE_MODES = ("never", "at-end", "every-fusion")
+
+
+def _options(given: dict, defaults: dict, what: str) -> dict:
+    unknown = sorted(set(given) - set(defaults))
+    require(not unknown, f"{what} options", unknown, f"among {sorted(defaults)}")
+    return defaults | given
+
+
+def _seeds(seed: int):
+    """Independent generators for the filter from the job's seed (the world uses the seed)."""
+    return np.random.default_rng(np.random.SeedSequence([int(seed), 7919]))
+
+
+def make_job_stream(scenario: str, clutter_level, seed: int, n_steps=None):
+    from slam_gym.scenarios import make_stream
+
+    overrides = {}
+    if clutter_level is not None:
+        overrides["clutter_level"] = clutter_level
+    if n_steps is not None:
+        overrides["n_steps"] = int(n_steps)
+    return make_stream(scenario, seed=seed, **overrides)
+
+
+def run_system(
+    name: str,
+    stream,
+    seed: int,
+    *,
+    n_particles=500,
+    fusion_interval_s=10.0,
+    optimise="never",
+    back_end="ekf",
+    known_association=False,
+    stop_on_failure=True,
+    record_trace=False,
+) -> Episode:
+    """Run system ``name`` over ``stream`` on BB's fixed fusion schedule; the finished episode."""
+    from slam_gym.systems import KNOWN_ASSOCIATION_ONLY, SUBMAP_SYSTEMS, make_system
+
+    require(optimise in OPTIMISE_MODES, "optimise", optimise, f"one of {OPTIMISE_MODES}")
+    system = make_system(name, stream, _seeds(seed), n_particles=n_particles, back_end=back_end)
+    known = bool(known_association) or name in KNOWN_ASSOCIATION_ONLY
+    episode = Episode(system, stream, known_association=known, record_trace=record_trace)
+    submap = name in SUBMAP_SYSTEMS
+    # without sub-maps, advance in 1 s chunks so that a failure stops the run promptly
+    every = int(round((fusion_interval_s if submap else 1.0) / stream.dt_s))
+    while not episode.done:
+        episode.advance(max(1, every))
+        if stop_on_failure and episode.failure.failed:
+            break
+        if submap:
+            episode.fuse()
+            if optimise == "every-fusion":
+                episode.optimise()
+    if submap and optimise == "at-end":
+        episode.optimise()
+    return episode
+
+
+def run_policy(
+    policy_name: str,
+    scenario: str,
+    clutter_level,
+    seed: int,
+    *,
+    n_particles=500,
+    decision_interval=10,
+    front_end="fastslam",
+    back_end="ekf",
+    model_path=None,
+    n_steps=None,
+):
+    """Run an interface policy in the env for one episode (it ends at BB's failure too)."""
+    import policies
+    from slam_gym.envs.hybrid_slam import HybridSLAMEnv
+
+    env = HybridSLAMEnv(
+        scenario=scenario,
+        clutter_level=clutter_level,
+        n_particles=n_particles,
+        decision_interval=decision_interval,
+        front_end=front_end,
+        back_end=back_end,
+        n_steps=n_steps,
+    )
+    kwargs = {"path": model_path} if (policy_name == "learned" and model_path) else {}
+    policy = policies.make(policy_name, **kwargs)
+    policy.reset()
+    obs, info = env.reset(seed=int(seed), options={"world_seed": int(seed)})
+    while True:
+        action = policy.act(obs, info)
+        obs, _, terminated, truncated, info = env.step(action)
+        if terminated or truncated:
+            return env.episode, env
+
+
+def episode_result(episode: Episode, stream) -> dict:
+    metrics = episode.metrics()
+    metrics["alpha"] = stream.clutter.alpha
+    metrics["beta"] = stream.clutter.beta
+    return metrics
+
+
+def run_job(job) -> dict:
+    """The run function of the evaluation machinery (picklable, module level)."""
+    if job.kind == "system":
+        opts = _options(job.options_dict(), SYSTEM_OPTIONS, "system")
+        stream = make_job_stream(job.scenario, job.clutter_level, job.seed, opts.pop("n_steps"))
+        episode = run_system(job.name, stream, job.seed, **opts)
+        return episode_result(episode, stream)
+    opts = _options(job.options_dict(), POLICY_OPTIONS, "policy")
+    episode, env = run_policy(job.name, job.scenario, job.clutter_level, job.seed, **opts)
+    return episode_result(episode, env.stream)

@@ -1,0 +1,280 @@
+"""Learned policies (policies.learned): stable-baselines3 zips trained on a toy interface env."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import zipfile
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium import spaces
+
+import policies
+import policies.learned as learned
+from policies.base import discrete_to_multi, multi_to_discrete
+
+N_OBS = 5
+
+
+class ToyInterfaceEnv(gym.Env):
+    """A tiny stand-in for the interface env: Box observation, (fuse, optimise) action.
+
+    Reward 1 for fusing when the first feature (a 'local-map age') is above 0.5 and for not
+    optimising; episodes of 16 decisions. ``discrete=True`` gives the Discrete(4) action space of
+    the env's DQN wrapper, decoded with ``discrete_to_multi``.
+    """
+
+    def __init__(self, discrete: bool = False):
+        super().__init__()
+        self.discrete = discrete
+        self.observation_space = spaces.Box(0.0, 1.0, shape=(N_OBS,), dtype=np.float32)
+        self.action_space = spaces.Discrete(4) if discrete else spaces.MultiDiscrete([2, 2])
+        self._t = 0
+        self._obs = np.zeros(N_OBS, np.float32)
+
+    def _draw(self):
+        return self.np_random.random(N_OBS).astype(np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self._t = 0
+        self._obs = self._draw()
+        return self._obs, {}
+
+    def step(self, action):
+        fuse, optimise = discrete_to_multi(action) if self.discrete else np.asarray(action)
+        reward = float(fuse == (self._obs[0] > 0.5)) + float(optimise == 0)
+        self._t += 1
+        self._obs = self._draw()
+        return self._obs, reward, False, self._t >= 16, {}
+
+
+def _observations(n=20, seed=7):
+    return np.random.default_rng(seed).random((n, N_OBS)).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def ppo_zip(tmp_path_factory):
+    from stable_baselines3 import PPO
+
+    model = PPO(
+        "MlpPolicy",
+        ToyInterfaceEnv(),
+        n_steps=64,
+        batch_size=32,
+        n_epochs=2,
+        seed=0,
+        device="cpu",
+        policy_kwargs={"net_arch": [16]},
+    )
+    model.learn(total_timesteps=256)
+    path = tmp_path_factory.mktemp("ppo") / "ppo-model.zip"
+    model.save(path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def dqn_zip(tmp_path_factory):
+    from stable_baselines3 import DQN
+
+    model = DQN(
+        "MlpPolicy",
+        ToyInterfaceEnv(discrete=True),
+        learning_starts=32,
+        buffer_size=1000,
+        batch_size=16,
+        train_freq=4,
+        seed=0,
+        device="cpu",
+        policy_kwargs={"net_arch": [16]},
+    )
+    model.learn(total_timesteps=256)
+    path = tmp_path_factory.mktemp("dqn") / "dqn-model.zip"
+    model.save(path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def a2c_zip(tmp_path_factory):
+    from stable_baselines3 import A2C
+
+    model = A2C(
+        "MlpPolicy",
+        ToyInterfaceEnv(),
+        n_steps=8,
+        seed=0,
+        device="cpu",
+        policy_kwargs={"net_arch": [16]},
+    )
+    model.learn(total_timesteps=128)
+    path = tmp_path_factory.mktemp("a2c") / "a2c-model.zip"
+    model.save(path)
+    return path
+
+
+# ------------------------------------------------------------------------------------------------
+# Discrete(4) <-> (fuse, optimise)
+# ------------------------------------------------------------------------------------------------
+def test_discrete_mapping_is_2_fuse_plus_optimise_and_a_bijection():
+    expected = {0: (0, 0), 1: (0, 1), 2: (1, 0), 3: (1, 1)}
+    for a, pair in expected.items():
+        out = discrete_to_multi(a)
+        assert out.dtype == np.int64 and out.shape == (2,)
+        assert tuple(out.tolist()) == pair
+        assert multi_to_discrete(out) == a
+        assert multi_to_discrete(np.array(pair)) == a
+        assert discrete_to_multi(np.int64(a)).tolist() == list(pair)
+        assert discrete_to_multi(np.array([a])).tolist() == list(pair)  # predict's shape (1,)
+
+
+@pytest.mark.parametrize("bad", [-1, 4, 2.0, True, "1", np.array([0, 1])])
+def test_discrete_to_multi_rejects_bad_actions(bad):
+    with pytest.raises(ValueError, match=r"discrete action=.*must be an integer in \[0, 3\]"):
+        discrete_to_multi(bad)
+
+
+@pytest.mark.parametrize("bad", [(0, 2), (1,), (1, 0, 1), (0.0, 1.0), ((0, 1), (1, 0))])
+def test_multi_to_discrete_rejects_bad_pairs(bad):
+    with pytest.raises(ValueError, match="action pair=.*must be two integers"):
+        multi_to_discrete(bad)
+
+
+# ------------------------------------------------------------------------------------------------
+# Loading and acting
+# ------------------------------------------------------------------------------------------------
+def _check_deterministic_actions(policy, model, decode):
+    obs = _observations()
+    first = [policy.act(o, {}) for o in obs]
+    policy.reset()
+    second = [policy.act(o, {"features": {}}) for o in obs]
+    for a, b, o in zip(first, second, obs, strict=True):
+        assert a.dtype == np.int64 and a.shape == (2,)
+        assert set(a.tolist()) <= {0, 1}
+        assert a.tolist() == b.tolist()
+        raw, _ = model.predict(o, deterministic=True)
+        assert a.tolist() == decode(raw).tolist()
+    return first
+
+
+def test_ppo_zip_acts_deterministically_with_the_env_action_shape(ppo_zip):
+    from stable_baselines3 import PPO
+
+    policy = policies.make("learned", path=ppo_zip)
+    assert policy.algo == "ppo"
+    assert policy.required_features == ()
+    assert policy.observation_shape == (N_OBS,)
+    assert not policy.discrete
+    reference = PPO.load(ppo_zip, device="cpu")
+    _check_deterministic_actions(policy, reference, lambda raw: np.asarray(raw, np.int64))
+    # a float64 list works too (cast to the model's float32 Box)
+    obs = _observations(1)[0]
+    assert policy.act(obs.astype(np.float64).tolist(), {}).tolist() == policy.act(obs, {}).tolist()
+
+
+def test_dqn_zip_maps_discrete_actions_to_pairs(dqn_zip):
+    from stable_baselines3 import DQN
+
+    policy = policies.make("learned", path=str(dqn_zip))  # algo detected from the zip
+    assert policy.algo == "dqn"
+    assert policy.discrete
+    reference = DQN.load(dqn_zip, device="cpu")
+    actions = _check_deterministic_actions(policy, reference, discrete_to_multi)
+    flat = [int(reference.predict(o, deterministic=True)[0]) for o in _observations()]
+    assert [multi_to_discrete(a) for a in actions] == flat
+
+
+def test_a2c_by_option_and_by_detection(a2c_zip):
+    from stable_baselines3 import A2C
+
+    assert learned.detect_algorithm(a2c_zip) == "a2c"
+    by_option = policies.make("learned", path=a2c_zip, algo="A2C")
+    detected = policies.make("learned", path=a2c_zip)
+    assert by_option.algo == detected.algo == "a2c"
+    reference = A2C.load(a2c_zip, device="cpu")
+    _check_deterministic_actions(by_option, reference, lambda raw: np.asarray(raw, np.int64))
+
+
+def test_path_without_zip_suffix_is_accepted(ppo_zip):
+    policy = policies.make("learned", path=str(ppo_zip)[: -len(".zip")])
+    assert policy.path == ppo_zip
+
+
+def test_detect_algorithm(ppo_zip, dqn_zip):
+    assert learned.detect_algorithm(ppo_zip) == "ppo"
+    assert learned.detect_algorithm(dqn_zip) == "dqn"
+
+
+def test_algo_contradicting_the_zip_raises(ppo_zip, dqn_zip):
+    with pytest.raises(ValueError, match="algo='dqn'.*'ppo'"):
+        policies.make("learned", path=ppo_zip, algo="dqn")
+    with pytest.raises(ValueError, match="algo='ppo'.*'dqn'"):
+        policies.make("learned", path=dqn_zip, algo="ppo")
+
+
+@pytest.mark.parametrize("algo", ["sac", "", 3])
+def test_unknown_algo_raises(ppo_zip, algo):
+    with pytest.raises(ValueError, match="algo=.*must be one of 'ppo', 'a2c', 'dqn'"):
+        policies.make("learned", path=ppo_zip, algo=algo)
+
+
+def test_bad_options_raise(ppo_zip):
+    with pytest.raises(ValueError, match="deterministic=1 is invalid"):
+        policies.make("learned", path=ppo_zip, deterministic=1)
+    with pytest.raises(ValueError, match="path=.*must be a file path"):
+        policies.make("learned", path=3)
+    with pytest.raises(ValueError, match="temperature.*path, algo, deterministic, device"):
+        policies.make("learned", path=ppo_zip, temperature=1.0)
+
+
+def test_wrong_observation_shape_raises(ppo_zip):
+    policy = policies.make("learned", path=ppo_zip)
+    with pytest.raises(ValueError, match=r"obs shape=\(4,\).*\(5,\)"):
+        policy.act(np.zeros(4, np.float32), {})
+
+
+def test_model_with_a_foreign_action_space_is_rejected(tmp_path):
+    from stable_baselines3 import PPO
+
+    env = ToyInterfaceEnv()
+    env.action_space = spaces.Discrete(3)
+    path = tmp_path / "three.zip"
+    PPO("MlpPolicy", env, n_steps=16, batch_size=16, device="cpu").save(path)
+    with pytest.raises(ValueError, match=r"model action_space=.*MultiDiscrete\(\[2, 2\]\)"):
+        policies.make("learned", path=path)
+
+
+def test_not_a_model_zip_raises(tmp_path):
+    path = tmp_path / "junk.zip"
+    with zipfile.ZipFile(path, "w") as archive:
+        archive.writestr("readme.txt", "not a model")
+    with pytest.raises(ValueError, match="must be a stable-baselines3 model zip"):
+        policies.make("learned", path=path)
+
+
+def test_missing_model_says_how_to_train_one(tmp_path, monkeypatch):
+    monkeypatch.setattr(learned, "DEFAULT_MODEL_PATH", tmp_path / "learned-default.zip")
+    with pytest.raises(FileNotFoundError, match="slam-gym train") as excinfo:
+        policies.make("learned")
+    assert "learned-default.zip" in str(excinfo.value)
+    with pytest.raises(FileNotFoundError, match="slam-gym train"):
+        policies.make("learned", path=tmp_path / "nowhere.zip")
+
+
+def test_default_model_path_is_inside_the_package():
+    assert learned.DEFAULT_MODEL_PATH.name == "learned-default.zip"
+    assert learned.DEFAULT_MODEL_PATH.parent.name == "models"
+    assert learned.DEFAULT_MODEL_PATH.parent.parent.name == "policies"
+
+
+def test_importing_policies_loads_neither_sb3_nor_the_rest_of_the_project():
+    code = (
+        "import sys, policies; "
+        "bad = [m for m in ('stable_baselines3', 'torch', 'gymnasium', 'filters', 'slam_gym') "
+        "if m in sys.modules]; print(','.join(bad))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60
+    )
+    assert out.stdout.strip() == ""
