@@ -1,0 +1,664 @@
+"""UTIAS MRCLAM data sets as a :class:`~slam_gym.stream.Stream` (DESIGN section 2).
+
+Leung, Halpern, Barfoot, Liu, "The UTIAS Multi-Robot Cooperative Localization and Mapping
+Dataset", IJRR 30(8), 2011. A data set directory holds ``Barcodes.dat``,
+``Landmark_Groundtruth.dat`` and, per robot N = 1..5, ``RobotN_Odometry.dat`` (t, v, omega),
+``RobotN_Measurement.dat`` (t, barcode, range, bearing) and ``RobotN_Groundtruth.dat``
+(t, x, y, theta; motion capture). Files are parsed with numpy ('#' comment headers).
+
+How the stream is built (all deterministic: the same directory and options give the same stream
+bit for bit):
+
+* **Time grid.** The stream starts at ``t0`` = the later of the first odometry row and the first
+  ground-truth row; ``initial_pose`` is the ground truth interpolated at ``t0``. Step ``k`` covers
+  the interval ``(t0 + k dt, t0 + (k + 1) dt]`` with ``dt = dt_s`` (default 0.1 s, the 10 Hz filter
+  rate of BB 5.2); ``Step.t_s`` is the end of the interval in seconds since ``t0``. The stream ends
+  at the last full step before the earlier of the last odometry row and the last ground-truth
+  row.
+* **Odometry.** The logged (v, omega) rows are a zero-order-hold signal (a row holds until the
+  next; rows sharing a time stamp: the last wins). A step's odometry is its time-weighted mean over
+  the step (:func:`slam_gym.datasets.align.hold_average`).
+* **Observations.** The measurement rows whose time falls in the step, in file order, as
+  (range, bearing). A measurement taken up to ``dt`` before the step's end is used at the end:
+  at MRCLAM's speeds (< 0.09 m/s, < 0.6 rad/s) and dt = 0.1 s this moves it by < 1 cm and
+  < 0.06 rad. The noise estimate below compares each row with the true pose at its *step's end*,
+  so it includes this quantisation (in Dataset 7 it raises the bearing std from about 0.010 to
+  0.016 rad; a smaller ``dt_s`` lowers it). At dt = 0.1 s no landmark is seen twice within one
+  step in Dataset 7.
+* **Barcodes.** A row's barcode is mapped to a subject through ``Barcodes.dat`` (barcode and
+  subject numbers overlap). Landmarks are the subjects listed in ``Landmark_Groundtruth.dat``
+  (``Stream.landmarks_true`` holds them in subject order; ``truth.landmark_ids`` indexes it).
+  **Decision:** sightings of other robots (subjects 1-5, about 21 % of the rows) and barcodes in
+  no table are not landmarks and are *dropped* by default: they never reach a filter. With
+  ``robot_sightings_as_clutter=True`` they are kept as clutter (truth id -1): a moving target is
+  then a realistic false alarm for the existence logic (BB (11)).
+* **Outliers.** A landmark row whose residual against the ground truth lies outside the
+  ``outlier_gate_probability`` (default 0.9999) chi-square gate of the estimated noise is labelled
+  a false alarm (truth id -1), since it does not measure its landmark (misread barcodes; e.g.
+  range errors of 3-6 m in Robots 3 and 5). It stays in ``z``: a filter must reject it.
+* **Visibility.** ``truth.visible_ids`` of every step lists the landmarks inside the stream's
+  sensor field (range and fov) from the true pose: every step counts as a scan, consistent with
+  alpha being a per-step rate (below).
+* **Known association.** ``known_association=True`` only sets ``metadata["known_association"]``:
+  it means the runner passes ``step.truth.landmark_ids`` to a known-association filter
+  (-1 = clutter, to be ignored). The observations are the same in both modes.
+
+Models estimated from the data against the ground truth (:func:`calibrate_mrclam`; every
+estimate is also in ``Stream.metadata["calibration"]``; an explicit keyword overrides it):
+
+* **Sensor noise** (:func:`estimate_sensor_noise`): residuals z - h(x_true, m_true) of the
+  landmark rows, the true pose interpolated at the step's end; the std of range and bearing is
+  the root mean square *about zero* (so a bias counts as noise: the filters assume zero mean) of
+  the inliers of an iterated chi-square gate.
+* **Field of view** (:func:`estimate_field_of_view`): max range = 99.5 % quantile of the inlier
+  ranges; fov = twice the 99.5 % quantile of |bearing| (the camera sees about +-0.6 rad).
+* **Odometry noise** (:func:`estimate_odometry_noise`): a :class:`ProportionalVelocityNoise`
+  (BB 5.2 form, std = hypot(fraction |u|, floor)). The true (v, omega) over windows of
+  ``odometry_window_s`` (default 1 s) come from the differentiated ground truth; the error of the
+  window means is converted to a per-step std by the white-noise rule (variance x window / dt) —
+  i.e. the per-step noise that reproduces the dead-reckoning error growth over one window (the
+  errors are correlated in time, so the per-step errors themselves are smaller but the growth
+  larger; differentiating the motion capture over 0.1 s would also add ~1 cm/s of noise). The
+  fractions and floors are fitted by non-negative least squares to the squared errors; floors
+  are at least 1e-3 so the covariance stays regular at rest.
+* **Clutter** (:func:`estimate_detection_rates`): alpha = (steps in which an in-view landmark is
+  detected) / (landmark-in-view events), per *filter step* (the camera delivers a frame about
+  every 0.24 s and rows only for frames with a detection, so alpha per 0.1 s step is well below
+  the per-frame rate); beta = false alarms in the stream (outliers, plus robot sightings and
+  unknown barcodes when kept) / in-view events.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import nnls
+
+from filters.geometry import wrap_angle
+from filters.models import (
+    ClutterModel,
+    ProportionalVelocityNoise,
+    RangeBearingSensor,
+    innovation,
+    observe,
+)
+from filters.validation import check_range, require
+from slam_gym.datasets.align import hold_average, interpolate_poses
+from slam_gym.stream import Step, StepTruth, Stream
+
+logger = logging.getLogger(__name__)
+
+ROBOT_SUBJECTS = (1, 2, 3, 4, 5)
+DEFAULT_DT_S = 0.1
+DEFAULT_ODOMETRY_WINDOW_S = 1.0
+DEFAULT_OUTLIER_GATE_PROBABILITY = 0.9999
+FIELD_QUANTILE = 0.995
+MIN_ODOMETRY_FLOOR = 1e-3
+
+
+# --------------------------------------------------------------------------- raw files
+@dataclass(frozen=True)
+class MrclamRecording:
+    """The raw tables of one robot of one MRCLAM data set (times in Unix seconds).
+
+    ``barcode_subjects`` (B, 2) rows (subject, barcode); ``landmark_subjects`` (N,) and
+    ``landmarks_xy`` (N, 2) in subject order; ``odometry`` (R, 3) t, v, omega;
+    ``groundtruth`` (G, 4) t, x, y, theta with strictly increasing t; ``measurements`` (M, 4)
+    t, barcode, range, bearing in file order.
+    """
+
+    directory: Path
+    robot: int
+    barcode_subjects: np.ndarray
+    landmark_subjects: np.ndarray
+    landmarks_xy: np.ndarray
+    odometry: np.ndarray
+    groundtruth: np.ndarray
+    measurements: np.ndarray
+
+    def measurement_subjects(self) -> np.ndarray:
+        """Subject number of each measurement row through ``Barcodes.dat``; -1 = unknown."""
+        barcodes = self.measurements[:, 1].astype(np.int64)
+        table = self.barcode_subjects
+        order = np.argsort(table[:, 1], kind="stable")
+        sorted_codes = table[order, 1]
+        pos = np.clip(np.searchsorted(sorted_codes, barcodes), 0, sorted_codes.size - 1)
+        found = sorted_codes[pos] == barcodes
+        return np.where(found, table[order, 0][pos], -1).astype(np.int64)
+
+    def measurement_landmark_index(self) -> np.ndarray:
+        """Index into ``landmarks_xy`` of each measurement row; -1 = not a landmark."""
+        subjects = self.measurement_subjects()
+        pos = np.clip(
+            np.searchsorted(self.landmark_subjects, subjects), 0, self.landmark_subjects.size - 1
+        )
+        found = self.landmark_subjects[pos] == subjects
+        return np.where(found, pos, -1).astype(np.int64)
+
+
+def _load_table(path: Path, columns: int) -> np.ndarray:
+    require(path.is_file(), "directory", str(path.parent), f"a directory containing {path.name}")
+    table = np.loadtxt(path, comments="#", ndmin=2, dtype=float)
+    require(
+        table.shape[1] == columns, path.name, f"{table.shape[1]} columns", f"{columns} columns"
+    )
+    require(bool(np.all(np.isfinite(table))), path.name, "non-finite values", "finite numbers")
+    return table
+
+
+def read_mrclam(directory, robot: int = 1) -> MrclamRecording:
+    """Parse the tables of ``robot`` (1-5) in an MRCLAM data set ``directory``."""
+    require(
+        isinstance(robot, (int, np.integer)) and not isinstance(robot, bool) and 1 <= robot <= 5,
+        "robot",
+        robot,
+        "an integer in [1, 5]",
+    )
+    directory = Path(directory)
+    require(directory.is_dir(), "directory", str(directory), "an existing MRCLAM directory")
+    barcodes = _load_table(directory / "Barcodes.dat", 2).astype(np.int64)
+    landmarks = _load_table(directory / "Landmark_Groundtruth.dat", 5)
+    landmarks = landmarks[np.argsort(landmarks[:, 0], kind="stable")]
+    odometry = _load_table(directory / f"Robot{robot}_Odometry.dat", 3)
+    groundtruth = _load_table(directory / f"Robot{robot}_Groundtruth.dat", 4)
+    measurements = _load_table(directory / f"Robot{robot}_Measurement.dat", 4)
+    require(
+        bool(np.all(np.diff(odometry[:, 0]) >= 0.0)),
+        f"Robot{robot}_Odometry.dat",
+        "decreasing times",
+        "non-decreasing times",
+    )
+    require(
+        bool(np.all(np.diff(measurements[:, 0]) >= 0.0)),
+        f"Robot{robot}_Measurement.dat",
+        "decreasing times",
+        "non-decreasing times",
+    )
+    order = np.argsort(groundtruth[:, 0], kind="stable")
+    groundtruth = groundtruth[order]
+    _, first = np.unique(groundtruth[:, 0], return_index=True)
+    groundtruth = groundtruth[first]
+    return MrclamRecording(
+        directory=directory,
+        robot=int(robot),
+        barcode_subjects=barcodes,
+        landmark_subjects=landmarks[:, 0].astype(np.int64),
+        landmarks_xy=landmarks[:, 1:3].copy(),
+        odometry=odometry,
+        groundtruth=groundtruth,
+        measurements=measurements,
+    )
+
+
+# --------------------------------------------------------------------------- estimators
+@dataclass(frozen=True)
+class SensorNoiseEstimate:
+    """Range-bearing noise from residuals against the truth (see :func:`estimate_sensor_noise`)."""
+
+    range_std_m: float
+    bearing_std_rad: float
+    range_bias_m: float
+    bearing_bias_rad: float
+    n_inliers: int
+    n_outliers: int
+    inlier: np.ndarray
+
+
+def estimate_sensor_noise(
+    residuals, *, gate_probability: float = DEFAULT_OUTLIER_GATE_PROBABILITY, max_iterations=100
+) -> SensorNoiseEstimate:
+    """Noise std of (range, bearing) from residuals (K, 2) (bearing wrapped), outliers excluded.
+
+    Start from sigma = 1.4826 median|e| (robust), then iterate: inliers are the rows with
+    (e_r / sigma_r)^2 + (e_b / sigma_b)^2 inside the chi-square(2) quantile
+    ``-2 ln(1 - gate_probability)``; sigma = root mean square about zero of the inliers; stop when
+    the inlier set no longer changes. The root mean square about zero includes any bias (reported
+    separately as the inlier mean) because the filters model zero-mean noise.
+    """
+    e = np.asarray(residuals, dtype=float)
+    require(e.ndim == 2 and e.shape[1] == 2, "residuals", e.shape, "a (K, 2) array")
+    require(e.shape[0] >= 3, "residuals", e.shape[0], "at least 3 rows")
+    require(bool(np.all(np.isfinite(e))), "residuals", "non-finite values", "finite numbers")
+    check_range("gate_probability", gate_probability, 0.5, 1.0, high_open=True)
+    gate2 = -2.0 * np.log1p(-gate_probability)
+    sigma = 1.4826 * np.median(np.abs(e), axis=0)
+    sigma = np.where(sigma > 0.0, sigma, np.sqrt(np.mean(e**2, axis=0)))
+    require(bool(np.all(sigma > 0.0)), "residuals", "all zero", "some spread in each column")
+    inlier = np.ones(e.shape[0], dtype=bool)
+    for _ in range(max_iterations):
+        new = np.sum((e / sigma) ** 2, axis=1) <= gate2
+        if new.sum() < 3:
+            break
+        sigma = np.sqrt(np.mean(e[new] ** 2, axis=0))
+        if np.array_equal(new, inlier):
+            break
+        inlier = new
+    bias = e[inlier].mean(axis=0)
+    return SensorNoiseEstimate(
+        range_std_m=float(sigma[0]),
+        bearing_std_rad=float(sigma[1]),
+        range_bias_m=float(bias[0]),
+        bearing_bias_rad=float(bias[1]),
+        n_inliers=int(inlier.sum()),
+        n_outliers=int((~inlier).sum()),
+        inlier=inlier,
+    )
+
+
+def estimate_field_of_view(z, *, quantile: float = FIELD_QUANTILE) -> tuple[float, float]:
+    """(max range, fov) from observations z (K, 2): the ``quantile`` of the ranges and twice the
+    ``quantile`` of |bearing| (the sensor model's field is symmetric about the heading)."""
+    z = np.asarray(z, dtype=float)
+    require(z.ndim == 2 and z.shape[1] == 2 and z.shape[0] >= 1, "z", z.shape, "a (K, 2) array")
+    check_range("quantile", quantile, 0.5, 1.0)
+    max_range = float(np.quantile(z[:, 0], quantile))
+    fov = float(min(2.0 * np.quantile(np.abs(wrap_angle(z[:, 1])), quantile), 2.0 * np.pi))
+    return max_range, fov
+
+
+@dataclass(frozen=True)
+class OdometryNoiseEstimate:
+    """A fitted :class:`ProportionalVelocityNoise` (see :func:`estimate_odometry_noise`)."""
+
+    v_fraction: float
+    omega_fraction: float
+    v_floor_mps: float
+    omega_floor_radps: float
+    v_bias_mps: float
+    omega_bias_radps: float
+    window_s: float
+    n_windows: int
+
+    def model(self) -> ProportionalVelocityNoise:
+        return ProportionalVelocityNoise(
+            v_fraction=self.v_fraction,
+            omega_fraction=self.omega_fraction,
+            v_floor_mps=self.v_floor_mps,
+            omega_floor_radps=self.omega_floor_radps,
+        )
+
+
+def true_velocities(row_t, poses, grid_t) -> np.ndarray:
+    """Mean true (v, omega) (M, 2) over each interval of ``grid_t`` (M + 1,) from a pose track.
+
+    omega = wrapped heading change / interval; v = arc length / interval, the arc being the
+    chord projected on the mid heading divided by sinc(dtheta / 2) (exact for a constant turn
+    rate, the unicycle of :func:`filters.models.motion`).
+    """
+    p = interpolate_poses(row_t, poses, grid_t)
+    dt = np.diff(np.asarray(grid_t, dtype=float))
+    dtheta = wrap_angle(np.diff(p[:, 2]))
+    mid = p[:-1, 2] + 0.5 * dtheta
+    chord = np.diff(p[:, 0]) * np.cos(mid) + np.diff(p[:, 1]) * np.sin(mid)
+    arc = chord / np.sinc(0.5 * dtheta / np.pi)
+    return np.column_stack([arc / dt, dtheta / dt])
+
+
+def estimate_odometry_noise(
+    odometry_rows,
+    groundtruth_rows,
+    t_start: float,
+    t_end: float,
+    *,
+    dt_s: float,
+    window_s: float = DEFAULT_ODOMETRY_WINDOW_S,
+    min_floor: float = MIN_ODOMETRY_FLOOR,
+) -> OdometryNoiseEstimate:
+    """Fit a per-step :class:`ProportionalVelocityNoise` to odometry against ground truth.
+
+    ``odometry_rows`` (R, 3) t, v, omega (zero-order hold); ``groundtruth_rows`` (G, 4)
+    t, x, y, theta. Over consecutive windows of ``window_s`` in [t_start, t_end] the error e of
+    the window-mean odometry against :func:`true_velocities` is computed; with n = window_s / dt_s
+    steps per window, a per-step white noise of variance s^2 gives a window-mean variance
+    s^2 / n, so s^2 = n e^2 is fitted per component as ``fraction^2 u^2 + floor^2`` (u the
+    measured window mean) by non-negative least squares. Floors are raised to ``min_floor``.
+    """
+    check_range("dt_s", dt_s, 0.0, 10.0, low_open=True)
+    check_range("window_s", window_s, dt_s, 1000.0)
+    check_range("min_floor", min_floor, 0.0, 1.0)
+    odometry_rows = np.asarray(odometry_rows, dtype=float)
+    groundtruth_rows = np.asarray(groundtruth_rows, dtype=float)
+    n = int(np.floor((t_end - t_start) / window_s + 1e-9))
+    require(n >= 4, "t_end", t_end, f"at least 4 windows of {window_s} s after t_start={t_start}")
+    grid = t_start + window_s * np.arange(n + 1)
+    measured = hold_average(odometry_rows[:, 0], odometry_rows[:, 1:3], grid)
+    truth = true_velocities(groundtruth_rows[:, 0], groundtruth_rows[:, 1:4], grid)
+    ok = np.all(np.isfinite(truth), axis=1)
+    require(int(ok.sum()) >= 4, "groundtruth_rows", "too short", "covering at least 4 windows")
+    u, err = measured[ok], measured[ok] - truth[ok]
+    steps_per_window = window_s / dt_s
+    fractions, floors = [], []
+    for c in range(2):
+        A = np.column_stack([u[:, c] ** 2, np.ones(u.shape[0])])
+        coef, _ = nnls(A, steps_per_window * err[:, c] ** 2)
+        fractions.append(float(min(np.sqrt(coef[0]), 5.0)))
+        floors.append(float(min(max(np.sqrt(coef[1]), min_floor), 10.0)))
+    bias = err.mean(axis=0)
+    return OdometryNoiseEstimate(
+        v_fraction=fractions[0],
+        omega_fraction=fractions[1],
+        v_floor_mps=floors[0],
+        omega_floor_radps=floors[1],
+        v_bias_mps=float(bias[0]),
+        omega_bias_radps=float(bias[1]),
+        window_s=float(window_s),
+        n_windows=int(ok.sum()),
+    )
+
+
+def landmarks_in_view(step_poses, landmarks_xy, sensor: RangeBearingSensor) -> np.ndarray:
+    """(S, N) bool: landmark n inside the sensor field (range and fov) from true pose s."""
+    step_poses = np.asarray(step_poses, dtype=float)
+    landmarks_xy = np.asarray(landmarks_xy, dtype=float)
+    z = observe(step_poses[:, None, :], landmarks_xy[None, :, :])
+    return sensor.in_view(z) & np.all(np.isfinite(z), axis=-1)
+
+
+@dataclass(frozen=True)
+class DetectionRateEstimate:
+    """Per-step sensor reliability (BB 5.1) measured against the truth."""
+
+    alpha: float
+    beta: float
+    n_in_view: int
+    n_detected_in_view: int
+    n_detected_out_of_view: int
+    n_false_alarms: int
+
+
+def estimate_detection_rates(
+    step_poses, landmarks_xy, sensor: RangeBearingSensor, det_steps, det_landmarks, n_false_alarms
+) -> DetectionRateEstimate:
+    """alpha = detected in-view (step, landmark) pairs / in-view pairs; beta = false alarms /
+    in-view pairs.
+
+    ``step_poses`` (S, 3) true poses at the steps; a landmark is in view when
+    ``sensor.in_view(observe(pose, m))``; ``det_steps``, ``det_landmarks`` (D,) the step and
+    landmark index of each true detection (several in one step count once).
+    """
+    in_view = landmarks_in_view(step_poses, landmarks_xy, sensor)
+    detected = np.zeros(in_view.shape, dtype=bool)
+    rows = np.asarray(det_steps, dtype=np.int64)
+    detected[rows, np.asarray(det_landmarks, dtype=np.int64)] = True
+    n_in_view = int(in_view.sum())
+    n_hit = int((detected & in_view).sum())
+    require(n_in_view > 0, "sensor", sensor, "a field in which some landmark is in view")
+    require(n_hit > 0, "det_steps", "no detection in view", "at least one in-view detection")
+    return DetectionRateEstimate(
+        alpha=n_hit / n_in_view,
+        beta=min(n_false_alarms / n_in_view, 0.999),
+        n_in_view=n_in_view,
+        n_detected_in_view=n_hit,
+        n_detected_out_of_view=int((detected & ~in_view).sum()),
+        n_false_alarms=int(n_false_alarms),
+    )
+
+
+# --------------------------------------------------------------------------- calibration
+@dataclass(frozen=True)
+class MrclamCalibration:
+    """Every model parameter estimated from one robot's data (see the module docstring)."""
+
+    sensor_noise: SensorNoiseEstimate
+    odometry: OdometryNoiseEstimate
+    detection: DetectionRateEstimate
+    max_range_m: float
+    fov_rad: float
+
+    def as_dict(self) -> dict:
+        """Flat numbers (no arrays), for ``Stream.metadata`` and reports."""
+        noise = {k: v for k, v in asdict(self.sensor_noise).items() if k != "inlier"}
+        return {
+            **noise,
+            "max_range_m": self.max_range_m,
+            "fov_rad": self.fov_rad,
+            **{f"odometry_{k}": v for k, v in asdict(self.odometry).items()},
+            **asdict(self.detection),
+        }
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """The time grid and the classification of the measurement rows of one recording."""
+
+    t0: float
+    n_steps: int
+    rel_t: np.ndarray  # (n + 1,) boundaries in seconds since t0
+    row_step: np.ndarray  # (M,) step of each measurement row, -1 outside the grid
+    row_landmark: np.ndarray  # (M,) landmark index, -1 = not a landmark
+    row_is_robot: np.ndarray  # (M,) sighting of a robot subject
+    residuals: np.ndarray  # (M, 2) z - h(x_true(step end), m_true) for landmark rows in the grid
+    step_poses: np.ndarray  # (n, 3) true poses at the step ends
+
+
+def _layout(rec: MrclamRecording, dt_s: float) -> _Layout:
+    odo_t, gt_t = rec.odometry[:, 0], rec.groundtruth[:, 0]
+    t0 = float(max(odo_t[0], gt_t[0]))
+    t_end = float(min(odo_t[-1], gt_t[-1]))
+    n = int(np.floor((t_end - t0) / dt_s + 1e-9))
+    while n > 0 and t0 + dt_s * n > t_end:
+        n -= 1
+    require(n >= 1, "dt_s", dt_s, f"shorter than the recording ({t_end - t0:.3f} s)")
+    rel_t = dt_s * np.arange(n + 1)
+    boundaries = t0 + rel_t
+    m_t = rec.measurements[:, 0]
+    row_step = np.searchsorted(boundaries, m_t, side="left") - 1
+    row_step = np.where((row_step >= 0) & (row_step < n), row_step, -1)
+    row_landmark = rec.measurement_landmark_index()
+    subjects = rec.measurement_subjects()
+    row_is_robot = np.isin(subjects, ROBOT_SUBJECTS) & (row_landmark < 0)
+    step_poses = interpolate_poses(gt_t, rec.groundtruth[:, 1:4], boundaries[1:])
+    residuals = np.full((m_t.size, 2), np.nan)
+    lm = (row_landmark >= 0) & (row_step >= 0)
+    predicted = observe(step_poses[row_step[lm]], rec.landmarks_xy[row_landmark[lm]])
+    residuals[lm] = innovation(rec.measurements[lm, 2:4], predicted)
+    return _Layout(t0, n, rel_t, row_step, row_landmark, row_is_robot, residuals, step_poses)
+
+
+def calibrate_mrclam(
+    rec: MrclamRecording,
+    *,
+    dt_s: float = DEFAULT_DT_S,
+    odometry_window_s: float = DEFAULT_ODOMETRY_WINDOW_S,
+    outlier_gate_probability: float = DEFAULT_OUTLIER_GATE_PROBABILITY,
+    robot_sightings_as_clutter: bool = False,
+    sensor: RangeBearingSensor | None = None,
+) -> MrclamCalibration:
+    """Estimate sensor noise, field of view, odometry noise and clutter rates for one robot.
+
+    The whole recording is used (on the ``dt_s`` grid of :func:`load_mrclam`). ``sensor``, when
+    given, replaces the estimated sensor for the in-view test of the clutter rates.
+    """
+    return _calibrate(
+        rec,
+        _layout(rec, dt_s),
+        dt_s=dt_s,
+        odometry_window_s=odometry_window_s,
+        outlier_gate_probability=outlier_gate_probability,
+        robot_sightings_as_clutter=robot_sightings_as_clutter,
+        sensor=sensor,
+    )[0]
+
+
+def _calibrate(
+    rec, lay, *, dt_s, odometry_window_s, outlier_gate_probability, robot_sightings_as_clutter,
+    sensor=None, range_std_m=None, bearing_std_rad=None, max_range_m=None, fov_rad=None,
+):
+    """Calibration plus the outlier mask over all rows and the stream's sensor."""
+    usable = np.all(np.isfinite(lay.residuals), axis=1)
+    noise = estimate_sensor_noise(lay.residuals[usable], gate_probability=outlier_gate_probability)
+    outlier = np.zeros(lay.row_step.size, dtype=bool)
+    outlier[np.flatnonzero(usable)[~noise.inlier]] = True
+    good_z = rec.measurements[usable, 2:4][noise.inlier]
+    est_range, est_fov = estimate_field_of_view(good_z)
+    if sensor is None:
+        sensor = RangeBearingSensor(
+            range_std_m=noise.range_std_m if range_std_m is None else range_std_m,
+            bearing_std_rad=noise.bearing_std_rad if bearing_std_rad is None else bearing_std_rad,
+            max_range_m=est_range if max_range_m is None else max_range_m,
+            fov_rad=est_fov if fov_rad is None else fov_rad,
+        )
+    odometry = estimate_odometry_noise(
+        rec.odometry,
+        rec.groundtruth,
+        lay.t0,
+        lay.t0 + lay.rel_t[-1],
+        dt_s=dt_s,
+        window_s=odometry_window_s,
+    )
+    in_grid = lay.row_step >= 0
+    hit = in_grid & (lay.row_landmark >= 0) & ~outlier
+    false_alarm = in_grid & (lay.row_landmark >= 0) & outlier
+    if robot_sightings_as_clutter:
+        false_alarm |= in_grid & (lay.row_landmark < 0)
+    detection = estimate_detection_rates(
+        lay.step_poses,
+        rec.landmarks_xy,
+        sensor,
+        lay.row_step[hit],
+        lay.row_landmark[hit],
+        int(false_alarm.sum()),
+    )
+    calibration = MrclamCalibration(noise, odometry, detection, est_range, est_fov)
+    return calibration, outlier, sensor
+
+
+# --------------------------------------------------------------------------- the stream
+def load_mrclam(
+    directory,
+    robot: int = 1,
+    *,
+    dt_s: float = DEFAULT_DT_S,
+    known_association: bool = False,
+    robot_sightings_as_clutter: bool = False,
+    odometry_window_s: float = DEFAULT_ODOMETRY_WINDOW_S,
+    outlier_gate_probability: float = DEFAULT_OUTLIER_GATE_PROBABILITY,
+    range_std_m: float | None = None,
+    bearing_std_rad: float | None = None,
+    max_range_m: float | None = None,
+    fov_rad: float | None = None,
+    odometry_noise=None,
+    clutter: ClutterModel | None = None,
+    max_steps: int | None = None,
+) -> Stream:
+    """The stream of one robot of an MRCLAM data set (see the module docstring).
+
+    ``dt_s`` the filter period (default 0.1 s); ``known_association`` marks the stream for
+    known-association filters (the runner passes ``truth.landmark_ids``);
+    ``robot_sightings_as_clutter`` keeps robot sightings and unknown barcodes as clutter instead
+    of dropping them. ``range_std_m``, ``bearing_std_rad``, ``max_range_m``, ``fov_rad``,
+    ``odometry_noise`` and ``clutter`` override the estimates (None = estimated from the data);
+    ``max_steps`` truncates the stream (the estimates always use the whole recording).
+    """
+    check_range("dt_s", dt_s, 0.001, 10.0)
+    require(isinstance(known_association, bool), "known_association", known_association, "a bool")
+    require(
+        isinstance(robot_sightings_as_clutter, bool),
+        "robot_sightings_as_clutter",
+        robot_sightings_as_clutter,
+        "a bool",
+    )
+    if max_steps is not None:
+        require(
+            isinstance(max_steps, (int, np.integer)) and not isinstance(max_steps, bool)
+            and max_steps >= 1,
+            "max_steps",
+            max_steps,
+            "None or an integer >= 1",
+        )
+    rec = read_mrclam(directory, robot)
+    lay = _layout(rec, dt_s)
+    calibration, outlier, sensor = _calibrate(
+        rec,
+        lay,
+        dt_s=dt_s,
+        odometry_window_s=odometry_window_s,
+        outlier_gate_probability=outlier_gate_probability,
+        robot_sightings_as_clutter=robot_sightings_as_clutter,
+        range_std_m=range_std_m,
+        bearing_std_rad=bearing_std_rad,
+        max_range_m=max_range_m,
+        fov_rad=fov_rad,
+    )
+    if odometry_noise is None:
+        odometry_noise = calibration.odometry.model()
+    if clutter is None:
+        clutter = ClutterModel(alpha=calibration.detection.alpha, beta=calibration.detection.beta)
+
+    n = lay.n_steps if max_steps is None else min(lay.n_steps, int(max_steps))
+    boundaries = lay.t0 + lay.rel_t[: n + 1]
+    odometry = hold_average(rec.odometry[:, 0], rec.odometry[:, 1:3], boundaries)
+    poses = lay.step_poses[:n].copy()
+    visible = landmarks_in_view(poses, rec.landmarks_xy, sensor)
+    initial_pose = interpolate_poses(rec.groundtruth[:, 0], rec.groundtruth[:, 1:4], [lay.t0])[0]
+
+    is_landmark = lay.row_landmark >= 0
+    keep = (lay.row_step >= 0) & (lay.row_step < n)
+    if not robot_sightings_as_clutter:
+        keep &= is_landmark
+    rows = np.flatnonzero(keep)
+    rows = rows[np.argsort(lay.row_step[rows], kind="stable")]
+    z_all = rec.measurements[rows, 2:4].copy()
+    ids_all = np.where(is_landmark[rows] & ~outlier[rows], lay.row_landmark[rows], -1)
+    ids_all = ids_all.astype(np.int64)
+    bounds = np.searchsorted(lay.row_step[rows], np.arange(n + 1), side="left")
+    rel_t = lay.rel_t
+
+    def make_steps():
+        for k in range(n):
+            s, e = bounds[k], bounds[k + 1]
+            yield Step(
+                index=k,
+                t_s=float(rel_t[k + 1]),
+                dt_s=float(dt_s),
+                odometry=odometry[k].copy(),
+                compass_rad=None,
+                z=z_all[s:e].copy(),
+                truth=StepTruth(
+                    pose=poses[k].copy(),
+                    landmark_ids=ids_all[s:e].copy(),
+                    visible_ids=np.flatnonzero(visible[k]).astype(np.int64),
+                ),
+            )
+
+    in_grid = lay.row_step >= 0
+    counts = {
+        "measurement_rows": int(lay.row_step.size),
+        "landmark_rows": int(is_landmark.sum()),
+        "robot_sighting_rows": int(lay.row_is_robot.sum()),
+        "unknown_barcode_rows": int((~is_landmark & ~lay.row_is_robot).sum()),
+        "rows_outside_time_grid": int((~in_grid).sum()),
+        "outlier_rows_in_grid": int((outlier & in_grid).sum()),
+        "observations_in_stream": int(rows.size),
+        "false_alarms_in_stream": int((ids_all < 0).sum()),
+    }
+    metadata = {
+        "dataset": "MRCLAM",
+        "directory": str(rec.directory),
+        "robot": rec.robot,
+        "t0_unix_s": lay.t0,
+        "known_association": known_association,
+        "robot_sightings": "clutter" if robot_sightings_as_clutter else "dropped",
+        "landmark_subjects": tuple(int(s) for s in rec.landmark_subjects),
+        "calibration": calibration.as_dict(),
+        "counts": counts,
+    }
+    logger.info(
+        "MRCLAM %s robot %d: %d steps, %d observations, sensor %s, clutter %s",
+        rec.directory.name, rec.robot, n, rows.size, sensor, clutter,
+    )
+    return Stream(
+        name=f"mrclam-{rec.directory.name}-robot{rec.robot}",
+        sensor=sensor,
+        clutter=clutter,
+        odometry_noise=odometry_noise,
+        initial_pose=initial_pose,
+        landmarks_true=rec.landmarks_xy.copy(),
+        n_steps=n,
+        dt_s=float(dt_s),
+        make_steps=make_steps,
+        metadata=metadata,
+    )
