@@ -6,7 +6,7 @@ import argparse
 import importlib
 import sys
 
-COMMAND_MODULES = ("simulate", "reproduce")
+COMMAND_MODULES = ("simulate", "reproduce", "speed")
 
 
 def build_parser() -> argparse.ArgumentParser:

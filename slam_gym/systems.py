@@ -148,16 +148,12 @@ def make_system(
             front = FastSLAM2(
                 sensor, clutter, noise, rng, ids, n_particles=n_particles, **front_options
             )
-            keyword = "associations"
         else:
             from filters.ekf_slam import EKFSLAM
 
             front = EKFSLAM(sensor, clutter, noise, ids, **front_options)
-            keyword = None
-        est = SubmapSLAM(
-            front, back_end=back_end, ids=ids, initial_pose=pose0, sensor=sensor, **back_options
-        )
-        return System(name, est, keyword)
+        est = SubmapSLAM(front, back_end=back_end, initial_pose=pose0, **back_options)
+        return System(name, est, None)
     if name == "esdf":
         from filters.esdf import ESDF
 

@@ -11,7 +11,7 @@ Action space
     ``Discrete(4)`` with ``a = 2 * fuse + optimise`` for DQN.
 
 Observation space
-    ``Box(0, inf, (17,), float32)``: the interface features of :data:`FEATURE_NAMES`, none of
+    ``Box(0, 1e6, (17,), float32)``: the interface features of :data:`FEATURE_NAMES`, none of
     which uses ground truth (local-map age and distance, effective sample size ratio, particle
     spread, local feature counts, vote margin, innovation ratio, global features in view, global
     pose uncertainty, time and fusions since the last optimisation, clutter rate, loop-closure
@@ -74,6 +74,9 @@ FEATURE_NAMES: tuple[str, ...] = (
     "loop_closure_flag",
     "local_map_budget_ratio",
 )
+
+OBSERVATION_MAX = 1e6
+"""Observations are clipped to [0, OBSERVATION_MAX] (NaN -> 0): every feature is non-negative."""
 
 FRONT_ENDS = ("fastslam", "ekf")
 BACK_ENDS = ("ekf", "relative")
@@ -198,7 +201,7 @@ class HybridSLAMEnv(gym.Env):
         self.render_mode = render_mode
         self.action_space = spaces.MultiDiscrete([2, 2])
         self.observation_space = spaces.Box(
-            low=0.0, high=np.inf, shape=(len(FEATURE_NAMES),), dtype=np.float32
+            low=0.0, high=OBSERVATION_MAX, shape=(len(FEATURE_NAMES),), dtype=np.float32
         )
         self.episode: Episode | None = None
         self.stream = None
@@ -328,8 +331,8 @@ class HybridSLAMEnv(gym.Env):
 
     def _observation(self, features) -> np.ndarray:
         obs = np.array([features[n] for n in FEATURE_NAMES], dtype=np.float64)
-        obs = np.nan_to_num(obs, nan=0.0, posinf=1e6, neginf=0.0)
-        return np.clip(obs, 0.0, 1e6).astype(np.float32)
+        obs = np.nan_to_num(obs, nan=0.0, posinf=OBSERVATION_MAX, neginf=0.0)
+        return np.clip(obs, 0.0, OBSERVATION_MAX).astype(np.float32)
 
     @staticmethod
     def _zero_components():

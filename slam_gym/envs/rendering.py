@@ -15,13 +15,13 @@ FRAME_DPI = 80
 
 
 def _particles_of(system):
-    front = getattr(system, "front_end", None)
-    poses = getattr(front, "poses", None)
-    origin = getattr(system, "local_origin", None)
-    if poses is None or origin is None:
+    """The front-end's particles in the global frame (None for an EKF front-end)."""
+    poses = getattr(system.front_end, "poses", None)
+    if poses is None:
         return None
     from filters.geometry import compose
 
+    origin, _ = system.back_end.origin()
     return compose(np.asarray(origin)[None, :], np.asarray(poses))
 
 

@@ -1,0 +1,163 @@
+"""``slam-gym speed``: iterations per second, ratio to real time, cost per particle-iteration,
+the env's decisions per second, and ESDF's per-update time as its state grows."""
+
+from __future__ import annotations
+
+import json
+import platform
+import time
+
+import numpy as np
+
+from slam_gym.commands.common import add_common_options, emit, out_dir, to_jsonable
+from slam_gym.commands.runs import int_list, name_list
+
+PARTICLE_SYSTEMS = ("fastslam", "hybrid")
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "speed",
+        help="measure filter and env throughput",
+        description="Iterations per second and ratio to real time per system, particle count "
+        "and clutter level on brooks-bailey; decisions per second of the env; ESDF update time "
+        "against state size. One process, one core.",
+    )
+    p.add_argument("--systems", default="fastslam,ekf-submap,hybrid")
+    p.add_argument("--particles", default="100,500,2000")
+    p.add_argument("--clutter-levels", default="0,1,2,3")
+    p.add_argument("--iterations", type=int, default=None,
+                   help="iterations per measurement (default: the whole path)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--env-decisions", type=int, default=300,
+                   help="decisions for the env throughput (0 to skip)")
+    p.add_argument("--skip-esdf", action="store_true")
+    add_common_options(p, default_out="out/speed")
+    p.set_defaults(run=run)
+
+
+def measure_system(name, level, n_particles, seed, iterations):
+    """Run ``name`` on BB's schedule without stopping at failure; timing of the filter only."""
+    from slam_gym.evaluation.core import make_job_stream, run_system
+
+    stream = make_job_stream("brooks-bailey", level, seed, n_steps=iterations)
+    start = time.perf_counter()
+    episode = run_system(name, stream, seed, n_particles=n_particles, stop_on_failure=False)
+    wall = time.perf_counter() - start
+    filter_s = episode.compute_time_s
+    iters = episode.iteration
+    row = {
+        "system": name,
+        "clutter_level": level,
+        "n_particles": n_particles if name in PARTICLE_SYSTEMS else None,
+        "iterations": iters,
+        "filter_time_s": filter_s,
+        "wall_time_s": wall,
+        "iterations_per_s": iters / filter_s,
+        "real_time_ratio": iters * stream.dt_s / filter_s,
+        "ms_per_iteration": 1e3 * filter_s / iters,
+    }
+    if name in PARTICLE_SYSTEMS:
+        row["us_per_particle_iteration"] = 1e6 * filter_s / (iters * n_particles)
+    return row
+
+
+def measure_env(decisions, seed):
+    """Decisions per second of SlamGym/HybridSLAM-v0 at its default (training) configuration."""
+    from slam_gym.envs.hybrid_slam import HybridSLAMEnv
+
+    env = HybridSLAMEnv()
+    start = time.perf_counter()
+    env.reset(seed=seed)
+    done_decisions = 0
+    while done_decisions < decisions:
+        fuse = int(env.episode.iteration % 100 == 0)
+        _, _, terminated, truncated, _ = env.step(np.array([fuse, 0]))
+        done_decisions += 1
+        if terminated or truncated:
+            env.reset()
+    wall = time.perf_counter() - start
+    return {
+        "env": "SlamGym/HybridSLAM-v0",
+        "n_particles": env.config.n_particles,
+        "decision_interval": env.config.decision_interval,
+        "decisions": done_decisions,
+        "wall_time_s": wall,
+        "decisions_per_s": done_decisions / wall,
+    }
+
+
+def measure_esdf(seed):
+    """ESDF per-update time as the state grows (CM sim 2: the longest path)."""
+    from filters.esdf import ESDF
+    from slam_gym.evaluation.core import make_job_stream
+
+    stream = make_job_stream("conte-martinelli-2", None, seed)
+    f = ESDF(stream.sensor, stream.clutter, stream.odometry_noise, initial_pose=stream.initial_pose)
+    rows = []
+    for step in stream:
+        f.predict(step.odometry, step.dt_s)
+        if len(step.z):
+            start = time.perf_counter()
+            f.update(step.z, ids=step.truth.landmark_ids)
+            rows.append((f.state_size, time.perf_counter() - start))
+    dims = np.array([d for d, _ in rows])
+    times = np.array([t for _, t in rows])
+    bins = np.quantile(dims, [0.0, 0.25, 0.5, 0.75, 1.0])
+    table = []
+    for lo, hi in zip(bins[:-1], bins[1:], strict=True):
+        sel = (dims >= lo) & (dims <= hi)
+        table.append({
+            "state_dim_min": int(lo),
+            "state_dim_max": int(hi),
+            "updates": int(sel.sum()),
+            "ms_per_update": 1e3 * float(np.median(times[sel])),
+        })
+    return table
+
+
+def run(args) -> int:
+    from tqdm import tqdm
+
+    systems = name_list(args.systems)
+    particles = int_list(args.particles)
+    levels = int_list(args.clutter_levels)
+    configs = [
+        (s, level, p)
+        for s in systems
+        for level in levels
+        for p in (particles if s in PARTICLE_SYSTEMS else [particles[0]])
+    ]
+    rows = []
+    for s, level, p in tqdm(configs, desc="speed", disable=args.quiet or args.json):
+        rows.append(measure_system(s, level, p, args.seed, args.iterations))
+    result = {
+        "machine": {"platform": platform.platform(), "processor": platform.processor(),
+                    "python": platform.python_version()},
+        "systems": rows,
+    }
+    if args.env_decisions > 0:
+        result["env"] = measure_env(args.env_decisions, args.seed)
+    if not args.skip_esdf:
+        result["esdf"] = measure_esdf(args.seed)
+    out = out_dir(args)
+    (out / "speed.json").write_text(json.dumps(to_jsonable(result), indent=2) + "\n")
+    lines = [f"{'system':<12}{'clutter':>8}{'particles':>10}{'it/s':>10}{'x real time':>13}"
+             f"{'ms/it':>9}{'us/particle-it':>16}"]
+    for r in rows:
+        per = r.get("us_per_particle_iteration")
+        lines.append(
+            f"{r['system']:<12}{r['clutter_level']:>8}{str(r['n_particles'] or '-'):>10}"
+            f"{r['iterations_per_s']:>10.0f}{r['real_time_ratio']:>13.1f}"
+            f"{r['ms_per_iteration']:>9.2f}{(f'{per:.2f}' if per else '-'):>16}"
+        )
+    if "env" in result:
+        e = result["env"]
+        lines.append(f"env {e['env']} ({e['n_particles']} particles, interval "
+                     f"{e['decision_interval']}): {e['decisions_per_s']:.0f} decisions/s")
+    for r in result.get("esdf", []):
+        lines.append(f"ESDF state {r['state_dim_min']}-{r['state_dim_max']}: "
+                     f"{r['ms_per_update']:.3f} ms per update ({r['updates']} updates)")
+    lines.append(f"wrote {out / 'speed.json'}")
+    emit(args, result, lines)
+    return 0

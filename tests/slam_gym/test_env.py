@@ -1,0 +1,237 @@
+"""The Gymnasium env, parametrised over every registered id (checker, seeding, rendering, pickling,
+vector envs, configuration errors) and checked against the systems it drives."""
+
+import multiprocessing as mp
+import pickle
+import subprocess
+import sys
+import warnings
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import slam_gym
+from slam_gym.envs.hybrid_slam import FEATURE_NAMES
+from slam_gym.envs.wrappers import DiscreteActions, discrete_to_multi
+
+ENV_IDS = sorted(slam_gym.ENV_VARIANTS)
+SMALL = {"n_particles": 20, "n_steps": 150}
+
+
+def make(env_id, **kwargs):
+    return gym.make(f"slam_gym:{env_id}", **(SMALL | kwargs))
+
+
+def rollout(env, seed, actions):
+    obs, info = env.reset(seed=seed)
+    out = [(obs, 0.0, info["features"], info["nees"])]
+    for a in actions:
+        obs, reward, terminated, truncated, info = env.step(a)
+        out.append((obs, reward, info["features"], info["nees"]))
+        if terminated or truncated:
+            break
+    return out
+
+
+ACTIONS = [np.array([i % 5 == 4, i % 7 == 6], dtype=np.int64) for i in range(14)]
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_gymnasium_env_checker_without_warnings(env_id):
+    from gymnasium.utils.env_checker import check_env
+
+    env = make(env_id)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_env(env.unwrapped, skip_render_check=True)
+    env.close()
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_sb3_env_checker_without_warnings(env_id):
+    from stable_baselines3.common.env_checker import check_env
+
+    env = make(env_id)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_env(env.unwrapped, warn=True)
+    env.close()
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_same_seed_same_episode_and_different_seeds_differ(env_id):
+    a = rollout(make(env_id), 3, ACTIONS)
+    b = rollout(make(env_id), 3, ACTIONS)
+    c = rollout(make(env_id), 4, ACTIONS)
+    assert len(a) == len(b)
+    for (oa, ra, fa, na), (ob, rb, fb, nb) in zip(a, b, strict=True):
+        assert np.array_equal(oa, ob) and ra == rb and fa == fb
+        assert na == nb or (np.isnan(na) and np.isnan(nb))
+    assert any(not np.array_equal(x[0], y[0]) for x, y in zip(a, c, strict=False))
+
+
+def _rollout_in_subprocess(env_id, seed, queue):
+    import gymnasium as gym  # a fresh interpreter: no prior import of slam_gym
+
+    env = gym.make(f"slam_gym:{env_id}", **SMALL)
+    queue.put([(o.tolist(), r) for o, r, _, _ in rollout(env, seed, ACTIONS)])
+
+
+def test_same_episode_across_spawned_processes():
+    env_id = "SlamGym/HybridSLAM-v0"
+    ctx = mp.get_context("spawn")
+    queue = ctx.Queue()
+    proc = ctx.Process(target=_rollout_in_subprocess, args=(env_id, 11, queue))
+    proc.start()
+    remote = queue.get(timeout=300)
+    proc.join(timeout=60)
+    local = [(o.tolist(), r) for o, r, _, _ in rollout(make(env_id), 11, ACTIONS)]
+    assert remote == local
+
+
+def test_make_in_a_fresh_interpreter_without_importing_slam_gym():
+    code = (
+        "import gymnasium as gym, sys; "
+        "env = gym.make('slam_gym:SlamGym/HybridSLAM-v0', n_particles=5, n_steps=30); "
+        "obs, info = env.reset(seed=0); assert obs.shape == (17,); "
+        "assert 'slam_gym' in sys.modules"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=300)
+
+
+def test_registration_is_idempotent():
+    before = {k for k in gym.registry if k.startswith("SlamGym/")}
+    assert slam_gym.register_envs() == list(slam_gym.ENV_VARIANTS)
+    assert {k for k in gym.registry if k.startswith("SlamGym/")} == before
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_rgb_array_frames(env_id):
+    env = make(env_id, render_mode="rgb_array")
+    env.reset(seed=0)
+    env.step(np.array([1, 0]))
+    frame = env.render()
+    assert frame.dtype == np.uint8 and frame.ndim == 3 and frame.shape[2] == 3
+    assert frame.shape[0] > 100 and frame.shape[1] > 100
+    assert frame.std() > 5  # something is drawn
+    env.close()
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_env_pickles_and_the_copy_continues_identically(env_id):
+    env = make(env_id)
+    env.reset(seed=5)
+    env.step(np.array([1, 0]))
+    clone = pickle.loads(pickle.dumps(env))
+    a = env.step(np.array([0, 1]))
+    b = clone.step(np.array([0, 1]))
+    assert np.array_equal(a[0], b[0]) and a[1] == b[1]
+
+
+def test_observation_matches_features_by_name_and_info_keys():
+    env = make("SlamGym/HybridSLAM-v0")
+    obs, info = env.reset(seed=1)
+    assert obs.dtype == np.float32 and obs.shape == (len(FEATURE_NAMES),)
+    assert list(info["features"]) == list(FEATURE_NAMES)
+    np.testing.assert_allclose(obs, [info["features"][n] for n in FEATURE_NAMES], rtol=1e-6)
+    obs, reward, terminated, truncated, info = env.step(np.array([1, 1]))
+    for key in ("nees", "pose_error_m", "map_error_m", "failed", "n_fusions", "n_optimisations",
+                "filter_time_s", "reward_components"):
+        assert key in info
+    assert info["n_fusions"] == 1 and info["n_optimisations"] == 1
+    c = info["reward_components"]
+    w = env.unwrapped.config
+    expected = -(w.w_nees * c["nees_excess"] + w.w_pose * c["pose_error_m"]
+                 + w.w_map * c["map_error_m"] + w.fusion_cost * c["fused"]
+                 + w.optimise_cost * c["optimised"] + w.failure_penalty * c["failed"])
+    assert reward == pytest.approx(expected)
+
+
+def test_vector_envs_run():
+    fns = [lambda: make("SlamGym/HybridSLAM-v0") for _ in range(2)]
+    for vec in (gym.vector.SyncVectorEnv(fns), gym.vector.AsyncVectorEnv(fns, context="spawn")):
+        obs, _ = vec.reset(seed=[0, 1])
+        assert obs.shape == (2, len(FEATURE_NAMES))
+        obs, rewards, *_ = vec.step(np.array([[1, 0], [0, 0]]))
+        assert rewards.shape == (2,)
+        vec.close()
+
+
+def test_sb3_subproc_vec_env_runs():
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import SubprocVecEnv
+
+    vec = make_vec_env("slam_gym:SlamGym/HybridSLAM-v0", n_envs=2, seed=0,
+                       vec_env_cls=SubprocVecEnv, env_kwargs=SMALL,
+                       vec_env_kwargs={"start_method": "spawn"})
+    obs = vec.reset()
+    obs, rewards, dones, infos = vec.step(np.array([[1, 0], [0, 1]]))
+    assert obs.shape == (2, len(FEATURE_NAMES)) and rewards.shape == (2,)
+    vec.close()
+
+
+def test_discrete_wrapper_matches_the_policies_mapping():
+    from policies.base import discrete_to_multi as policies_mapping
+
+    for a in range(4):
+        assert np.array_equal(discrete_to_multi(a), policies_mapping(a))
+    env = DiscreteActions(make("SlamGym/HybridSLAM-v0"))
+    assert env.action_space == gym.spaces.Discrete(4)
+    env.reset(seed=0)
+    _, _, _, _, info = env.step(3)
+    assert info["n_fusions"] == 1 and info["n_optimisations"] == 1
+    with pytest.raises(ValueError, match="action"):
+        discrete_to_multi(4)
+
+
+@pytest.mark.parametrize(
+    "kwargs, field",
+    [
+        ({"clutter_level": 7}, "clutter_level"),
+        ({"n_particles": 0}, "n_particles"),
+        ({"decision_interval": -1}, "decision_interval"),
+        ({"front_end": "ukf"}, "front_end"),
+        ({"back_end": "graph"}, "back_end"),
+        ({"scenario": "moon"}, "scenario"),
+        ({"w_nees": -1.0}, "w_nees"),
+        ({"alpha": 2.0, "beta": 0.0}, "alpha"),
+        ({"no_such_option": 1}, "no_such_option"),
+        ({"render_mode": "ascii"}, "render_mode"),
+    ],
+)
+def test_bad_keyword_values_raise_value_error(kwargs, field):
+    with pytest.raises(ValueError, match=field):
+        make("SlamGym/HybridSLAM-v0", **kwargs)
+
+
+def test_reset_options_override_and_are_validated():
+    env = make("SlamGym/HybridSLAM-v0")
+    env.reset(seed=0, options={"clutter_level": 3, "world_seed": 9})
+    assert env.unwrapped.stream.clutter.alpha == 0.1 and env.unwrapped.world_seed == 9
+    with pytest.raises(ValueError, match="bogus"):
+        env.reset(seed=0, options={"bogus": 1})
+    with pytest.raises(ValueError, match="clutter_level"):
+        env.reset(seed=0, options={"clutter_level": 9})
+
+
+def test_failure_terminates_and_is_penalised():
+    env = make("SlamGym/HybridSLAM-v0", n_steps=None, clutter_level=3, n_particles=5,
+               max_decisions=400)
+    env.reset(seed=2)
+    for _ in range(400):
+        _, reward, terminated, truncated, info = env.step(np.array([0, 0]))
+        if terminated or truncated:
+            break
+    assert terminated
+    if info["failed"]:
+        assert info["reward_components"]["failed"] == 1.0 and reward <= -100
+    else:  # reached the end of the path
+        assert env.unwrapped.episode.done
+
+
+def test_truncation_by_decision_limit():
+    env = make("SlamGym/HybridSLAM-v0", max_decisions=3, clutter_level=0)
+    env.reset(seed=0)
+    flags = [env.step(np.array([0, 0]))[3] for _ in range(3)]
+    assert flags == [False, False, True]
