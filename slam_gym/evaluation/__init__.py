@@ -1,0 +1,80 @@
+"""Generic evaluation machinery: jobs, parallel resumable execution, results, summary, plots.
+
+Typical use (the run function is any picklable ``run_fn(job) -> dict`` with the metrics of
+:data:`RESULT_KEYS`)::
+
+    jobs = expand_grid(["fixed-10s", "esdf-innovation"], [0, 1, 2, 3], range(50))
+    rows = run_jobs(jobs, run_fn, "out/", workers=8)          # skips runs already in out/
+    doc = write_summary("out/", rows)                         # summary.json, table.md
+    plot_success_rates(doc, "out/success.png")
+
+The output files and their keys are a public contract (DESIGN section 7). The plotting
+functions are imported lazily (matplotlib is not needed by the worker processes).
+"""
+
+from typing import Any
+
+from slam_gym.evaluation.executors import EXECUTORS, execute_job, run_jobs
+from slam_gym.evaluation.jobs import JOB_KINDS, Job, expand_grid
+from slam_gym.evaluation.results import (
+    REQUIRED_ROW_KEYS,
+    RESULT_KEYS,
+    RESULTS_FILENAME,
+    ResultError,
+    ResultsWriter,
+    finished_keys,
+    read_results,
+    validate_result,
+)
+from slam_gym.evaluation.summary import (
+    SUMMARY_FILENAME,
+    TABLE_FILENAME,
+    Z95,
+    format_table,
+    markdown_table,
+    summarise,
+    summary_document,
+    wilson_interval,
+    write_summary,
+)
+
+__all__ = [
+    "EXECUTORS",
+    "JOB_KINDS",
+    "REQUIRED_ROW_KEYS",
+    "RESULTS_FILENAME",
+    "RESULT_KEYS",
+    "SUMMARY_FILENAME",
+    "TABLE_FILENAME",
+    "Z95",
+    "Job",
+    "ResultError",
+    "ResultsWriter",
+    "execute_job",
+    "expand_grid",
+    "finished_keys",
+    "format_table",
+    "markdown_table",
+    "nees_band",
+    "plot_nees",
+    "plot_run_map",
+    "plot_success_rates",
+    "plot_uncertainty_traces",
+    "read_results",
+    "run_jobs",
+    "summarise",
+    "summary_document",
+    "validate_result",
+    "wilson_interval",
+    "write_summary",
+]
+
+_PLOTS = ("nees_band", "plot_nees", "plot_run_map", "plot_success_rates", "plot_uncertainty_traces")
+
+
+def __getattr__(name: str) -> Any:
+    if name in _PLOTS:
+        from slam_gym.evaluation import plots
+
+        return getattr(plots, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,0 +1,397 @@
+"""Run many jobs in parallel, resumably, writing one ``results.jsonl`` row per finished run.
+
+:func:`run_jobs` is generic over the run function: any picklable callable ``run_fn(job) -> dict``
+(a module-level function) whose dict holds the metrics of
+:data:`slam_gym.evaluation.results.RESULT_KEYS`. Executors:
+
+- ``"process"`` (default): :class:`concurrent.futures.ProcessPoolExecutor` with the ``spawn``
+  start method (safe with threads, torch and BLAS pools), at most ``workers`` jobs in flight;
+- ``"ray"``: the same function through ``ray.remote`` on a local Ray instance (or the cluster at
+  ``ray_address``); an optional dependency, ``pip install slam-gym[ray]``;
+- ``"serial"``: in this process, one after the other (debugging, profiling).
+
+Guarantees (DESIGN sections 6 and 7):
+
+- resumable: jobs whose key already has a row in ``out_dir/results.jsonl`` are skipped, and each
+  row is appended, flushed and ``fsync`` -ed as its run finishes, so killing the benchmark (even
+  with SIGKILL) loses only the runs in progress; a partial last line is cut off on the next start;
+- a run that raises becomes a row with ``status="error"``, ``error="Type: message"``, the
+  traceback under ``traceback`` and every metric null; the other runs go on. A worker process that
+  dies (killed, out of memory, a crash in native code) breaks a process pool: the jobs that were in
+  flight are rerun one at a time in a fresh single-worker pool, so the one that kills its worker
+  is recorded as an error and the innocent ones complete;
+- Ctrl-C (``KeyboardInterrupt``) cancels the pending work, terminates the workers, leaves a valid
+  file and re-raises.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import multiprocessing
+import os
+import pickle
+import signal
+import sys
+import time
+import traceback
+from collections import Counter, deque
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
+from pathlib import Path
+from typing import Any
+
+from tqdm import tqdm
+from tqdm.contrib.logging import logging_redirect_tqdm
+
+from filters.validation import require
+from slam_gym.evaluation.jobs import Job
+from slam_gym.evaluation.results import (
+    RESULTS_FILENAME,
+    STATUS_ERROR,
+    ResultsWriter,
+    make_row,
+    row_key,
+    validate_result,
+)
+
+logger = logging.getLogger(__name__)
+
+EXECUTORS = ("process", "ray", "serial")
+
+RunFn = Callable[[Job], Mapping[str, Any]]
+Outcome = dict[str, Any]
+
+RAY_MISSING_MESSAGE = (
+    "executor='ray' needs the optional dependency Ray: pip install slam-gym[ray] "
+    "(or pip install ray), or use executor='process'"
+)
+
+
+def _failure(exc: BaseException, tb: str | None = None) -> Outcome:
+    return {
+        "result": None,
+        "error": f"{type(exc).__name__}: {exc}",
+        "traceback": tb if tb is not None else "".join(traceback.format_exception(exc)),
+        "wall_time_s": 0.0,
+    }
+
+
+def execute_job(run_fn: RunFn, job: Job) -> Outcome:
+    """Run one job and validate its result; runs inside the worker.
+
+    Never raises ``Exception``: an exception of ``run_fn`` or an invalid result becomes an error
+    outcome (with the traceback as text, since exceptions do not always pickle).
+    ``KeyboardInterrupt`` and ``SystemExit`` pass through.
+    """
+    t0 = time.perf_counter()
+    try:
+        result = validate_result(run_fn(job))
+    except Exception as exc:
+        outcome = _failure(exc, traceback.format_exc())
+        outcome["wall_time_s"] = time.perf_counter() - t0
+        return outcome
+    return {
+        "result": result,
+        "error": None,
+        "traceback": None,
+        "wall_time_s": time.perf_counter() - t0,
+    }
+
+
+def _ignore_sigint() -> None:
+    """Pool-worker initializer: Ctrl-C is handled by the parent, which terminates the workers."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _terminate_pool(pool: ProcessPoolExecutor) -> None:
+    """Cancel pending futures and stop the worker processes now (not after their current job)."""
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for proc in processes:
+        if proc.is_alive():
+            proc.terminate()
+    for proc in processes:
+        proc.join(timeout=5.0)
+    pool.shutdown(wait=True)
+
+
+def _run_pool_until_broken(
+    ctx: Any,
+    queue: deque[Job],
+    run_fn: RunFn,
+    workers: int,
+    on_outcome: Callable[[Job, Outcome], None],
+) -> list[Job]:
+    """Run ``queue`` on a pool of ``workers``; return the jobs in flight if the pool broke."""
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_ignore_sigint)
+    in_flight: dict[Future, Job] = {}
+    broken: list[Job] = []
+    pool_broken = False
+    try:
+        while (queue and not pool_broken) or in_flight:
+            while queue and not pool_broken and len(in_flight) < workers:
+                job = queue.popleft()
+                try:
+                    in_flight[pool.submit(execute_job, run_fn, job)] = job
+                except BrokenProcessPool:
+                    queue.appendleft(job)  # never started: goes to the next pool
+                    pool_broken = True
+            if not in_flight:
+                break
+            done, _ = wait(in_flight, return_when=FIRST_COMPLETED)
+            for fut in done:
+                job = in_flight.pop(fut)
+                try:
+                    outcome = fut.result()
+                except BrokenProcessPool:
+                    broken.append(job)
+                    pool_broken = True
+                    continue
+                except Exception as exc:  # e.g. the job or its result failed to pickle
+                    outcome = _failure(exc)
+                on_outcome(job, outcome)
+    except BaseException:
+        _terminate_pool(pool)
+        raise
+    if pool_broken:
+        _terminate_pool(pool)
+    else:
+        pool.shutdown(wait=True)
+    return broken
+
+
+def _run_isolated(ctx: Any, run_fn: RunFn, job: Job) -> Outcome:
+    """Run one job alone in a fresh single-worker pool; a dead worker becomes an error outcome."""
+    pool = ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=_ignore_sigint)
+    t0 = time.perf_counter()
+    try:
+        fut = pool.submit(execute_job, run_fn, job)
+        try:
+            return fut.result()
+        except BrokenProcessPool:
+            outcome = _failure(
+                BrokenProcessPool(
+                    "the worker process running this job died (killed, out of memory or a crash "
+                    "in native code); it was rerun alone and died again"
+                )
+            )
+            outcome["wall_time_s"] = time.perf_counter() - t0
+            return outcome
+        except Exception as exc:
+            return _failure(exc)
+    except BaseException:
+        _terminate_pool(pool)
+        raise
+    finally:
+        pool.shutdown(wait=True)
+
+
+def _run_process(
+    jobs: Sequence[Job], run_fn: RunFn, workers: int, on_outcome: Callable[[Job, Outcome], None]
+) -> None:
+    ctx = multiprocessing.get_context("spawn")
+    queue = deque(jobs)
+    n_done = 0
+    stalls = 0
+
+    def counted(job: Job, outcome: Outcome) -> None:
+        nonlocal n_done
+        n_done += 1
+        on_outcome(job, outcome)
+
+    while queue:
+        before = n_done
+        suspects = _run_pool_until_broken(ctx, queue, run_fn, workers, counted)
+        if suspects:
+            logger.warning(
+                "a worker process died; rerunning the %d job(s) in flight one at a time",
+                len(suspects),
+            )
+        for job in suspects:
+            counted(job, _run_isolated(ctx, run_fn, job))
+        stalls = stalls + 1 if n_done == before else 0
+        if stalls >= 3:
+            raise RuntimeError(
+                "the process pool broke three times in a row before finishing any job; "
+                "check that the worker processes can start (a script needs "
+                "'if __name__ == \"__main__\":' with the spawn start method)"
+            )
+
+
+def _import_ray() -> Any:
+    try:
+        import ray
+    except ImportError as exc:
+        raise ImportError(RAY_MISSING_MESSAGE) from exc
+    return ray
+
+
+def _run_ray(
+    jobs: Sequence[Job],
+    run_fn: RunFn,
+    workers: int,
+    ray_address: str | None,
+    on_outcome: Callable[[Job, Outcome], None],
+) -> None:
+    ray = _import_ray()
+    started = False
+    if not ray.is_initialized():
+        kwargs: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False}
+        if ray_address:
+            kwargs["address"] = ray_address  # the cluster decides its CPUs
+        else:
+            # A local instance: workers import what this process imports (tests, scripts).
+            paths = [p for p in (os.getcwd(), *sys.path) if p and os.path.isdir(p)]
+            kwargs["num_cpus"] = workers
+            kwargs["_node_ip_address"] = "127.0.0.1"  # a local instance talks over loopback only
+            kwargs["runtime_env"] = {"env_vars": {"PYTHONPATH": os.pathsep.join(paths)}}
+        ray.init(**kwargs)
+        started = True
+    refs: dict[Any, Job] = {}
+    try:
+        remote = ray.remote(num_cpus=1, max_retries=0)(execute_job)
+        fn_ref = ray.put(run_fn)
+        refs = {remote.remote(fn_ref, job): job for job in jobs}
+        while refs:
+            done, _ = ray.wait(list(refs), num_returns=1)
+            for ref in done:
+                job = refs.pop(ref)
+                try:
+                    outcome = ray.get(ref)
+                except Exception as exc:  # worker crashed, task cancelled, ...
+                    outcome = _failure(exc)
+                on_outcome(job, outcome)
+    except BaseException:
+        for ref in refs:
+            ray.cancel(ref, force=True)
+        raise
+    finally:
+        if started:
+            ray.shutdown()
+
+
+def _run_serial(
+    jobs: Sequence[Job], run_fn: RunFn, on_outcome: Callable[[Job, Outcome], None]
+) -> None:
+    for job in jobs:
+        on_outcome(job, execute_job(run_fn, job))
+
+
+def run_jobs(
+    jobs: Iterable[Job],
+    run_fn: RunFn,
+    out_dir: str | os.PathLike,
+    *,
+    workers: int | None = None,
+    executor: str = "process",
+    ray_address: str | None = None,
+    progress: bool = True,
+    retry_errors: bool = False,
+) -> list[dict[str, Any]]:
+    """Run every job not yet in ``out_dir/results.jsonl`` and append one row per finished run.
+
+    ``run_fn(job)`` must return a dict with (at least) the keys of ``RESULT_KEYS``; for the
+    ``process`` and ``ray`` executors it must pickle (a module-level function or a
+    ``functools.partial`` of one). ``workers`` defaults to ``os.cpu_count()`` (for ``ray`` with
+    ``ray_address`` the cluster decides). With ``retry_errors`` the error rows of these jobs are
+    removed from the file and the jobs are run again.
+
+    Returns the rows of ``jobs`` (already there or new), in the order of ``jobs``.
+
+    With the ``process`` executor the workers are started with ``spawn``: a script that calls
+    ``run_jobs`` must do so under ``if __name__ == "__main__":``, as for any spawn pool.
+    """
+    jobs = list(jobs)
+    for i, job in enumerate(jobs):
+        require(isinstance(job, Job), f"jobs[{i}]", job, "a slam_gym.evaluation.Job")
+    keys = [job.key for job in jobs]
+    dupes = sorted(k for k, count in Counter(keys).items() if count > 1)
+    require(not dupes, "jobs", dupes[:3], "distinct jobs (these keys repeat)")
+    require(executor in EXECUTORS, "executor", executor, f"one of {EXECUTORS}")
+    require(callable(run_fn), "run_fn", run_fn, "a callable run_fn(job) -> dict")
+    if workers is None:
+        workers = os.cpu_count() or 1
+    require(
+        isinstance(workers, int) and not isinstance(workers, bool) and workers >= 1,
+        "workers",
+        workers,
+        "an int >= 1",
+    )
+    if executor != "serial":
+        try:
+            pickle.dumps(run_fn)
+        except Exception as exc:
+            raise ValueError(
+                f"run_fn={run_fn!r} is invalid: must pickle for executor={executor!r} (define it "
+                f"at module level, not as a lambda or closure): {exc}"
+            ) from exc
+    if executor == "ray":
+        _import_ray()  # fail before touching the output directory
+
+    path = Path(out_dir) / RESULTS_FILENAME
+    wanted = set(keys)
+    with ResultsWriter(path) as writer:
+        existing = writer.existing
+        if retry_errors:
+            kept = [
+                r
+                for r in existing
+                if not (r.get("status") == STATUS_ERROR and row_key(r) in wanted)
+            ]
+            if len(kept) != len(existing):
+                logger.info("retrying %d errored run(s)", len(existing) - len(kept))
+                writer.rewrite(kept)
+                existing = writer.existing
+        rows_by_key = {row_key(r): r for r in existing if row_key(r) in wanted}
+        pending = [job for job in jobs if job.key not in rows_by_key]
+        n_errors = sum(r.get("status") == STATUS_ERROR for r in rows_by_key.values())
+        if rows_by_key:
+            logger.info(
+                "%s: %d of %d runs already done, %d to run",
+                path,
+                len(rows_by_key),
+                len(jobs),
+                len(pending),
+            )
+        bar = tqdm(
+            total=len(jobs),
+            initial=len(rows_by_key),
+            desc="runs",
+            unit="run",
+            disable=not progress,
+            dynamic_ncols=True,
+        )
+
+        def on_outcome(job: Job, outcome: Outcome) -> None:
+            nonlocal n_errors
+            row = make_row(
+                job,
+                outcome["result"],
+                error=outcome["error"],
+                traceback_text=outcome["traceback"],
+                wall_time_s=outcome["wall_time_s"],
+            )
+            writer.write(row)
+            rows_by_key[job.key] = row
+            if row["status"] == STATUS_ERROR:
+                n_errors += 1
+                logger.warning("run %s failed: %s", job.key, row["error"])
+            bar.set_postfix(errors=n_errors, refresh=False)
+            bar.update(1)
+
+        redirect = logging_redirect_tqdm() if progress else contextlib.nullcontext()
+        try:
+            with redirect:  # log lines are printed above the bar, not through it
+                if pending:
+                    n_workers = min(workers, len(pending))
+                    if executor == "process":
+                        _run_process(pending, run_fn, n_workers, on_outcome)
+                    elif executor == "ray":
+                        _run_ray(pending, run_fn, n_workers, ray_address, on_outcome)
+                    else:
+                        _run_serial(pending, run_fn, on_outcome)
+        finally:
+            bar.close()
+    return [rows_by_key[k] for k in keys]

@@ -1,0 +1,382 @@
+"""Benchmark figures (matplotlib, headless: figures are drawn with the Agg canvas, no pyplot).
+
+- :func:`plot_success_rates`: success rate per clutter level with Wilson 95 % error bars, one line
+  per system or policy, reference values (e.g. BB Table 1) as hollow markers;
+- :func:`plot_uncertainty_traces`: vehicle uncertainty over time, the trace of the pose covariance
+  per iteration (BB Figs. 3 and 4);
+- :func:`plot_nees`: vehicle NEES over time with the two-sided chi-square 95 % band for 3 dof;
+- :func:`plot_run_map`: one run's map: true landmarks, estimated landmarks with 2-sigma ellipses,
+  true and estimated paths (BB Figs. 2 and 6).
+
+Each function saves a PNG of exactly ``figsize * dpi`` pixels and returns its path.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.collections import EllipseCollection
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+
+from filters.validation import require
+from slam_gym.evaluation.jobs import JOB_KINDS
+from slam_gym.evaluation.summary import PaperValues, options_distinguish, paper_rate
+
+DPI = 120
+CURVE_FIGSIZE = (7.0, 4.5)
+MAP_FIGSIZE = (6.5, 6.5)
+_COLORS = (
+    "#1f77b4",
+    "#d62728",
+    "#2ca02c",
+    "#ff7f0e",
+    "#9467bd",
+    "#8c564b",
+    "#e377c2",
+    "#17becf",
+    "#7f7f7f",
+    "#bcbd22",
+)
+
+
+def _new_figure(figsize: tuple[float, float], dpi: int) -> tuple[Figure, Any]:
+    require(
+        len(figsize) == 2 and all(isinstance(v, (int, float)) and v > 0 for v in figsize),
+        "figsize",
+        figsize,
+        "two positive numbers (inches)",
+    )
+    require(isinstance(dpi, int) and dpi >= 10, "dpi", dpi, "an int >= 10")
+    fig = Figure(figsize=figsize, dpi=dpi)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    ax.grid(True, alpha=0.3, linewidth=0.6)
+    return fig, ax
+
+
+def _save(fig: Figure, path: str | os.PathLike, dpi: int) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi, format="png")  # no bbox_inches="tight": the size stays exact
+    return path
+
+
+def _series_label(group: Mapping[str, Any], vary_scenario: bool, vary_options: bool) -> str:
+    name = next(group[k] for k in JOB_KINDS if group.get(k) is not None)
+    parts = [name]
+    if vary_scenario:
+        parts.append(str(group.get("scenario")))
+    if vary_options and group.get("options"):
+        parts.append(", ".join(f"{k}={v}" for k, v in group["options"].items()))
+    return " · ".join(parts)
+
+
+def plot_success_rates(
+    summary: Mapping[str, Any] | Sequence[Mapping[str, Any]],
+    path: str | os.PathLike,
+    *,
+    paper: PaperValues | None = None,
+    paper_label: str = "paper",
+    title: str | None = "Success rate per clutter level",
+    figsize: tuple[float, float] = CURVE_FIGSIZE,
+    dpi: int = DPI,
+) -> Path:
+    """Success rate (%) against clutter level with Wilson 95 % error bars, one line per series.
+
+    ``summary`` is the output of :func:`~slam_gym.evaluation.summary.summarise` or the
+    ``summary.json`` document. Groups with no ok run or no clutter level are left out. ``paper``
+    (name -> {level: rate}) or the groups' ``paper_success_rate`` are drawn as hollow markers in
+    the series' colour. Tick labels show (alpha, beta) when the groups carry them.
+    """
+    groups = list(summary["groups"] if isinstance(summary, Mapping) else summary)
+    groups = [
+        g
+        for g in groups
+        if g.get("success_rate") is not None and g.get("clutter_level") is not None
+    ]
+    require(len(groups) > 0, "summary", "no group", "at least one group with ok runs and a level")
+    vary_scenario = len({g.get("scenario") for g in groups}) > 1
+    vary_options = options_distinguish(groups)
+    series: dict[str, list[Mapping[str, Any]]] = {}
+    for g in groups:
+        series.setdefault(_series_label(g, vary_scenario, vary_options), []).append(g)
+
+    fig, ax = _new_figure(figsize, dpi)
+    n = len(series)
+    width = min(0.25, 0.6 / max(n, 1))  # horizontal dodge so error bars do not overlap
+    any_paper = False
+    tick_text: dict[int, str] = {}
+    for i, (label, members) in enumerate(series.items()):
+        members = sorted(members, key=lambda g: g["clutter_level"])
+        color = _COLORS[i % len(_COLORS)]
+        levels = np.array([g["clutter_level"] for g in members], dtype=float)
+        x = levels + (i - (n - 1) / 2) * width
+        rate = np.array([g["success_rate"] for g in members]) * 100
+        lo = np.array([g["success_ci95"][0] for g in members]) * 100
+        hi = np.array([g["success_ci95"][1] for g in members]) * 100
+        ax.errorbar(
+            x,
+            rate,
+            yerr=np.vstack([rate - lo, hi - rate]),
+            color=color,
+            marker="o",
+            markersize=5,
+            linewidth=1.6,
+            capsize=3,
+            label=label,
+        )
+        for g, xi in zip(members, x, strict=True):
+            name = next(g[k] for k in JOB_KINDS if g.get(k) is not None)
+            ref = (
+                paper_rate(paper, name, g["clutter_level"])
+                if paper is not None
+                else g.get("paper_success_rate")
+            )
+            if ref is not None:
+                any_paper = True
+                ax.plot(
+                    xi,
+                    100 * ref,
+                    linestyle="none",
+                    marker="D",
+                    markersize=7,
+                    markerfacecolor="none",
+                    markeredgecolor=color,
+                    markeredgewidth=1.5,
+                )
+            if g.get("alpha") is not None and g.get("beta") is not None:
+                tick_text.setdefault(
+                    g["clutter_level"],
+                    f"{g['clutter_level']}\n(α={g['alpha']:.2f}, β={g['beta']:.2f})",
+                )
+    all_levels = sorted({g["clutter_level"] for g in groups})
+    ax.set_xticks(all_levels)
+    ax.set_xticklabels([tick_text.get(level, str(level)) for level in all_levels])
+    ax.set_xlim(all_levels[0] - 0.5, all_levels[-1] + 0.5)
+    ax.set_ylim(-4, 104)
+    ax.set_xlabel("clutter level")
+    ax.set_ylabel("success rate (%)")
+    if title:
+        ax.set_title(title)
+    handles, labels = ax.get_legend_handles_labels()
+    if any_paper:
+        handles.append(
+            Line2D([], [], linestyle="none", marker="D", markerfacecolor="none", color="0.3")
+        )
+        labels.append(paper_label)
+    ax.legend(handles, labels, loc="best", fontsize=9, framealpha=0.9)
+    return _save(fig, path, dpi)
+
+
+def _as_series(name: str, values: Any, field: str) -> np.ndarray:
+    arr = np.asarray(values, dtype=np.float64)
+    if arr.ndim == 3:
+        require(arr.shape[1:] == (3, 3), f"{field}[{name!r}]", arr.shape, "(T,) or (T, 3, 3)")
+        arr = np.trace(arr, axis1=1, axis2=2)
+    require(arr.ndim == 1 and arr.size > 0, f"{field}[{name!r}]", arr.shape, "(T,) or (T, 3, 3)")
+    return arr
+
+
+def _time_axis(n: int, dt_s: float | None) -> tuple[np.ndarray, str]:
+    if dt_s is None:
+        return np.arange(n, dtype=float), "iteration"
+    require(dt_s > 0 and math.isfinite(dt_s), "dt_s", dt_s, "a number > 0")
+    return np.arange(n, dtype=float) * dt_s, "time (s)"
+
+
+def plot_uncertainty_traces(
+    traces: Mapping[str, Any],
+    path: str | os.PathLike,
+    *,
+    dt_s: float | None = None,
+    log_y: bool = True,
+    title: str | None = "Vehicle uncertainty (trace of the pose covariance)",
+    figsize: tuple[float, float] = CURVE_FIGSIZE,
+    dpi: int = DPI,
+) -> Path:
+    """Trace of the vehicle pose covariance per iteration, one line per name (BB Figs. 3, 4).
+
+    ``traces[name]`` is either the traces (T,) or the pose covariances (T, 3, 3). The trace adds
+    m^2 (x, y) and rad^2 (heading), as in BB. The x axis is the iteration, or time with ``dt_s``.
+    """
+    require(len(traces) > 0, "traces", dict(traces), "a non-empty mapping name -> array")
+    fig, ax = _new_figure(figsize, dpi)
+    for i, (name, values) in enumerate(traces.items()):
+        y = _as_series(name, values, "traces")
+        x, xlabel = _time_axis(y.size, dt_s)
+        ax.plot(x, y, color=_COLORS[i % len(_COLORS)], linewidth=1.3, label=name)
+    if log_y:
+        ax.set_yscale("log")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("trace of pose covariance (m² + rad²)")
+    if title:
+        ax.set_title(title)
+    ax.legend(loc="best", fontsize=9, framealpha=0.9)
+    return _save(fig, path, dpi)
+
+
+def nees_band(dof: int = 3, n_runs: int = 1, confidence: float = 0.95) -> tuple[float, float]:
+    """Two-sided chi-square band of the (run-averaged) NEES: chi2(dof * n_runs) / n_runs."""
+    require(isinstance(dof, int) and dof >= 1, "dof", dof, "an int >= 1")
+    require(isinstance(n_runs, int) and n_runs >= 1, "n_runs", n_runs, "an int >= 1")
+    require(0 < confidence < 1, "confidence", confidence, "a number in (0, 1)")
+    from scipy.stats import chi2  # imported here: scipy.stats is slow to import
+
+    tail = (1 - confidence) / 2
+    lo, hi = chi2.ppf([tail, 1 - tail], dof * n_runs) / n_runs
+    return float(lo), float(hi)
+
+
+def plot_nees(
+    nees: Mapping[str, Any] | Any,
+    path: str | os.PathLike,
+    *,
+    dof: int = 3,
+    n_runs: int = 1,
+    confidence: float = 0.95,
+    dt_s: float | None = None,
+    log_y: bool = True,
+    title: str | None = "Vehicle NEES",
+    figsize: tuple[float, float] = CURVE_FIGSIZE,
+    dpi: int = DPI,
+) -> Path:
+    """NEES per iteration with the chi-square ``confidence`` band for ``dof`` (3: x, y, theta).
+
+    ``nees`` is an array (T,) or a mapping name -> array; NaN entries (no truth) leave gaps. With
+    ``n_runs`` > 1 the values are taken as averages over that many runs and the band narrows to
+    chi2(dof * n_runs) / n_runs. The legend gives each line's fraction of iterations in the band.
+    """
+    series = dict(nees) if isinstance(nees, Mapping) else {"NEES": nees}
+    require(len(series) > 0, "nees", series, "a non-empty array or mapping")
+    lo, hi = nees_band(dof, n_runs, confidence)
+    fig, ax = _new_figure(figsize, dpi)
+    ax.axhspan(
+        lo,
+        hi,
+        color="0.55",
+        alpha=0.18,
+        linewidth=0,
+        label=f"χ² {100 * confidence:.0f} % band ({dof} dof): [{lo:.2f}, {hi:.2f}]",
+    )
+    ax.axhline(dof, color="0.35", linewidth=0.9, linestyle="--", label=f"expected ({dof})")
+    for i, (name, values) in enumerate(series.items()):
+        y = _as_series(name, values, "nees")
+        finite = np.isfinite(y)
+        frac = float(np.mean((y[finite] >= lo) & (y[finite] <= hi))) if finite.any() else math.nan
+        x, xlabel = _time_axis(y.size, dt_s)
+        ax.plot(
+            x,
+            y,
+            color=_COLORS[i % len(_COLORS)],
+            linewidth=1.1,
+            label=f"{name} ({100 * frac:.0f} % in band)",
+        )
+    if log_y:
+        ax.set_yscale("log")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("NEES")
+    if title:
+        ax.set_title(title)
+    ax.legend(loc="best", fontsize=9, framealpha=0.9)
+    return _save(fig, path, dpi)
+
+
+def _points(values: Any, field: str, min_cols: int = 2) -> np.ndarray:
+    arr = np.asarray(values, dtype=np.float64)
+    if arr.size == 0:
+        return np.zeros((0, 2))
+    require(
+        arr.ndim == 2 and arr.shape[1] >= min_cols, field, arr.shape, f"(N, >= {min_cols}) array"
+    )
+    return arr[:, :2]
+
+
+def plot_run_map(
+    path: str | os.PathLike,
+    *,
+    landmarks_true: Any,
+    landmark_means: Any,
+    landmark_covs: Any,
+    path_true: Any,
+    path_est: Any,
+    sigma: float = 2.0,
+    title: str | None = "Map of one run",
+    figsize: tuple[float, float] = MAP_FIGSIZE,
+    dpi: int = DPI,
+) -> Path:
+    """One run: true landmarks, estimated landmarks with ``sigma``-sigma ellipses, both paths.
+
+    ``landmarks_true`` (N, 2); ``landmark_means`` (M, 2) and ``landmark_covs`` (M, 2, 2), e.g. from
+    ``LandmarkEstimate``; ``path_true`` and ``path_est`` (T, 2 or 3) poses (x, y[, theta]).
+    An ellipse has semi-axes ``sigma * sqrt(eigenvalue)`` along the covariance's eigenvectors.
+    """
+    require(sigma > 0 and math.isfinite(sigma), "sigma", sigma, "a number > 0")
+    lm_true = _points(landmarks_true, "landmarks_true")
+    means = _points(landmark_means, "landmark_means")
+    covs = np.asarray(landmark_covs, dtype=np.float64).reshape(-1, 2, 2)
+    require(
+        covs.shape[0] == means.shape[0],
+        "landmark_covs",
+        covs.shape,
+        f"({means.shape[0]}, 2, 2) to match landmark_means",
+    )
+    p_true = _points(path_true, "path_true")
+    p_est = _points(path_est, "path_est")
+
+    fig, ax = _new_figure(figsize, dpi)
+    ax.plot(p_true[:, 0], p_true[:, 1], color="0.25", linewidth=1.4, label="true path")
+    ax.plot(p_est[:, 0], p_est[:, 1], color="#1f77b4", linewidth=1.2, label="estimated path")
+    if len(p_true):
+        ax.plot(*p_true[0], marker="o", color="0.25", markersize=6, linestyle="none")
+    ax.scatter(
+        lm_true[:, 0],
+        lm_true[:, 1],
+        marker="+",
+        s=50,
+        color="0.1",
+        linewidths=1.2,
+        label="true landmarks",
+        zorder=3,
+    )
+    if len(means):
+        evals, evecs = np.linalg.eigh(0.5 * (covs + np.swapaxes(covs, 1, 2)))
+        evals = np.clip(evals, 0.0, None)
+        angles = np.degrees(np.arctan2(evecs[:, 1, 1], evecs[:, 0, 1]))  # major axis direction
+        ax.add_collection(
+            EllipseCollection(
+                widths=2 * sigma * np.sqrt(evals[:, 1]),
+                heights=2 * sigma * np.sqrt(evals[:, 0]),
+                angles=angles,
+                units="xy",
+                offsets=means,
+                offset_transform=ax.transData,
+                facecolors="none",
+                edgecolors="#d62728",
+                linewidths=0.9,
+                zorder=4,
+            )
+        )
+        ax.scatter(
+            means[:, 0],
+            means[:, 1],
+            marker="s",
+            s=14,
+            color="#d62728",
+            label=f"estimated landmarks ({sigma:g}σ ellipses)",
+            zorder=5,
+        )
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    if title:
+        ax.set_title(title)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=2, fontsize=8, frameon=False)
+    return _save(fig, path, dpi)

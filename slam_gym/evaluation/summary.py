@@ -1,0 +1,334 @@
+"""Aggregate ``results.jsonl`` rows into ``summary.json``, ``table.md`` and a console table.
+
+One summary group per (system or policy, scenario, clutter level, options) — for one scenario and
+fixed options this is DESIGN section 7's "per (system or policy, clutter level)". Each group has
+``n`` (all recorded runs), ``n_ok``, ``n_errors`` (runs whose ``status`` is ``"error"``),
+``n_success``, ``success_rate`` = successes / ``n_ok`` with its Wilson 95 % score interval
+``success_ci95`` = [lo, hi], and means over the ok runs of ``anees``, ``nees_in_band_fraction``,
+``n_fusions``, ``n_optimisations``, ``wall_time_s``, plus mean and median of ``map_error_m`` and
+``final_pose_error_m``. Errored runs never count as failures: they are excluded from every rate
+and mean and reported in ``n_errors`` (per group and in total), so a crash cannot pass for a
+SLAM failure. A null metric (e.g. not computable for that run) is left out of its mean.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import statistics
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from filters.validation import require
+from slam_gym.evaluation.jobs import JOB_KINDS
+from slam_gym.evaluation.results import STATUS_ERROR, STATUS_OK
+
+#: Two-sided 95 % standard-normal quantile, Phi^-1(0.975).
+Z95 = 1.959963984540054
+
+SUMMARY_FILENAME = "summary.json"
+TABLE_FILENAME = "table.md"
+
+_MEAN_KEYS = ("anees", "nees_in_band_fraction", "n_fusions", "n_optimisations", "wall_time_s")
+_MEAN_MEDIAN_KEYS = ("map_error_m", "final_pose_error_m")
+
+PaperValues = Mapping[str, Mapping[Any, float]]
+
+
+def wilson_interval(successes: int, n: int, z: float = Z95) -> tuple[float, float]:
+    """Wilson score interval for a binomial proportion (Wilson 1927).
+
+    With p = k/n: centre = (p + z^2/(2n)) / (1 + z^2/n) and half-width
+    = z / (1 + z^2/n) * sqrt(p(1-p)/n + z^2/(4n^2)). Exact 0 and 1 at k = 0 and k = n.
+    """
+    ok_n = isinstance(n, int) and not isinstance(n, bool) and n >= 1
+    require(ok_n, "n", n, "an int >= 1")
+    ok_k = isinstance(successes, int) and not isinstance(successes, bool) and 0 <= successes <= n
+    require(ok_k, "successes", successes, f"an int in [0, {n}]")
+    require(isinstance(z, (int, float)) and z > 0 and math.isfinite(z), "z", z, "a number > 0")
+    p = successes / n
+    z2 = z * z
+    denom = 1.0 + z2 / n
+    centre = (p + z2 / (2 * n)) / denom
+    half = z / denom * math.sqrt(p * (1.0 - p) / n + z2 / (4 * n * n))
+    lo = 0.0 if successes == 0 else max(0.0, centre - half)
+    hi = 1.0 if successes == n else min(1.0, centre + half)
+    return lo, hi
+
+
+def _kind_name(row: Mapping[str, Any]) -> tuple[str, str]:
+    kinds = [k for k in JOB_KINDS if row.get(k) is not None]
+    require(len(kinds) == 1, "row kind", kinds, "exactly one of 'system' or 'policy' set")
+    return kinds[0], row[kinds[0]]
+
+
+def _numbers(rows: Sequence[Mapping[str, Any]], key: str) -> list[float]:
+    out = []
+    for row in rows:
+        v = row.get(key)
+        if isinstance(v, bool):
+            v = float(v)
+        if isinstance(v, (int, float)) and math.isfinite(v):
+            out.append(float(v))
+    return out
+
+
+def _mean(values: list[float]) -> float | None:
+    return statistics.fmean(values) if values else None
+
+
+def _median(values: list[float]) -> float | None:
+    return statistics.median(values) if values else None
+
+
+def paper_rate(paper: PaperValues | None, name: str, clutter_level: Any) -> float | None:
+    """Look up a reference success rate (fraction) by name and clutter level (int or str keys)."""
+    if not paper or name not in paper:
+        return None
+    by_level = paper[name]
+    for key in (clutter_level, str(clutter_level)):
+        if key in by_level:
+            return float(by_level[key])
+    return None
+
+
+def summarise(
+    rows: Iterable[Mapping[str, Any]], *, paper: PaperValues | None = None
+) -> list[dict[str, Any]]:
+    """One dict per (system or policy, scenario, clutter level, options), in first-seen order
+    of names and scenarios and ascending clutter level. ``paper`` (name -> {level: rate}) adds
+    ``paper_success_rate`` to the matching groups.
+    """
+    groups: dict[tuple, list[Mapping[str, Any]]] = {}
+    name_order: dict[tuple[str, str], int] = {}
+    scenario_order: dict[str, int] = {}
+    for row in rows:
+        kind, name = _kind_name(row)
+        status = row.get("status")
+        require(status in (STATUS_OK, STATUS_ERROR), "row status", status, "'ok' or 'error'")
+        options = json.dumps(row.get("options") or {}, sort_keys=True)
+        name_order.setdefault((kind, name), len(name_order))
+        scenario_order.setdefault(row.get("scenario"), len(scenario_order))
+        gkey = (kind, name, row.get("scenario"), row.get("clutter_level"), options)
+        groups.setdefault(gkey, []).append(row)
+
+    def order(gkey: tuple) -> tuple:
+        kind, name, scenario, level, _ = gkey
+        level_key = (1, 0) if level is None else (0, level)
+        return name_order[(kind, name)], scenario_order[scenario], level_key
+
+    summary = []
+    for gkey in sorted(groups, key=order):
+        kind, name, scenario, level, options = gkey
+        members = groups[gkey]
+        ok = [r for r in members if r.get("status") == STATUS_OK]
+        n_success = sum(1 for r in ok if r.get("success") is True)
+        ci = list(wilson_interval(n_success, len(ok))) if ok else None
+        first = next((r for r in ok if r.get("alpha") is not None), {})
+        group: dict[str, Any] = {
+            kind: name,
+            "scenario": scenario,
+            "clutter_level": level,
+            "options": json.loads(options),
+            "alpha": first.get("alpha"),
+            "beta": first.get("beta"),
+            "n": len(members),
+            "n_ok": len(ok),
+            "n_errors": len(members) - len(ok),
+            "n_success": n_success,
+            "success_rate": n_success / len(ok) if ok else None,
+            "success_ci95": ci,
+        }
+        for key in _MEAN_KEYS:
+            group[key] = _mean(_numbers(ok, key))
+        for key in _MEAN_MEDIAN_KEYS:
+            values = _numbers(ok, key)
+            group[key] = {"mean": _mean(values), "median": _median(values)}
+        if paper is not None:
+            group["paper_success_rate"] = paper_rate(paper, name, level)
+        summary.append(group)
+    return summary
+
+
+def summary_document(
+    rows: Iterable[Mapping[str, Any]], *, paper: PaperValues | None = None
+) -> dict[str, Any]:
+    """The content of ``summary.json``: totals, the interval used and the groups."""
+    rows = list(rows)
+    groups = summarise(rows, paper=paper)
+    n_errors = sum(g["n_errors"] for g in groups)
+    return {
+        "n_runs": len(rows),
+        "n_ok": len(rows) - n_errors,
+        "n_errors": n_errors,
+        "interval": "Wilson score interval, 95 % (z = 1.96)",
+        "note": (
+            "success_rate and all means are over runs with status 'ok'; runs with status "
+            "'error' are counted in n_errors and excluded"
+        ),
+        "groups": groups,
+    }
+
+
+# ---------------------------------------------------------------------------------------------
+# Formatting
+
+
+def _groups(summary: Mapping[str, Any] | Sequence[Mapping[str, Any]]) -> list[Mapping[str, Any]]:
+    if isinstance(summary, Mapping):
+        return list(summary["groups"])
+    return list(summary)
+
+
+def _pct(x: float | None) -> str:
+    return "–" if x is None else f"{100 * x:.0f} %"
+
+
+def _num(x: float | None, digits: int = 2) -> str:
+    return "–" if x is None else f"{x:.{digits}f}"
+
+
+def format_success(group: Mapping[str, Any]) -> str:
+    """``"87 % [80, 92]"``: success rate with its Wilson 95 % interval, in percent."""
+    rate, ci = group.get("success_rate"), group.get("success_ci95")
+    if rate is None or ci is None:
+        return "–"
+    return f"{100 * rate:.0f} % [{100 * ci[0]:.0f}, {100 * ci[1]:.0f}]"
+
+
+def options_distinguish(groups: Sequence[Mapping[str, Any]]) -> bool:
+    """True if two groups share name, scenario and clutter level and differ only by options."""
+    seen = set()
+    for g in groups:
+        ident = (_kind_name(g), g.get("scenario"), g.get("clutter_level"))
+        if ident in seen:
+            return True
+        seen.add(ident)
+    return False
+
+
+def table_cells(
+    summary: Mapping[str, Any] | Sequence[Mapping[str, Any]], *, paper: PaperValues | None = None
+) -> tuple[list[str], list[list[str]]]:
+    """Header and rows of strings shared by the markdown, rich and plain-text tables.
+
+    The ``scenario`` column appears only when scenarios vary, ``options`` only when rows of the
+    same name, scenario and clutter level differ by options; ``paper`` only when reference values
+    are given (argument, or ``paper_success_rate`` in the groups).
+    """
+    groups = _groups(summary)
+    kinds = {k for g in groups for k in JOB_KINDS if k in g}
+    name_header = "/".join(k for k in JOB_KINDS if k in kinds) or "system"
+    show_scenario = len({g.get("scenario") for g in groups}) > 1
+    show_options = options_distinguish(groups)
+
+    def ref(g: Mapping[str, Any]) -> float | None:
+        if paper is not None:
+            return paper_rate(paper, _kind_name(g)[1], g.get("clutter_level"))
+        return g.get("paper_success_rate")
+
+    show_paper = any(ref(g) is not None for g in groups)
+    header = [name_header]
+    header += ["scenario"] if show_scenario else []
+    header += ["options"] if show_options else []
+    header += ["clutter", "n", "errors", "success [95 % CI]"]
+    header += ["paper"] if show_paper else []
+    header += [
+        "ANEES",
+        "NEES in band",
+        "map error (m) mean / median",
+        "fusions",
+        "optimisations",
+        "time (s)",
+    ]
+    body = []
+    for g in groups:
+        level = g.get("clutter_level")
+        cells = [_kind_name(g)[1]]
+        cells += [str(g.get("scenario"))] if show_scenario else []
+        if show_options:
+            cells.append(", ".join(f"{k}={v}" for k, v in (g.get("options") or {}).items()))
+        cells += ["–" if level is None else str(level), str(g["n"]), str(g["n_errors"])]
+        cells.append(format_success(g))
+        cells += [_pct(ref(g))] if show_paper else []
+        map_err = g.get("map_error_m") or {}
+        cells += [
+            _num(g.get("anees")),
+            _pct(g.get("nees_in_band_fraction")),
+            f"{_num(map_err.get('mean'))} / {_num(map_err.get('median'))}",
+            _num(g.get("n_fusions"), 1),
+            _num(g.get("n_optimisations"), 1),
+            _num(g.get("wall_time_s"), 1),
+        ]
+        body.append(cells)
+    return header, body
+
+
+def markdown_table(
+    summary: Mapping[str, Any] | Sequence[Mapping[str, Any]], *, paper: PaperValues | None = None
+) -> str:
+    """The summary as a GitHub-flavoured markdown table (the content of ``table.md``)."""
+    header, body = table_cells(summary, paper=paper)
+
+    def line(cells: list[str]) -> str:
+        return "| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |"
+
+    align = ["---"] + ["---:"] * (len(header) - 1)
+    return "\n".join([line(header), "|" + "|".join(align) + "|", *map(line, body)]) + "\n"
+
+
+def format_table(
+    summary: Mapping[str, Any] | Sequence[Mapping[str, Any]],
+    *,
+    paper: PaperValues | None = None,
+    rich: bool = True,
+    title: str | None = "Benchmark summary (success: Wilson 95 % interval)",
+) -> Any:
+    """A ``rich.table.Table`` for the console, or aligned plain text with ``rich=False``."""
+    header, body = table_cells(summary, paper=paper)
+    if rich:
+        from rich.table import Table
+
+        table = Table(title=title)
+        for i, name in enumerate(header):
+            table.add_column(name, justify="left" if i == 0 else "right")
+        for cells in body:
+            table.add_row(*cells)
+        return table
+    widths = [max(len(r[i]) for r in [header, *body]) for i in range(len(header))]
+
+    def line(cells: list[str]) -> str:
+        pairs = enumerate(zip(cells, widths, strict=True))
+        return "  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in pairs).rstrip()
+
+    out = [title] if title else []
+    out += [line(header), "  ".join("-" * w for w in widths), *map(line, body)]
+    return "\n".join(out)
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text, encoding="utf-8")
+    os.replace(tmp, path)
+
+
+def write_summary(
+    out_dir: str | os.PathLike,
+    rows: Iterable[Mapping[str, Any]],
+    *,
+    paper: PaperValues | None = None,
+) -> dict[str, Any]:
+    """Write ``summary.json`` (see :func:`summary_document`) and ``table.md``; return the doc."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    doc = summary_document(rows, paper=paper)
+    _write_atomic(out / SUMMARY_FILENAME, json.dumps(doc, indent=2, allow_nan=False) + "\n")
+    table = markdown_table(doc, paper=paper)
+    note = (
+        f"\n{doc['n_runs']} runs, {doc['n_errors']} errored (excluded from rates and means). "
+        "Success: rate over ok runs with its Wilson 95 % interval.\n"
+    )
+    _write_atomic(out / TABLE_FILENAME, table + note)
+    return doc
