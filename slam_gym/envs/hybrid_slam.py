@@ -238,7 +238,7 @@ class HybridSLAMEnv(gym.Env):
             n_particles=self.config.n_particles,
             back_end=self.config.back_end,
         )
-        self.episode = Episode(self.system, self.stream, record_trace=self.render_mode is not None)
+        self.episode = Episode(self.system, self.stream)
         self.world_seed = int(world_seed)
         self.n_decisions = 0
         # run the first interval so the observation describes a local map

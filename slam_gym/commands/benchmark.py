@@ -1,0 +1,114 @@
+"""``slam-gym benchmark``: interface policies compared in the env, in parallel and resumable."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from slam_gym.commands.common import emit, out_dir
+from slam_gym.commands.runs import add_run_options, execute, int_list, name_list, print_table
+
+QUICK = {
+    "policies": "fixed-10s,esdf-innovation,learned",
+    "clutter_levels": "0,1,2,3",
+    "seeds": 3,
+    "particles": 100,
+}
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "benchmark",
+        help="compare interface policies in the env",
+        description="Run policies x clutter levels x seeds through SlamGym/HybridSLAM-v0 (a "
+        "process pool or Ray), write results.jsonl (resumable), summary.json, table.md and "
+        "plots. --quick is the README's main job.",
+    )
+    p.add_argument("--policies", default="fixed-10s,esdf-innovation,learned")
+    p.add_argument("--clutter-levels", default="0,1,2,3")
+    p.add_argument("--scenario", default="brooks-bailey")
+    p.add_argument("--particles", type=int, default=500)
+    p.add_argument("--decision-interval", type=int, default=10)
+    p.add_argument("--front-end", choices=["fastslam", "ekf"], default="fastslam")
+    p.add_argument("--back-end", choices=["ekf", "relative"], default="ekf")
+    p.add_argument("--model", default=None, help="model zip for the learned policy")
+    p.add_argument("--quick", action="store_true",
+                   help=f"the quick benchmark: {QUICK['seeds']} seeds, {QUICK['particles']} "
+                   "particles, all clutter levels, fixed-10s, esdf-innovation, learned")
+    p.add_argument("--no-figures", action="store_true")
+    add_run_options(p, default_out="out/benchmark", trials_flag="--seeds")
+    p.set_defaults(run=run)
+
+
+def run(args) -> int:
+    import policies
+    from slam_gym.evaluation import Job, plot_success_rates, write_summary
+
+    if args.quick:
+        args.policies, args.clutter_levels = QUICK["policies"], QUICK["clutter_levels"]
+        args.trials, args.particles = QUICK["seeds"], QUICK["particles"]
+    names = name_list(args.policies)
+    unknown = [n for n in names if n not in policies.available()]
+    if unknown:
+        raise ValueError(f"policies={unknown} is invalid: must be among {policies.available()}")
+    if "learned" in names:
+        policies.make("learned", **({"path": args.model} if args.model else {}))  # fail early
+    levels = int_list(args.clutter_levels)
+    out = out_dir(args)
+    options = {
+        "n_particles": args.particles,
+        "decision_interval": args.decision_interval,
+        "front_end": args.front_end,
+        "back_end": args.back_end,
+    }
+    jobs = []
+    for name in names:
+        opts = options | ({"model_path": args.model} if name == "learned" and args.model else {})
+        seeds = range(args.seed_start, args.seed_start + args.trials)
+        jobs += [Job("policy", name, args.scenario, level, seed, opts)
+                 for level in levels for seed in seeds]
+    rows = execute(args, jobs, out)
+    doc = write_summary(out, rows)
+    figures = {}
+    if not args.no_figures:
+        figures["success"] = str(plot_success_rates(doc, out / "success_rates.png",
+                                                    title="Success rate per clutter level"))
+        figures.update(episode_figures(names, args, levels[-1], out))
+    print_table(args, doc, title=f"Policies on {args.scenario} ({args.particles} particles)")
+    emit(args, {"summary": doc, "figures": figures, "out": str(out)},
+         [f"wrote {out / 'results.jsonl'}, summary.json, table.md and {len(figures)} figures"])
+    return 0
+
+
+def episode_figures(names, args, level, out) -> dict:
+    """Uncertainty and NEES traces of every policy on one seed, and that seed's map."""
+    from slam_gym.evaluation import plot_nees, plot_run_map, plot_uncertainty_traces
+    from slam_gym.evaluation.core import run_policy
+
+    traces, nees, last = {}, {}, None
+    for name in names:
+        episode, env = run_policy(
+            name, args.scenario, level, args.seed_start, n_particles=args.particles,
+            decision_interval=args.decision_interval, front_end=args.front_end,
+            back_end=args.back_end, model_path=args.model,
+        )
+        traces[name] = np.array(episode.trace.cov_trace)
+        nees[name] = np.array(episode.trace.nees)
+        last = (name, episode, env)
+    dt = last[2].stream.dt_s
+    figures = {
+        "uncertainty": str(plot_uncertainty_traces(
+            traces, out / "uncertainty_traces.png", dt_s=dt,
+            title=f"Vehicle uncertainty, clutter level {level}, seed {args.seed_start}")),
+        "nees": str(plot_nees(
+            nees, out / "nees.png", dt_s=dt,
+            title=f"Vehicle NEES, clutter level {level}, seed {args.seed_start}")),
+    }
+    name, episode, env = last
+    lm = episode.system.landmarks()
+    keep = np.asarray(lm.existence) >= 0.95
+    figures["map"] = str(plot_run_map(
+        out / "map.png", landmarks_true=env.stream.landmarks_true,
+        landmark_means=np.asarray(lm.means)[keep], landmark_covs=np.asarray(lm.covs)[keep],
+        path_true=np.array(episode.trace.true_poses), path_est=np.array(episode.trace.est_poses),
+        title=f"{name}, clutter level {level}, seed {args.seed_start}"))
+    return figures
