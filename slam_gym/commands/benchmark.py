@@ -84,7 +84,7 @@ def episode_figures(names, args, level, out) -> dict:
     from slam_gym.evaluation import plot_nees, plot_run_map, plot_uncertainty_traces
     from slam_gym.evaluation.core import run_policy
 
-    traces, nees, last = {}, {}, None
+    traces, nees, runs = {}, {}, []
     for name in names:
         episode, env = run_policy(
             name, args.scenario, level, args.seed_start, n_particles=args.particles,
@@ -93,8 +93,8 @@ def episode_figures(names, args, level, out) -> dict:
         )
         traces[name] = np.array(episode.trace.cov_trace)
         nees[name] = np.array(episode.trace.nees)
-        last = (name, episode, env)
-    dt = last[2].stream.dt_s
+        runs.append((name, episode, env))
+    dt = runs[0][2].stream.dt_s
     figures = {
         "uncertainty": str(plot_uncertainty_traces(
             traces, out / "uncertainty_traces.png", dt_s=dt,
@@ -103,7 +103,7 @@ def episode_figures(names, args, level, out) -> dict:
             nees, out / "nees.png", dt_s=dt,
             title=f"Vehicle NEES, clutter level {level}, seed {args.seed_start}")),
     }
-    name, episode, env = last
+    name, episode, env = runs[0]  # the map of the first policy named
     lm = episode.system.landmarks()
     keep = np.asarray(lm.existence) >= 0.95
     figures["map"] = str(plot_run_map(
