@@ -91,6 +91,22 @@ def detect_algorithm(path: str | Path) -> str:
     )
 
 
+OBSERVATION_TRANSFORMS: tuple[str, ...] = ("none", "log1p")
+"""Transforms of the observation a model may have been trained behind."""
+
+
+def _configured_transform(model_path: Path) -> str:
+    """The ``observation_transform`` of the config JSON beside the model, else ``"none"``."""
+    config = model_path.with_suffix(".json")
+    if not config.is_file():
+        return "none"
+    try:
+        value = json.loads(config.read_text()).get("observation_transform", "none")
+    except (json.JSONDecodeError, AttributeError) as exc:
+        raise ValueError(f"config {config} is invalid: must be a JSON object ({exc})") from exc
+    return value
+
+
 def _algorithm_class(algo: str):
     """The stable-baselines3 class for ``algo`` (imported here, lazily)."""
     import stable_baselines3
@@ -109,8 +125,11 @@ class LearnedPolicy(Policy):
     Options: ``path`` (model zip; default :data:`DEFAULT_MODEL_PATH`), ``algo`` (one of
     :data:`ALGORITHMS`; default: detected from the zip), ``deterministic`` (default True: the
     mode of the policy's action distribution / the greedy Q action), ``device`` (default
-    ``"cpu"``). The model is loaded on construction, so a missing file or a model with the wrong
-    spaces fails at ``policies.make`` rather than mid-episode.
+    ``"cpu"``), ``observation_transform`` (``"none"`` or ``"log1p"``, the transform the model was
+    trained behind; default: the ``observation_transform`` of the config JSON that ``slam-gym
+    train`` saves beside the zip with the same stem, else ``"none"``). The model is loaded on
+    construction, so a missing file or a model with the wrong spaces fails at ``policies.make``
+    rather than mid-episode.
     """
 
     name = "learned"
@@ -122,6 +141,7 @@ class LearnedPolicy(Policy):
         algo: str | None = None,
         deterministic: bool = True,
         device: str = "cpu",
+        observation_transform: str | None = None,
     ) -> None:
         super().__init__()
         require(isinstance(deterministic, bool), "deterministic", deterministic, "True or False")
@@ -144,6 +164,15 @@ class LearnedPolicy(Policy):
                 algo,
                 f"{detected!r}, the algorithm that saved {model_path}",
             )
+        if observation_transform is None:
+            observation_transform = _configured_transform(model_path)
+        require(
+            observation_transform in OBSERVATION_TRANSFORMS,
+            "observation_transform",
+            observation_transform,
+            f"one of {OBSERVATION_TRANSFORMS}",
+        )
+        self.observation_transform = observation_transform
         self.path = model_path
         self.algo = algo
         self.deterministic = deterministic
@@ -154,6 +183,7 @@ class LearnedPolicy(Policy):
             "algo": algo,
             "deterministic": deterministic,
             "device": device,
+            "observation_transform": observation_transform,
         }
         logger.info("loaded %s model from %s", algo.upper(), model_path)
 
@@ -187,6 +217,8 @@ class LearnedPolicy(Policy):
             x.shape,
             f"{self.observation_shape}, the observation shape the model was trained on",
         )
+        if self.observation_transform == "log1p":
+            x = np.log1p(x).astype(np.float32)
         action, _ = self.model.predict(x, deterministic=self.deterministic)
         if self.discrete:
             return discrete_to_multi(action)

@@ -6,7 +6,7 @@ import argparse
 import importlib
 import sys
 
-COMMAND_MODULES = ("simulate", "reproduce", "benchmark", "speed")
+COMMAND_MODULES = ("simulate", "reproduce", "benchmark", "train", "speed")
 
 
 def build_parser() -> argparse.ArgumentParser:

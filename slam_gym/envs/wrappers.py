@@ -28,3 +28,52 @@ class DiscreteActions(gym.ActionWrapper):
 
     def action(self, action):
         return discrete_to_multi(action)
+
+
+TRAINING_WORLD_SEED_OFFSET = 1_000_000
+"""Training worlds have seeds >= this; evaluation and benchmarks use seeds below it, so a
+learned policy is never evaluated on a world it was trained on."""
+
+
+class RandomClutterLevel(gym.Wrapper):
+    """Each episode in a random clutter level and a fresh training world (for training).
+
+    The level is drawn from ``levels`` and the world seed from
+    [TRAINING_WORLD_SEED_OFFSET, TRAINING_WORLD_SEED_OFFSET + 1e9), both with the wrapper's own
+    generator seeded by ``reset(seed=...)``.
+    """
+
+    def __init__(self, env, levels=(0, 1, 2, 3)):
+        super().__init__(env)
+        self.levels = tuple(int(v) for v in levels)
+        if not self.levels:
+            raise ValueError("levels=() is invalid: must name at least one clutter level")
+        self._rng = np.random.default_rng()
+
+    def reset(self, *, seed=None, options=None):
+        if seed is not None:
+            self._rng = np.random.default_rng(seed)
+        options = dict(options or {})
+        options.setdefault("clutter_level", int(self._rng.choice(self.levels)))
+        options.setdefault(
+            "world_seed", TRAINING_WORLD_SEED_OFFSET + int(self._rng.integers(0, 10**9))
+        )
+        return self.env.reset(seed=seed, options=options)
+
+
+class LogFeatures(gym.ObservationWrapper):
+    """``log1p`` of the (non-negative) features: puts seconds, metres and counts on one scale.
+
+    The learned policy applies the same transform (its model's config says so), see
+    ``policies.learned``.
+    """
+
+    def __init__(self, env):
+        super().__init__(env)
+        high = np.log1p(env.observation_space.high).astype(np.float32)
+        self.observation_space = spaces.Box(
+            low=np.zeros_like(high), high=high, dtype=np.float32
+        )
+
+    def observation(self, observation):
+        return np.log1p(observation).astype(np.float32)

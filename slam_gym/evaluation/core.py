@@ -105,15 +105,35 @@ def run_policy(
     clutter_level,
     seed: int,
     *,
+    model_path=None,
+    **env_options,
+):
+    """Run the named interface policy in the env for one episode; (episode, env)."""
+    import policies
+
+    kwargs = {"path": model_path} if (policy_name == "learned" and model_path) else {}
+    return run_policy_object(
+        policies.make(policy_name, **kwargs), scenario, clutter_level, seed, **env_options
+    )
+
+
+def run_policy_object(
+    policy,
+    scenario: str,
+    clutter_level,
+    seed: int,
+    *,
     n_particles=500,
     decision_interval=10,
     front_end="fastslam",
     back_end="ekf",
-    model_path=None,
     n_steps=None,
 ):
-    """Run an interface policy in the env for one episode (it ends at BB's failure too)."""
-    import policies
+    """Run a policy object (``act(obs, info)``, ``reset()``) for one episode; (episode, env).
+
+    The world is the scenario's world for ``seed`` (the same as a system run with that seed);
+    the episode ends at the end of the path or at BB's failure.
+    """
     from slam_gym.envs.hybrid_slam import HybridSLAMEnv
 
     env = HybridSLAMEnv(
@@ -125,8 +145,6 @@ def run_policy(
         back_end=back_end,
         n_steps=n_steps,
     )
-    kwargs = {"path": model_path} if (policy_name == "learned" and model_path) else {}
-    policy = policies.make(policy_name, **kwargs)
     policy.reset()
     obs, info = env.reset(seed=int(seed), options={"world_seed": int(seed)})
     while True:
@@ -153,3 +171,20 @@ def run_job(job) -> dict:
     opts = _options(job.options_dict(), POLICY_OPTIONS, "policy")
     episode, env = run_policy(job.name, job.scenario, job.clutter_level, job.seed, **opts)
     return episode_result(episode, env.stream)
+
+
+def evaluate_policy(policy, scenario, clutter_levels, seeds, **env_options) -> list[dict]:
+    """Rows (as in results.jsonl) of a policy object over levels x seeds, in this process.
+
+    The training callback uses this to log success rate, ANEES and map error with the same code
+    as the benchmark.
+    """
+    rows = []
+    for level in clutter_levels:
+        for seed in seeds:
+            episode, env = run_policy_object(policy, scenario, level, seed, **env_options)
+            row = episode_result(episode, env.stream)
+            row.update(policy="learning", scenario=scenario, clutter_level=level, seed=seed,
+                       status="ok")
+            rows.append(row)
+    return rows
