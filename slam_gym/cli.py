@@ -21,11 +21,31 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def one_blas_thread_per_process() -> None:
+    """Parallelism is across processes (one run per core): BLAS gets one thread per process.
+
+    Multi-threaded OpenBLAS slows the small matrix products of the filters and SciPy's L-BFGS-B
+    badly. The variables reach the worker processes started later; threadpoolctl limits the BLAS
+    this process has already loaded.
+    """
+    import os
+
+    from threadpoolctl import threadpool_limits
+
+    for name in BLAS_THREAD_VARIABLES:
+        os.environ.setdefault(name, "1")
+    threadpool_limits(1)
+
+
 def main(argv: list[str] | None = None) -> int:
     from slam_gym.commands.common import configure_logging
 
     args = build_parser().parse_args(argv)
     configure_logging(args.verbose)
+    one_blas_thread_per_process()
     try:
         return int(args.run(args) or 0)
     except ValueError as exc:
