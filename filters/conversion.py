@@ -1,0 +1,321 @@
+"""Correspondence voting and conversion of a FastSLAM posterior to one Gaussian (BB 3.1, 3.2).
+
+A FastSLAM particle set is a Gaussian mixture (BB 2.1): particle ``p`` carries a weight ``w^p``, a
+pose ``v^p`` with zero covariance and independent Gaussian features ``(mu_i^p, Sigma_i^p)``. With
+unknown associations the particles' feature lists differ, so every feature also carries a
+*correspondence id* ``gamma_i^p`` naming the *common feature* it is a hypothesis about (BB (8)).
+
+Voting (BB 3.1)
+---------------
+For one observation each particle votes, with its weight, for *clutter*, for the common id of the
+existing feature it associated the observation with, or for *new feature*. The heaviest option
+wins and every feature modified or created by that observation takes the winning id
+(:func:`correspondence_vote` computes the winner; the filter writes the ids). A feature a particle
+holds that has never received an id (``gamma = -1``: it was created by an observation whose vote
+went to clutter) is not yet a common feature, so a vote for it counts as a vote for *new feature*.
+The vote margin (winner share minus runner-up share) measures association ambiguity.
+
+Conversion (BB 3.2, (6), (7), (9))
+----------------------------------
+``delta(n, p)`` (BB 3.2) maps common feature ``n`` to the slot of particle ``p`` that represents it
+(:func:`common_features`). Two corner cases, as BB 3.2 prescribes and with our choices:
+
+* **Several features of one particle with the same id.** BB picks one at random. We pick the one
+  with the highest existence probability, ties broken by the smallest covariance trace, then the
+  lowest slot: a particle's best-supported hypothesis. The choice is deterministic, so converting
+  (or reporting landmarks, which uses the same selection) never draws random numbers and calling it
+  for diagnostics cannot change the filter's random stream.
+* **A particle without the feature** is ignored for that feature's moments: the weights are
+  renormalised over the particles that hold it (mean, BB (6)), and each cross-covariance term of
+  BB (7) is summed over the particles that hold *both* entries, with weights renormalised over that
+  subset and deviations taken from the means of (6). Two features that no particle holds together
+  get a zero cross-covariance.
+
+The existence probability of a common feature is the weighted sum of its particles' existence
+probabilities with the *full* weights (a particle lacking the feature contributes 0), as BB 3.2
+suggests ("weighted sums analogous to Equation 6"), so features the particles do not agree upon
+have a low probability of existence and are not converted.
+
+Pose heading: the mean heading is the weighted circular mean ``atan2(sum w sin, sum w cos)`` and
+heading deviations are wrapped around it; the covariance is ``sum w d d^T`` with those deviations
+(no re-centring).
+
+Positive definiteness: the pose block from a set of identical poses is zero (right after a
+restart), and the subset-wise cross terms can make the matrix indefinite. The result is therefore
+projected onto the symmetric matrices with eigenvalues ``>= eig_floor`` (default
+:data:`EIGENVALUE_FLOOR` = 1e-10, i.e. a std of 1e-5 m or rad, far below any real uncertainty):
+the nearest such matrix in the Frobenius norm (Higham 1988) clips the eigenvalues at the floor.
+This happens only when the smallest eigenvalue is below the floor; it is logged at debug level.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from filters.existence import CONFIRMED_PROBABILITY
+from filters.geometry import wrap_angle
+from filters.types import GaussianMap
+from filters.validation import check_range, require
+
+logger = logging.getLogger(__name__)
+
+CLUTTER_VOTE = -1
+"""Vote (and winner) code: the observation is a false alarm."""
+NEW_VOTE = -2
+"""Vote code: the observation starts a new common feature."""
+EIGENVALUE_FLOOR = 1e-10
+"""Smallest eigenvalue of a converted covariance (see module docstring)."""
+
+
+# --------------------------------------------------------------------------- voting (BB 3.1)
+@dataclass(frozen=True)
+class VoteResult:
+    """Outcome of one weighted vote: ``winner`` is a common id, CLUTTER_VOTE or NEW_VOTE.
+
+    ``options`` (sorted) and ``shares`` give every option that got a vote and its weight share;
+    ``margin`` is the winner's share minus the runner-up's (the winner's share if unanimous).
+    """
+
+    winner: int
+    margin: float
+    options: np.ndarray
+    shares: np.ndarray
+
+    def share_of(self, option: int) -> float:
+        hit = np.flatnonzero(self.options == option)
+        return float(self.shares[hit[0]]) if len(hit) else 0.0
+
+
+def correspondence_vote(weights, votes) -> VoteResult:
+    """BB 3.1: weighted majority vote of the particles for one observation.
+
+    ``weights`` (P,) non-negative (normalised here); ``votes`` (P,) int: a common id (>= 0),
+    :data:`CLUTTER_VOTE` or :data:`NEW_VOTE`. Ties go to the smallest option code (NEW_VOTE, then
+    CLUTTER_VOTE, then the lowest id), so the result is deterministic.
+    """
+    weights = np.asarray(weights, dtype=float)
+    votes = np.asarray(votes, dtype=np.int64)
+    require(weights.ndim == 1 and len(weights) > 0, "weights", weights.shape, "a non-empty (P,)")
+    require(votes.shape == weights.shape, "votes", votes.shape, f"shape {weights.shape}")
+    require(bool(np.all(votes >= NEW_VOTE)), "votes", votes.min(), ">= NEW_VOTE (-2)")
+    require(bool(weights.min() >= 0.0), "weights", weights.min(), "non-negative")
+    total = weights.sum()
+    require(bool(np.isfinite(total) and total > 0.0), "weights", total, "a positive finite sum")
+    if votes.min() == votes.max():  # unanimous (the common case): no sorting needed
+        return VoteResult(int(votes[0]), 1.0, votes[:1].copy(), np.ones(1))
+    order = np.argsort(votes, kind="stable")
+    ordered = votes[order]
+    starts = np.flatnonzero(np.concatenate([[True], ordered[1:] != ordered[:-1]]))
+    options = ordered[starts]
+    shares = np.add.reduceat(weights[order], starts) / total
+    top = int(np.argmax(shares))
+    if len(shares) > 1:
+        runner_up = np.max(np.delete(shares, top))
+    else:
+        runner_up = 0.0
+    return VoteResult(int(options[top]), float(shares[top] - runner_up), options, shares)
+
+
+# --------------------------------------------------------------------------- common set (BB 3.2)
+@dataclass(frozen=True)
+class CommonFeatures:
+    """The common feature set: ``ids`` (N,), ``slots`` (P, N) = delta(n, p) (BB 3.2) or -1 where
+    particle p lacks feature n, and the weighted ``existence`` (N,) of each common feature.
+
+    Only features held by at least one particle of positive weight belong to the set."""
+
+    ids: np.ndarray
+    slots: np.ndarray
+    existence: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+
+def _normalised(weights) -> np.ndarray:
+    weights = np.asarray(weights, dtype=float)
+    total = weights.sum()
+    require(bool(np.isfinite(total) and total > 0.0), "weights", total, "a positive finite sum")
+    return weights / total
+
+
+def common_features(
+    weights, correspondence_ids, active, existence, tie_break=None
+) -> CommonFeatures:
+    """Build delta (BB 3.2) and the weighted existence of every common feature.
+
+    ``correspondence_ids``, ``active``, ``existence``: (P, C); ``tie_break`` (P, C) optional, used
+    to break existence ties between duplicates (smallest wins: the covariance trace, module
+    docstring).
+    """
+    w = _normalised(weights)
+    cids = np.asarray(correspondence_ids)
+    active = np.asarray(active, dtype=bool)
+    existence = np.asarray(existence, dtype=float)
+    P = len(w)
+    require(
+        cids.shape == active.shape == existence.shape and cids.shape[:1] == (P,),
+        "correspondence_ids",
+        cids.shape,
+        "(P, C) like active and existence",
+    )
+    p_idx, s_idx = np.nonzero(active & (cids >= 0))
+    if len(p_idx) == 0:
+        return CommonFeatures(np.zeros(0, np.int64), np.zeros((P, 0), np.int64), np.zeros(0))
+    c = cids[p_idx, s_idx]
+    e = existence[p_idx, s_idx]
+    if tie_break is None:
+        trace = np.zeros(len(p_idx))
+    else:
+        trace = np.asarray(tie_break, dtype=float)[p_idx, s_idx]
+    # Sort by particle, id, then best representative first: highest existence, smallest trace,
+    # lowest slot (np.nonzero gives slots in ascending order and lexsort is stable).
+    order = np.lexsort((trace, -e, c, p_idx))
+    p_sorted, c_sorted = p_idx[order], c[order]
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = (p_sorted[1:] != p_sorted[:-1]) | (c_sorted[1:] != c_sorted[:-1])
+    keep = order[first]
+    # A feature held only by particles of zero weight is not part of the common set.
+    keep = keep[w[p_idx[keep]] > 0.0]
+    ids, column = np.unique(c[keep], return_inverse=True)
+    slots = np.full((P, len(ids)), -1, dtype=np.int64)
+    slots[p_idx[keep], column] = s_idx[keep]
+    weighted = np.bincount(column, weights=w[p_idx[keep]] * e[keep], minlength=len(ids))
+    return CommonFeatures(ids.astype(np.int64), slots, np.minimum(weighted, 1.0))
+
+
+# --------------------------------------------------------------------------- moments (BB (6), (7))
+def pose_moments(poses, weights, pose_covs=None):
+    """Weighted mean (circular mean heading) and covariance of particle poses (P, 3).
+
+    ``pose_covs`` (P, 3, 3), if given, is each particle's own pose covariance (zero in FastSLAM,
+    BB 2.1; the FastSLAM 2.0 proposal between prediction and update), added as in BB (7).
+    """
+    w = _normalised(weights)
+    poses = np.asarray(poses, dtype=float)
+    mean = np.empty(3)
+    mean[:2] = w @ poses[:, :2]
+    mean[2] = np.arctan2(w @ np.sin(poses[:, 2]), w @ np.cos(poses[:, 2]))
+    mean[2] = wrap_angle(mean[2])
+    d = poses - mean
+    d[:, 2] = wrap_angle(d[:, 2])
+    cov = (d * w[:, None]).T @ d
+    if pose_covs is not None:
+        cov = cov + np.einsum("p,pij->ij", w, np.asarray(pose_covs, dtype=float))
+    return mean, 0.5 * (cov + cov.T)
+
+
+def _gather(means, covs, slots):
+    """Features (P, N, 2) and covariances (P, N, 2, 2) at ``slots`` (P, N); missing -> zeros."""
+    has = slots >= 0
+    rows = np.arange(slots.shape[0])[:, None]
+    safe = np.where(has, slots, 0)
+    mu = np.where(has[..., None], means[rows, safe], 0.0)
+    sig = np.where(has[..., None, None], covs[rows, safe], 0.0)
+    return has, mu, sig
+
+
+def feature_moments(weights, means, covs, slots):
+    """Per-feature moment matching (BB (6), (7) for one feature) over the particles holding it.
+
+    ``slots`` (P, N) from :func:`common_features`. Returns means (N, 2) and covs (N, 2, 2).
+    Every feature must be held by a particle of positive weight.
+    """
+    w = _normalised(weights)
+    slots = np.asarray(slots, dtype=np.int64)
+    has, mu, sig = _gather(np.asarray(means, float), np.asarray(covs, float), slots)
+    mass = w @ has
+    require(
+        bool(np.all(mass > 0.0)),
+        "slots",
+        "a feature held by no weighted particle",
+        "every common feature held by a particle of positive weight",
+    )
+    wc = w[:, None] * has / mass
+    m = np.einsum("pn,pnk->nk", wc, mu)
+    d = np.where(has[..., None], mu - m, 0.0)
+    cov = np.einsum("pn,pnij->nij", wc, sig) + np.einsum("pn,pni,pnj->nij", wc, d, d)
+    return m, 0.5 * (cov + np.swapaxes(cov, -1, -2))
+
+
+def nearest_spd(P, eig_floor: float = EIGENVALUE_FLOOR):
+    """The symmetric matrix nearest to ``P`` (Frobenius) whose eigenvalues are ``>= eig_floor``.
+
+    Returns ``(matrix, projected)``; ``projected`` is False when ``P`` (symmetrised) already
+    satisfied the floor and is returned unchanged.
+    """
+    P = 0.5 * (np.asarray(P, dtype=float) + np.asarray(P, dtype=float).T)
+    if P.size == 0:
+        return P, False
+    lam, V = np.linalg.eigh(P)
+    if lam[0] >= eig_floor:
+        return P, False
+    out = (V * np.maximum(lam, eig_floor)) @ V.T
+    return 0.5 * (out + out.T), True
+
+
+def moment_match(
+    poses,
+    weights,
+    means,
+    covs,
+    common: CommonFeatures,
+    *,
+    min_existence: float = CONFIRMED_PROBABILITY,
+    pose_covs=None,
+    eig_floor: float = EIGENVALUE_FLOOR,
+) -> GaussianMap:
+    """BB 3.2: one Gaussian over ``[pose, features with existence > min_existence]``.
+
+    Each particle's mean is BB (9) ``[v^p, mu_delta(1,p)^p, ...]`` with the block-diagonal
+    covariance of BB 3.2 (zero pose block unless ``pose_covs`` is given); the moments are BB (6)
+    and (7) with the missing-feature rule and the SPD projection of the module docstring. All
+    sums over particles are vectorised (einsum / matrix products).
+    """
+    check_range("min_existence", min_existence, 0.0, 1.0)
+    check_range("eig_floor", eig_floor, 0.0, 1.0)
+    w = _normalised(weights)
+    poses = np.asarray(poses, dtype=float)
+    P = len(w)
+    require(poses.shape == (P, 3), "poses", poses.shape, f"({P}, 3)")
+    select = np.flatnonzero(common.existence > min_existence)
+    slots = common.slots[:, select]
+    n = len(select)
+    has, mu, sig = _gather(np.asarray(means, float), np.asarray(covs, float), slots)
+
+    pose_mean, _ = pose_moments(poses, w)
+    mass = w @ has
+    wc = w[:, None] * has / np.where(mass > 0.0, mass, 1.0)
+    feat_mean = np.einsum("pn,pnk->nk", wc, mu)
+
+    # Deviations D (P, 3 + 2n), zero where a particle lacks the entry, and presence mask M.
+    dim = 3 + 2 * n
+    D = np.empty((P, dim))
+    D[:, :3] = poses - pose_mean
+    D[:, 2] = wrap_angle(D[:, 2])
+    D[:, 3:] = np.where(has[..., None], mu - feat_mean, 0.0).reshape(P, 2 * n)
+    M = np.ones((P, dim))
+    M[:, 3:] = np.repeat(has, 2, axis=1)
+    pair_mass = (M * w[:, None]).T @ M  # weight of the particles holding both entries
+    spread = (D * w[:, None]).T @ D  # BB (7) outer products (zero rows for missing entries)
+    cov = np.divide(spread, pair_mass, out=np.zeros((dim, dim)), where=pair_mass > 0.0)
+
+    # Block-diagonal part of BB (7): each feature's own covariance, and the pose covariance.
+    own = np.einsum("pn,pnij->nij", wc, sig)
+    idx = 3 + 2 * np.arange(n)
+    for a in range(2):
+        for b in range(2):
+            cov[idx + a, idx + b] += own[:, a, b]
+    if pose_covs is not None:
+        cov[:3, :3] += np.einsum("p,pij->ij", w, np.asarray(pose_covs, dtype=float))
+
+    cov, projected = nearest_spd(cov, eig_floor)
+    if projected:
+        logger.debug("moment_match: covariance projected to eigenvalues >= %g", eig_floor)
+    x = np.concatenate([pose_mean, feat_mean.reshape(-1)])
+    return GaussianMap(
+        x=x, P=cov, ids=common.ids[select].copy(), existence=common.existence[select].copy()
+    )

@@ -1,0 +1,299 @@
+"""Correspondence voting (BB 3.1) and FastSLAM -> Gaussian conversion (BB 3.2, (6), (7))."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from filters.conversion import (
+    CLUTTER_VOTE,
+    EIGENVALUE_FLOOR,
+    NEW_VOTE,
+    CommonFeatures,
+    common_features,
+    correspondence_vote,
+    feature_moments,
+    moment_match,
+    nearest_spd,
+    pose_moments,
+)
+
+
+def assert_spd(P, floor=0.0):
+    assert np.allclose(P, P.T, atol=0.0, rtol=0.0), "not exactly symmetric"
+    assert np.linalg.eigvalsh(P).min() > floor
+
+
+# --------------------------------------------------------------------------- voting
+def test_vote_hand_worked_example():
+    # Five particles. Weights (unnormalised, sum 2): 0.2, 0.4, 0.6, 0.3, 0.5.
+    # Votes: feature 5, feature 5, clutter, new, feature 5.
+    # Shares: feature 5 = (0.2 + 0.4 + 0.5) / 2 = 0.55; clutter = 0.3; new = 0.15.
+    # Winner: feature 5; margin = 0.55 - 0.30 = 0.25.
+    result = correspondence_vote([0.2, 0.4, 0.6, 0.3, 0.5], [5, 5, CLUTTER_VOTE, NEW_VOTE, 5])
+    assert result.winner == 5
+    assert result.margin == pytest.approx(0.25)
+    assert result.share_of(5) == pytest.approx(0.55)
+    assert result.share_of(CLUTTER_VOTE) == pytest.approx(0.30)
+    assert result.share_of(NEW_VOTE) == pytest.approx(0.15)
+    assert result.share_of(99) == 0.0
+    assert list(result.options) == [NEW_VOTE, CLUTTER_VOTE, 5]
+
+
+def test_vote_weight_beats_count_and_unanimous_margin():
+    # Three light particles for clutter, one heavy for feature 7: the weight decides.
+    result = correspondence_vote([0.1, 0.1, 0.1, 0.7], [CLUTTER_VOTE] * 3 + [7])
+    assert result.winner == 7
+    assert result.margin == pytest.approx(0.4)
+    assert correspondence_vote([1.0, 2.0], [3, 3]).margin == pytest.approx(1.0)
+    # new feature wins when most weight votes for it
+    assert correspondence_vote([0.6, 0.4], [NEW_VOTE, 2]).winner == NEW_VOTE
+
+
+def test_vote_ties_are_deterministic():
+    assert correspondence_vote([1.0, 1.0], [4, 2]).winner == 2
+    assert correspondence_vote([1.0, 1.0], [CLUTTER_VOTE, NEW_VOTE]).winner == NEW_VOTE
+
+
+@pytest.mark.parametrize(
+    "weights, votes, field",
+    [
+        ([1.0, 1.0], [1], "votes"),
+        ([0.0, 0.0], [1, 2], "weights"),
+        ([1.0, 1.0], [1, -3], "votes"),
+        ([], [], "weights"),
+    ],
+)
+def test_vote_rejects_bad_input(weights, votes, field):
+    with pytest.raises(ValueError, match=field):
+        correspondence_vote(weights, votes)
+
+
+# --------------------------------------------------------------------------- common set
+def test_common_features_delta_duplicates_and_existence():
+    # 2 particles x 4 slots. Particle 0 holds id 3 twice (slots 0 and 2, existence 0.6 / 0.9)
+    # and id 8 (slot 1); slot 3 is inactive. Particle 1 holds id 8 (slot 0), an id-less
+    # feature (slot 1, -1) and id 3 twice with equal existence (tie broken by the smaller trace:
+    # slot 3).
+    cids = np.array([[3, 8, 3, 5], [8, -1, 3, 3]])
+    active = np.array([[True, True, True, False], [True, True, True, True]])
+    existence = np.array([[0.6, 0.99, 0.9, 1.0], [0.97, 1.0, 0.8, 0.8]])
+    tie = np.array([[0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 2.0, 1.0]])
+    weights = np.array([3.0, 1.0])  # normalised 0.75, 0.25
+    common = common_features(weights, cids, active, existence, tie_break=tie)
+    assert list(common.ids) == [3, 8]
+    np.testing.assert_array_equal(common.slots, [[2, 1], [3, 0]])
+    # weighted existence: id 3: 0.75 * 0.9 + 0.25 * 0.8; id 8: 0.75 * 0.99 + 0.25 * 0.97
+    np.testing.assert_allclose(common.existence, [0.875, 0.985])
+
+
+def test_common_features_missing_particle_lowers_existence():
+    cids = np.array([[4], [4], [-1]])
+    active = np.array([[True], [True], [False]])
+    existence = np.ones((3, 1))
+    common = common_features([0.25, 0.25, 0.5], cids, active, existence)
+    np.testing.assert_array_equal(common.slots, [[0], [0], [-1]])
+    assert common.existence[0] == pytest.approx(0.5)
+
+
+def test_common_features_ignores_zero_weight_particles():
+    cids = np.array([[1], [2]])
+    common = common_features([1.0, 0.0], cids, np.ones((2, 1), bool), np.ones((2, 1)))
+    assert list(common.ids) == [1]
+
+
+# --------------------------------------------------------------------------- moments
+def _hand_example():
+    """Three particles (weights 0.5, 0.25, 0.25), features A (id 10) and B (id 20); particle 2
+    lacks B. Values chosen so that BB (6), (7) can be worked by hand (see the test)."""
+    poses = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
+    means = np.zeros((3, 2, 2))
+    covs = np.zeros((3, 2, 2, 2))
+    means[:, 0] = [[10.0, 1.0], [10.0, 2.0], [10.0, 3.0]]  # A
+    covs[:, 0] = np.diag([0.1, 0.2])
+    means[0, 1] = [20.0, 0.0]  # B in particles 0 and 1 only
+    means[1, 1] = [22.0, 0.0]
+    covs[0, 1] = 0.3 * np.eye(2)
+    covs[1, 1] = 0.6 * np.eye(2)
+    cids = np.array([[10, 20], [10, 20], [10, -1]])
+    active = np.array([[True, True], [True, True], [True, False]])
+    existence = np.ones((3, 2))
+    weights = np.array([0.5, 0.25, 0.25])
+    return poses, weights, means, covs, cids, active, existence
+
+
+def test_moment_match_hand_computed_with_missing_feature():
+    poses, weights, means, covs, cids, active, existence = _hand_example()
+    common = common_features(weights, cids, active, existence)
+    g = moment_match(poses, weights, means, covs, common, min_existence=0.5)
+    # B's existence is 0.75 (particle 2 lacks it): it is converted only because 0.75 > 0.5.
+    np.testing.assert_array_equal(g.ids, [10, 20])
+    np.testing.assert_allclose(g.existence, [1.0, 0.75])
+    # Means, BB (6). Pose x: 0.5*0 + 0.25*1 + 0.25*2 = 0.75. A = (10, 0.5*1+0.25*2+0.25*3) =
+    # (10, 1.75). B over particles 0, 1 with weights renormalised to (2/3, 1/3):
+    # (2/3*20 + 1/3*22, 0) = (62/3, 0).
+    np.testing.assert_allclose(g.x, [0.75, 0, 0, 10, 1.75, 62 / 3, 0], atol=1e-12)
+    # Covariance, BB (7). Deviations: pose x (-0.75, 0.25, 1.25), A_y the same, B_x
+    # (-2/3, 4/3) for particles 0, 1.
+    # var x = 0.5*0.5625 + 0.25*0.0625 + 0.25*1.5625 = 0.6875 = cov(x, A_y);
+    # var A_y = 0.2 + 0.6875; var A_x = 0.1.
+    # var B_x = 2/3*(4/9) + 1/3*(16/9) + (2/3*0.3 + 1/3*0.6) = 8/9 + 0.4; var B_y = 0.4.
+    # cov(x, B_x) = cov(A_y, B_x) = 2/3*(-0.75)(-2/3) + 1/3*(0.25)(4/3) = 4/9.
+    expected = np.zeros((7, 7))
+    expected[0, 0] = 0.6875
+    expected[0, 4] = expected[4, 0] = 0.6875
+    expected[3, 3] = 0.1
+    expected[4, 4] = 0.2 + 0.6875
+    expected[5, 5] = 8 / 9 + 0.4
+    expected[6, 6] = 0.4
+    for i in (0, 4):
+        expected[i, 5] = expected[5, i] = 4 / 9
+    # The pose y and heading rows are zero (all particles agree), so the result is lifted to
+    # the eigenvalue floor: it differs from the hand value by at most the floor.
+    np.testing.assert_allclose(g.P, expected, atol=2 * EIGENVALUE_FLOOR)
+    assert_spd(g.P, 0.5 * EIGENVALUE_FLOOR)
+
+
+def test_moment_match_selects_confirmed_features_only():
+    poses, weights, means, covs, cids, active, existence = _hand_example()
+    common = common_features(weights, cids, active, existence)
+    g = moment_match(poses, weights, means, covs, common)  # default threshold 0.95
+    np.testing.assert_array_equal(g.ids, [10])
+    assert g.x.shape == (5,) and g.P.shape == (5, 5)
+
+
+def test_feature_moments_match_moment_match_blocks():
+    poses, weights, means, covs, cids, active, existence = _hand_example()
+    common = common_features(weights, cids, active, existence)
+    m, C = feature_moments(weights, means, covs, common.slots)
+    g = moment_match(poses, weights, means, covs, common, min_existence=0.0)
+    np.testing.assert_allclose(m.reshape(-1), g.x[3:])
+    for n in range(2):
+        block = g.P[3 + 2 * n: 5 + 2 * n, 3 + 2 * n: 5 + 2 * n]
+        np.testing.assert_allclose(C[n], block, atol=2 * EIGENVALUE_FLOOR)
+
+
+def _reference_moments(poses, w, mu, sig, has):
+    """BB (6), (7) with the missing-feature rule, one entry at a time (loops; a reference)."""
+    w = w / w.sum()
+    P_, n = has.shape
+    ref = np.arctan2(w @ np.sin(poses[:, 2]), w @ np.cos(poses[:, 2]))
+    X = np.zeros((P_, 3 + 2 * n))
+    M = np.zeros((P_, 3 + 2 * n), dtype=bool)
+    X[:, :3] = poses
+    X[:, 2] = (poses[:, 2] - ref + np.pi) % (2 * np.pi) - np.pi  # heading as a deviation
+    M[:, :3] = True
+    for p in range(P_):
+        for f in range(n):
+            if has[p, f]:
+                X[p, 3 + 2 * f: 5 + 2 * f] = mu[p, f]
+                M[p, 3 + 2 * f: 5 + 2 * f] = True
+    dim = 3 + 2 * n
+    mean = np.zeros(dim)
+    for i in range(dim):
+        mean[i] = sum(w[p] * X[p, i] for p in range(P_) if M[p, i]) / sum(
+            w[p] for p in range(P_) if M[p, i]
+        )
+    mean[2] = 0.0  # deviations from the circular mean
+    cov = np.zeros((dim, dim))
+    for i in range(dim):
+        for j in range(dim):
+            both = [p for p in range(P_) if M[p, i] and M[p, j]]
+            if both:
+                mass = sum(w[p] for p in both)
+                cov[i, j] = sum(
+                    w[p] * (X[p, i] - mean[i]) * (X[p, j] - mean[j]) for p in both
+                ) / mass
+    for f in range(n):
+        holders = [p for p in range(P_) if has[p, f]]
+        mass = sum(w[p] for p in holders)
+        cov[3 + 2 * f: 5 + 2 * f, 3 + 2 * f: 5 + 2 * f] += (
+            sum(w[p] * sig[p, f] for p in holders) / mass
+        )
+    mean[2] = ref
+    return mean, cov
+
+
+def test_moment_match_equals_loop_reference_on_random_particles():
+    rng = np.random.default_rng(4)
+    P_, n = 40, 5
+    poses = rng.normal([3.0, -1.0, np.pi - 0.05], [0.3, 0.3, 0.04], size=(P_, 3))
+    poses[:, 2] = (poses[:, 2] + np.pi) % (2 * np.pi) - np.pi  # straddles +-pi
+    mu = rng.normal(0.0, 5.0, size=(1, n, 2)) + poses[:, None, :2] + rng.normal(
+        0.0, 0.1, size=(P_, n, 2)
+    )
+    A = rng.normal(size=(P_, n, 2, 2)) * 0.1
+    sig = A @ np.swapaxes(A, -1, -2) + 0.01 * np.eye(2)
+    has = rng.random((P_, n)) < 0.8
+    has[0] = True
+    w = rng.random(P_) + 0.1
+    cids = np.where(has, np.arange(n)[None, :] + 100, -1)
+    common = common_features(w, cids, has, np.ones((P_, n)))
+    g = moment_match(poses, w, mu, sig, common, min_existence=0.0, eig_floor=0.0)
+    mean, cov = _reference_moments(poses, w, mu, sig, has)
+    np.testing.assert_allclose(g.x, mean, atol=1e-10)
+    lam = np.linalg.eigvalsh(cov)
+    if lam.min() >= 0.0:  # no projection needed: must equal the reference exactly
+        np.testing.assert_allclose(g.P, cov, atol=1e-10)
+    else:  # projected: it is the nearest PSD matrix
+        expected, _ = nearest_spd(cov, 0.0)
+        np.testing.assert_allclose(g.P, expected, atol=1e-10)
+
+
+def test_moment_match_pose_block_heading_wraps():
+    poses = np.array([[0.0, 0.0, np.pi - 0.01], [0.0, 0.0, -np.pi + 0.01]])
+    common = CommonFeatures(np.zeros(0, np.int64), np.zeros((2, 0), np.int64), np.zeros(0))
+    g = moment_match(poses, [0.5, 0.5], np.zeros((2, 0, 2)), np.zeros((2, 0, 2, 2)), common)
+    assert abs(abs(g.x[2]) - np.pi) < 1e-12
+    assert g.P[2, 2] == pytest.approx(1e-4, rel=1e-6)
+    assert_spd(g.P)
+
+
+def test_moment_match_projects_indefinite_subset_covariance_to_spd():
+    # Three features, each pair held by a different pair of particles with contradictory
+    # correlations (+1, +1, -1): the pairwise covariance matrix is indefinite.
+    poses = np.zeros((3, 3))
+    poses[:, 0] = [0.0, 1.0, 2.0]
+    mu = np.zeros((3, 3, 2))
+    has = np.array([[True, True, False], [True, True, True], [False, True, True]])
+    mu[:, 0, 0] = [1.0, -1.0, 0.0]
+    mu[:, 1, 0] = [1.0, -1.0, 1.0]
+    mu[:, 2, 0] = [0.0, -1.0, 1.0]
+    sig = np.zeros((3, 3, 2, 2))
+    cids = np.where(has, [[0, 1, 2]], -1)
+    common = common_features(np.ones(3), cids, has, np.ones((3, 3)))
+    _, raw = _reference_moments(poses, np.ones(3), mu, sig, has)
+    assert np.linalg.eigvalsh(raw).min() < -0.1  # the unprojected moments are indefinite
+    g = moment_match(poses, np.ones(3), mu, sig, common, min_existence=0.0)
+    assert_spd(g.P, 0.5 * EIGENVALUE_FLOOR)
+    expected, _ = nearest_spd(raw, EIGENVALUE_FLOOR)
+    np.testing.assert_allclose(g.P, expected, atol=1e-12)
+
+
+def test_nearest_spd_keeps_spd_and_clips_eigenvalues():
+    A = np.array([[2.0, 0.5], [0.5, 1.0]])
+    out, projected = nearest_spd(A)
+    assert not projected and np.array_equal(out, A)
+    B = np.array([[1.0, 2.0], [2.0, 1.0]])  # eigenvalues 3, -1
+    out, projected = nearest_spd(B, 1e-6)
+    assert projected
+    np.testing.assert_allclose(np.linalg.eigvalsh(out), [1e-6, 3.0], atol=1e-12)
+
+
+def test_pose_moments_adds_particle_covariances():
+    poses = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
+    covs = np.stack([np.eye(3) * 0.1, np.eye(3) * 0.3])
+    mean, cov = pose_moments(poses, [0.5, 0.5], covs)
+    np.testing.assert_allclose(mean, [1.0, 0.0, 0.0])
+    np.testing.assert_allclose(np.diag(cov), [1.0 + 0.2, 0.2, 0.2])
+
+
+def test_moment_match_rejects_bad_input():
+    poses, weights, means, covs, cids, active, existence = _hand_example()
+    common = common_features(weights, cids, active, existence)
+    with pytest.raises(ValueError, match="min_existence"):
+        moment_match(poses, weights, means, covs, common, min_existence=1.5)
+    with pytest.raises(ValueError, match="poses"):
+        moment_match(poses[:2], weights, means, covs, common)
+    with pytest.raises(ValueError, match="weights"):
+        moment_match(poses, np.zeros(3), means, covs, common)

@@ -1,0 +1,451 @@
+"""FastSLAM 2.0 with Data Association Sampling (filters/fastslam.py)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from filters.conversion import CLUTTER_VOTE, NEW_VOTE
+from filters.fastslam import (
+    FastSLAM2,
+    _feature_ekf,
+    _motion_noise_cov,
+    _sample_gaussian3,
+)
+from filters.geometry import wrap_angle
+from filters.models import (
+    ClutterModel,
+    ProportionalVelocityNoise,
+    RangeBearingSensor,
+    innovation,
+    motion_jacobians,
+    observe,
+    observe_jacobians,
+)
+from filters.types import FeatureIds
+from slam_gym.scenarios import make_stream
+
+LOCAL_KEYS = {
+    "local_map_age_s", "local_map_distance_m", "ess_ratio", "particle_position_spread_m",
+    "particle_heading_spread_rad", "local_feature_count", "local_confirmed_count", "vote_margin",
+    "clutter_rate", "local_map_budget_ratio",
+}
+
+
+def make_filter(stream=None, seed=0, **options):
+    if stream is None:
+        sensor, clutter = RangeBearingSensor(), ClutterModel()
+        noise = ProportionalVelocityNoise(v_floor_mps=0.005, omega_floor_radps=0.005)
+        pose = np.zeros(3)
+    else:
+        sensor, clutter, noise = stream.sensor, stream.clutter, stream.odometry_noise
+        pose = stream.initial_pose
+    options.setdefault("initial_pose", pose)
+    return FastSLAM2(sensor, clutter, noise, np.random.default_rng(seed), **options)
+
+
+def assert_spd(C, floor=0.0):
+    np.testing.assert_allclose(C, np.swapaxes(C, -1, -2), atol=1e-12)
+    assert np.linalg.eigvalsh(C).min() > floor
+
+
+def feature_covs_spd(f):
+    covs = f.covs[f.active]
+    if len(covs):
+        assert np.all(np.abs(covs[:, 0, 1] - covs[:, 1, 0]) == 0.0)
+        det = covs[:, 0, 0] * covs[:, 1, 1] - covs[:, 0, 1] ** 2
+        assert np.all(covs[:, 0, 0] > 0) and np.all(det > 0)
+
+
+def run(f, stream, known=False, every=None):
+    for step in stream:
+        f.predict(step.odometry, step.dt_s)
+        f.update(step.z, step.truth.landmark_ids if known else None)
+        if every is not None:
+            every(step)
+    return f
+
+
+# --------------------------------------------------------------------------- building blocks
+def test_terms_and_refine_match_matrix_kalman_form():
+    rng = np.random.default_rng(1)
+    f = make_filter(n_particles=4)
+    f._poses = rng.normal(size=(4, 3))
+    A = rng.normal(size=(4, 3, 2))  # rank-2 proposal covariance, as from the motion model
+    f._prop_cov = A @ np.swapaxes(A, 1, 2) * 0.01
+    m = f._poses[:, None, :2] + rng.normal(size=(4, 2, 2)) * 5
+    B = rng.normal(size=(4, 2, 2, 2))
+    sig = B @ np.swapaxes(B, -1, -2) * 0.1
+    zk = np.array([4.0, 0.3])
+    t = f._terms(zk, m[..., 0], m[..., 1], sig[..., 0, 0], sig[..., 0, 1], sig[..., 1, 1])
+    G, Hm = observe_jacobians(f._poses[:, None, :], m)
+    S = G @ f._prop_cov[:, None] @ np.swapaxes(G, -1, -2) + Hm @ sig @ np.swapaxes(Hm, -1, -2)
+    S = S + f.sensor.R
+    np.testing.assert_allclose(t["S00"], S[..., 0, 0], atol=1e-12)
+    np.testing.assert_allclose(t["S01"], S[..., 0, 1], atol=1e-12)
+    np.testing.assert_allclose(t["S11"], S[..., 1, 1], atol=1e-12)
+    nu = innovation(zk, observe(f._poses[:, None, :], m))
+    np.testing.assert_allclose(t["nu_r"], nu[..., 0], atol=1e-12)
+    np.testing.assert_allclose(t["nu_b"], nu[..., 1], atol=1e-12)
+    d2 = np.einsum("pni,pnij,pnj->pn", nu, np.linalg.inv(S), nu)
+    np.testing.assert_allclose(t["d2"], d2, rtol=1e-9)
+
+    x0, P0 = f._poses.copy(), f._prop_cov.copy()
+    j = np.array([0, 1, 1, 0])
+    chose = np.array([True, True, False, True])
+    f._refine(chose, t, j)
+    for p in range(4):
+        if not chose[p]:  # zero gain (up to the heading re-wrap)
+            np.testing.assert_allclose(f._poses[p], x0[p], atol=1e-15)
+            np.testing.assert_array_equal(f._prop_cov[p], P0[p])
+            continue
+        Gp, Sp = G[p, j[p]], S[p, j[p]]
+        K = P0[p] @ Gp.T @ np.linalg.inv(Sp)
+        x = x0[p] + K @ nu[p, j[p]]
+        np.testing.assert_allclose(wrap_angle(f._poses[p] - x), 0.0, atol=1e-12)
+        np.testing.assert_allclose(f._prop_cov[p], P0[p] - K @ Gp @ P0[p], atol=1e-12)
+        assert np.linalg.eigvalsh(0.5 * (f._prop_cov[p] + f._prop_cov[p].T)).min() > -1e-12
+
+
+def test_feature_ekf_matches_matrix_ekf():
+    rng = np.random.default_rng(2)
+    n = 6
+    pose = rng.normal(size=(n, 3))
+    m = pose[:, :2] + rng.normal(size=(n, 2)) * 8
+    B = rng.normal(size=(n, 2, 2))
+    sig = B @ np.swapaxes(B, 1, 2) * 0.2
+    z = observe(pose, m) + rng.normal(size=(n, 2)) * 0.05
+    R = np.diag([0.05**2, 0.02**2])
+    mx, my, sxx, sxy, syy = _feature_ekf(
+        pose, m[:, 0], m[:, 1], sig[:, 0, 0], sig[:, 0, 1], sig[:, 1, 1], z, R
+    )
+    for i in range(n):
+        _, H = observe_jacobians(pose[i], m[i])
+        S = H @ sig[i] @ H.T + R
+        K = sig[i] @ H.T @ np.linalg.inv(S)
+        m_new = m[i] + K @ innovation(z[i], observe(pose[i], m[i]))
+        sig_new = (np.eye(2) - K @ H) @ sig[i]
+        np.testing.assert_allclose([mx[i], my[i]], m_new, atol=1e-10)
+        np.testing.assert_allclose([[sxx[i], sxy[i]], [sxy[i], syy[i]]], sig_new, atol=1e-12)
+
+
+def test_motion_noise_cov_matches_motion_jacobians():
+    rng = np.random.default_rng(3)
+    poses = rng.normal(size=(5, 3))
+    u, dt = np.array([1.3, -0.7]), 0.1
+    Q = np.array([[0.04, 0.01], [0.01, 0.09]])
+    out = _motion_noise_cov(poses, u, dt, Q)
+    for p in range(5):
+        _, J = motion_jacobians(poses[p], u, dt)
+        np.testing.assert_allclose(out[p], J @ Q @ J.T, atol=1e-15)
+
+
+@pytest.mark.parametrize("rank", [1, 2, 3])
+def test_sample_gaussian3_reproduces_singular_covariances(rank):
+    rng = np.random.default_rng(rank)
+    J = rng.normal(size=(3, rank))
+    C = J @ J.T * 0.3
+    n = 100_000
+    x = _sample_gaussian3(np.broadcast_to(C, (n, 3, 3)), rng.standard_normal((n, 3)))
+    # each entry of the sample covariance is within ~6 standard errors
+    tol = 6.0 * np.sqrt((np.outer(np.diag(C), np.diag(C)) + C**2) / n) + 1e-12
+    assert np.all(np.abs(np.cov(x.T) - C) < tol)
+    if rank < 3:  # the samples stay in the covariance's range
+        null = np.linalg.svd(J)[0][:, rank:]
+        assert np.abs(x @ null).max() < 1e-9
+
+
+# --------------------------------------------------------------------------- validation
+@pytest.mark.parametrize(
+    "option, value",
+    [
+        ("n_particles", 0),
+        ("resample_threshold", 1.5),
+        ("gate_chi2", -1.0),
+        ("new_landmark_density_per_m2", 0.0),
+        ("max_existence", 2.0),
+        ("cull_threshold", 0.9),
+        ("cull_interval_steps", 0),
+        ("feature_budget", 0),
+        ("initial_capacity", 0),
+        ("initial_pose", (0.0, 1.0)),
+    ],
+)
+def test_constructor_rejects_bad_options(option, value):
+    with pytest.raises(ValueError, match=option):
+        make_filter(**{option: value})
+
+
+def test_constructor_rejects_bad_models():
+    with pytest.raises(ValueError, match="rng"):
+        FastSLAM2(RangeBearingSensor(), ClutterModel(), ProportionalVelocityNoise(), rng=0)
+    with pytest.raises(ValueError, match="sensor"):
+        FastSLAM2(None, ClutterModel(), ProportionalVelocityNoise(), np.random.default_rng())
+
+
+def test_methods_reject_bad_input():
+    f = make_filter(n_particles=3)
+    with pytest.raises(ValueError, match="dt"):
+        f.predict([1.0, 0.0], 0.0)
+    with pytest.raises(ValueError, match="u"):
+        f.predict([1.0, np.nan], 0.1)
+    with pytest.raises(ValueError, match="z"):
+        f.update([[np.nan, 0.0]])
+    with pytest.raises(ValueError, match="associations"):
+        f.update([[5.0, 0.0]], associations=[1, 2])
+    with pytest.raises(ValueError, match="std_rad"):
+        f.update_heading(0.0, 0.0)
+
+
+# --------------------------------------------------------------------------- behaviour
+def test_das_picks_the_right_association_for_nearly_all_particles():
+    stream = make_stream("brooks-bailey", seed=0, n_steps=150, clutter_level=0)
+    f = make_filter(stream, seed=0, n_particles=100)
+    common_id: dict[int, int] = {}
+    fractions, wrong_winners = [], 0
+
+    def check(step):
+        nonlocal wrong_winners
+        assert len(f.last_associations) == len(step.z)
+        for k, label in enumerate(step.truth.landmark_ids):
+            label = int(label)
+            if label not in common_id:
+                common_id[label] = int(f.last_associations[k])
+                continue
+            fractions.append(np.mean(f.last_votes[k] == common_id[label]))
+            wrong_winners += int(f.last_associations[k] != common_id[label])
+
+    run(f, stream, every=check)
+    assert len(fractions) > 300
+    assert np.mean(fractions) > 0.95
+    assert wrong_winners == 0
+    assert len(set(common_id.values())) == len(common_id)  # one common id per landmark
+    lm = f.landmarks()
+    assert set(lm.ids[lm.existence > 0.95]) == set(common_id.values())
+
+
+def test_clutter_does_not_create_confirmed_features():
+    stream = make_stream("brooks-bailey", seed=1, n_steps=200, clutter_level=3)
+    f = make_filter(stream, seed=1, n_particles=100)
+    run(f, stream, every=lambda step: feature_covs_spd(f))
+    lm = f.landmarks()
+    confirmed = lm.existence > 0.95
+    seen = {int(i) for step in stream for i in step.truth.landmark_ids if i >= 0}
+    assert confirmed.sum() == len(seen)
+    distance = np.linalg.norm(lm.means[:, None] - stream.landmarks_true[None], axis=2).min(1)
+    assert distance[confirmed].max() < 1.0
+    stats = f.local_statistics()
+    assert 0.0 < stats["clutter_rate"] < 1.0
+    assert stats["local_feature_count"] >= stats["local_confirmed_count"] == len(seen)
+
+
+def test_known_association_fastslam2_is_consistent_on_short_runs():
+    """ANEES over 20 runs of 100 iterations within the 95 % chi-square bound (known data
+    association, 1000 particles, NEES from iteration 10 on: before that the particle cloud is
+    degenerate because the robot starts with zero uncertainty and drives straight)."""
+    runs, n_steps, skip = 20, 100, 10
+    nees = np.zeros((runs, n_steps - skip))
+    for seed in range(runs):
+        stream = make_stream("brooks-bailey", seed=seed, n_steps=n_steps, clutter_level=0)
+        f = make_filter(stream, seed=100 + seed, n_particles=1000)
+        for step in stream:
+            f.predict(step.odometry, step.dt_s)
+            f.update(step.z, step.truth.landmark_ids)
+            if step.index >= skip:
+                mean, cov = f.pose()
+                e = step.truth.pose - mean
+                e[2] = wrap_angle(e[2])
+                nees[seed, step.index - skip] = e @ np.linalg.solve(cov, e)
+    bound = chi2.ppf(0.975, 3 * runs) / runs
+    assert nees.mean() <= bound
+    assert nees.mean() > chi2.ppf(0.025, 3 * runs) / runs  # not grossly pessimistic either
+
+
+def test_seeded_determinism_bit_for_bit():
+    stream = make_stream("brooks-bailey", seed=2, n_steps=60, clutter_level=2)
+
+    def episode(seed, capacity=16):
+        f = make_filter(stream, seed=seed, n_particles=200, initial_capacity=capacity)
+        out = []
+        for step in stream:
+            f.predict(step.odometry, step.dt_s)
+            f.update(step.z)
+            out.append(f.last_associations.copy())
+            if step.index == 29:
+                out.append(f.to_gaussian().P)
+                f.restart()
+        out += [f.poses, f.weights, f.means, f.covs, f.existence, f.correspondence_ids]
+        return out
+
+    a, b, c = episode(7), episode(7), episode(8)
+    assert len(a) == len(b)
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_array_equal(x, y)
+    # the capacity doubling does not change the result
+    d = episode(7, capacity=1)
+    np.testing.assert_array_equal(a[-6], d[-6])  # poses
+    np.testing.assert_array_equal(a[-5], d[-5])  # weights
+    assert not np.array_equal(a[-6], c[-6])
+
+
+def test_to_gaussian_restart_and_local_statistics():
+    stream = make_stream("brooks-bailey", seed=3, n_steps=80, clutter_level=1)
+    ids = FeatureIds()
+    f = make_filter(stream, seed=3, n_particles=150, ids=ids, feature_budget=40)
+    run(f, stream)
+    g = f.to_gaussian()
+    assert_spd(g.P)
+    lm = f.landmarks()
+    assert set(g.ids) == set(lm.ids[lm.existence > 0.95]) and len(g.ids) > 0
+    assert np.all(g.existence > 0.95)
+    mean, cov = f.pose()
+    np.testing.assert_allclose(g.x[:3], mean)
+    np.testing.assert_allclose(g.P[:3, :3], cov, atol=1e-9)
+    for i, fid in enumerate(g.ids):
+        n = int(np.flatnonzero(lm.ids == fid)[0])
+        np.testing.assert_allclose(g.x[3 + 2 * i: 5 + 2 * i], lm.means[n])
+    stats = f.local_statistics()
+    assert set(stats) == LOCAL_KEYS
+    assert all(isinstance(v, float) and np.isfinite(v) for v in stats.values())
+    assert stats["local_map_age_s"] == pytest.approx(8.0)
+    assert stats["local_map_distance_m"] == pytest.approx(8.0, rel=0.05)
+    assert 0.0 < stats["ess_ratio"] <= 1.0
+    assert 0.0 <= stats["vote_margin"] <= 1.0
+    assert stats["local_feature_count"] == len(lm)
+    assert stats["local_map_budget_ratio"] == pytest.approx(len(lm) / 40)
+    assert stats["particle_position_spread_m"] == pytest.approx(np.sqrt(cov[0, 0] + cov[1, 1]))
+
+    f.restart()
+    mean, cov = f.pose()
+    np.testing.assert_array_equal(mean, 0.0)
+    np.testing.assert_array_equal(cov, 0.0)
+    assert len(f.landmarks()) == 0 and not f.active.any()
+    g = f.to_gaussian()
+    assert g.x.shape == (3,) and g.n_features == 0
+    assert_spd(g.P)  # the zero pose block is lifted to the eigenvalue floor
+    stats = f.local_statistics()
+    assert stats["local_map_age_s"] == 0.0 and stats["local_feature_count"] == 0.0
+    # ids keep coming from the shared source after a restart
+    before = int(ids.new(1)[0])
+    step = next(iter(stream))
+    f.predict(step.odometry, step.dt_s)
+    f.update(step.z)
+    assert np.all(f.last_associations[f.last_associations >= 0] > before)
+
+
+def test_pending_proposal_is_part_of_pose_and_conversion():
+    f = make_filter(n_particles=50)
+    f.predict([1.0, 0.5], 0.1)
+    mean, cov = f.pose()  # all particles share the proposal: cov = J Q J^T
+    Q = f.odometry_noise.covariance(np.array([1.0, 0.5]), 0.1)
+    _, J = motion_jacobians(np.zeros(3), [1.0, 0.5], 0.1)
+    np.testing.assert_allclose(cov, J @ Q @ J.T, atol=1e-15)
+    np.testing.assert_allclose(f.to_gaussian().P, cov, atol=2e-10)  # + eigenvalue floor
+    f.update(np.zeros((0, 2)))  # no observations: the pose is drawn from the motion model
+    _, cov_sampled = f.pose()
+    assert np.trace(cov_sampled) > 0.0
+    assert f.last_associations.shape == (0,)
+
+
+def test_compass_before_update_refines_the_proposal():
+    sensor, clutter = RangeBearingSensor(), ClutterModel()
+    noise = ProportionalVelocityNoise()
+    f = FastSLAM2(sensor, clutter, noise, np.random.default_rng(5), n_particles=2000)
+    g = FastSLAM2(sensor, clutter, noise, np.random.default_rng(5), n_particles=2000)
+    u = np.array([1.0, 1.5])  # heading std of the motion noise: 0.35 * 1.5 * 0.1 = 0.0525
+    for filt in (f, g):
+        filt.predict(u, 0.1)
+    f.update_heading(0.2, 0.005)  # compass during the pending proposal: proposal correction
+    f.update(np.zeros((0, 2)))
+    g.update(np.zeros((0, 2)))
+    g.update_heading(0.2, 0.005)  # after sampling: weights only
+    mean_f, cov_f = f.pose()
+    _, cov_g = g.pose()
+    heading_std = np.sqrt(0.0525**2 * 0.005**2 / (0.0525**2 + 0.005**2))
+    assert np.sqrt(cov_f[2, 2]) == pytest.approx(heading_std, rel=0.1)
+    expected_mean = 0.15 + (0.2 - 0.15) * 0.0525**2 / (0.0525**2 + 0.005**2)
+    assert mean_f[2] == pytest.approx(expected_mean, abs=3 * heading_std / np.sqrt(2000) + 1e-3)
+    assert f.local_statistics()["ess_ratio"] > 0.99  # the proposal leaves the weights even
+    assert g.local_statistics()["ess_ratio"] < 0.5  # reweighting alone degenerates
+    assert np.sqrt(cov_g[2, 2]) < 0.02
+
+
+def test_unconfirmed_feature_decays_and_is_culled():
+    # alpha = 0.5, beta = 0.3: a new feature at 5 m starts at L_new / (L_new + L_clutter) ~ 0.7
+    # and every miss halves its odds.
+    sensor = RangeBearingSensor()
+    clutter = ClutterModel(alpha=0.5, beta=0.3)
+    f = FastSLAM2(sensor, clutter, ProportionalVelocityNoise(0.0, 0.0, 1e-3, 1e-3),
+                  np.random.default_rng(0), n_particles=20, cull_interval_steps=1)
+    f.predict([0.0, 0.0], 0.1)
+    f.update([[5.0, 0.3]])
+    assert f.active.sum(axis=1).max() == 1  # created (as a new feature) or taken for clutter
+    p0 = f.existence[f.active]
+    assert len(p0) > 0 and np.all(p0 < 0.95)
+    history = []
+    for _ in range(12):
+        f.predict([0.0, 0.0], 0.1)
+        f.update(np.zeros((0, 2)))
+        history.append(f.existence[f.active].max() if f.active.any() else 0.0)
+    assert all(b <= a for a, b in zip(history, history[1:], strict=False))
+    assert not f.active.any()  # culled
+    assert len(f.landmarks()) == 0
+
+
+def test_repeated_detection_confirms_and_votes_agree():
+    sensor = RangeBearingSensor()
+    clutter = ClutterModel(alpha=0.9, beta=0.05)
+    f = FastSLAM2(sensor, clutter, ProportionalVelocityNoise(0.0, 0.0, 1e-3, 1e-3),
+                  np.random.default_rng(1), n_particles=50)
+    rng = np.random.default_rng(2)
+    winners = []
+    for _ in range(5):
+        f.predict([0.0, 0.0], 0.1)
+        z = observe(np.zeros(3), np.array([[8.0, 3.0], [-4.0, 9.0]]))
+        f.update(z + rng.normal(size=z.shape) * [0.05, 0.017])
+        winners.append(f.last_associations.copy())
+        assert np.all(np.isin(f.last_votes, [CLUTTER_VOTE, NEW_VOTE]) | (f.last_votes >= 0))
+    assert np.all(winners[-1] >= 0) and np.array_equal(winners[-1], winners[-2])
+    lm = f.landmarks()
+    confirmed = lm.ids[lm.existence > 0.95]
+    assert set(confirmed) == set(winners[-1])
+    assert f.local_statistics()["vote_margin"] > 0.9
+    feature_covs_spd(f)
+
+
+def _place_features(f, positions, cids, existence=0.999, var=0.01):
+    """Give every particle the features ``positions`` (list per particle) by hand."""
+    f._grow(max(len(p) for p in positions))
+    for p, feats in enumerate(positions):
+        for slot, (x, y) in enumerate(feats):
+            f._mx[p, slot], f._my[p, slot] = x, y
+            f._sxx[p, slot], f._sxy[p, slot], f._syy[p, slot] = var, 0.0, var
+            f._ex[p, slot], f._active[p, slot], f._cid[p, slot] = existence, True, cids[p][slot]
+        f._count[p] = len(feats)
+
+
+def test_duplicate_features_are_not_rewarded():
+    # Particle 0 maps the landmark once, particle 1 twice (a duplicate). One observation of
+    # it: particle 1 fails to detect one of its two features, and the missed-detection term
+    # (1 - alpha e p_vis ~ 0.011) must outweigh the second feature's extra likelihood.
+    f = make_filter(n_particles=2, resample_threshold=0.0)
+    _place_features(f, [[(10.0, 0.0)], [(10.0, 0.0), (10.0, 0.0)]], [[0], [0, 0]])
+    f.update([[10.0, 0.0]])
+    w = f.weights
+    assert w[1] < 0.05 * w[0]
+    assert f.existence[1, :2].min() < 0.95  # the undetected duplicate is no longer confirmed
+
+
+def test_visibility_is_soft_at_the_range_limit():
+    f = make_filter(n_particles=1)
+    _place_features(f, [[(24.9, 0.0), (25.0, 0.0), (25.1, 0.0), (5.0, 0.0), (40.0, 0.0)]],
+                    [[0, 1, 2, 3, 4]], var=0.01)
+    p_vis = f._visibility(5)[0]
+    sigma = 0.1  # radial std of a feature with covariance 0.01 I, pose known
+    np.testing.assert_allclose(
+        p_vis[:3], [0.5 * (1 + math.erf(d / sigma / np.sqrt(2))) for d in (0.1, 0.0, -0.1)]
+    )
+    assert p_vis[3] == 1.0 and p_vis[4] == 0.0
