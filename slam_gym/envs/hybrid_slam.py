@@ -228,7 +228,7 @@ class HybridSLAMEnv(gym.Env):
         if world_seed is None:
             world_seed = int(self.np_random.integers(0, 2**31 - 1))
         filter_seed = int(self.np_random.integers(0, 2**63 - 1))
-        self.stream = make_stream(self.config.scenario_config(), seed=int(world_seed))
+        self.stream = self._make_stream(int(world_seed))
         from slam_gym.systems import make_system
 
         self.system = make_system(
@@ -309,6 +309,11 @@ class HybridSLAMEnv(gym.Env):
             self._figure = None
 
     # ------------------------------------------------------------------ internals
+    def _make_stream(self, world_seed: int):
+        """The episode's stream: the configured scenario's world ``world_seed`` (subclasses
+        playing recorded data override this)."""
+        return make_stream(self.config.scenario_config(), seed=world_seed)
+
     def _run_interval(self):
         """Advance one decision interval; the NEES values and position errors it produced."""
         ep = self.episode
