@@ -111,6 +111,7 @@ from filters.models import (
     inverse_observe,
     inverse_observe_jacobians,
     motion,
+    motion_jacobians,
 )
 from filters.types import FeatureIds, GaussianMap, LandmarkEstimate
 from filters.validation import check_range, require
@@ -147,23 +148,10 @@ def _sample_gaussian3(cov, normals):
 
 
 def _motion_noise_cov(poses, u, dt, Q):
-    """``J_u Q J_u^T`` (P, 3, 3) for every particle, J_u the Jacobian of
-    :func:`filters.models.motion` w.r.t. the controls (elementwise broadcast of
-    ``motion_jacobians(...)[1]``: rows ``(dt c, -k s)``, ``(dt s, k c)``, ``(0, dt)``, with
-    ``k = v dt^2 / 2`` and c, s of the mid-point heading)."""
-    v, w = float(u[0]), float(u[1])
-    heading = poses[:, 2] + 0.5 * w * dt
-    c, s = np.cos(heading), np.sin(heading)
-    k = 0.5 * v * dt * dt
-    rows = ((dt * c, -k * s), (dt * s, k * c), (0.0, dt))
-    qa, qb, qd = Q[0, 0], 0.5 * (Q[0, 1] + Q[1, 0]), Q[1, 1]
-    out = np.empty((len(poses), 3, 3))
-    for i in range(3):
-        for j in range(i, 3):
-            (a0, a1), (b0, b1) = rows[i], rows[j]
-            out[:, i, j] = a0 * b0 * qa + (a0 * b1 + a1 * b0) * qb + a1 * b1 * qd
-            out[:, j, i] = out[:, i, j]
-    return out
+    """``J_u Q J_u^T`` (P, 3, 3) for every particle, J_u the control Jacobian of
+    :func:`filters.models.motion` (broadcast over the particles' poses)."""
+    _, J_u = motion_jacobians(poses, u, dt)
+    return J_u @ Q @ np.swapaxes(J_u, -1, -2)
 
 
 def _feature_ekf(pose, mx, my, sxx, sxy, syy, z, R):

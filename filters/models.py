@@ -38,19 +38,26 @@ def motion(pose, u, dt):
 
 
 def motion_jacobians(pose, u, dt):
-    """Jacobians of :func:`motion` w.r.t. the pose (3, 3) and the controls (3, 2)."""
+    """Jacobians of :func:`motion` w.r.t. the pose (..., 3, 3) and the controls (..., 3, 2).
+
+    Broadcasts over leading axes (e.g. one pose per particle).
+    """
     pose = np.asarray(pose, dtype=float)
-    v, w = float(u[0]), float(u[1])
-    heading = pose[2] + 0.5 * w * dt
+    u = np.asarray(u, dtype=float)
+    v, w = u[..., 0], u[..., 1]
+    heading = pose[..., 2] + 0.5 * w * dt
     c, s = np.cos(heading), np.sin(heading)
-    J_pose = np.array([[1.0, 0.0, -v * dt * s], [0.0, 1.0, v * dt * c], [0.0, 0.0, 1.0]])
-    J_u = np.array(
-        [
-            [dt * c, -0.5 * v * dt * dt * s],
-            [dt * s, 0.5 * v * dt * dt * c],
-            [0.0, dt],
-        ]
-    )
+    shape = np.broadcast_shapes(pose.shape[:-1], u.shape[:-1])
+    J_pose = np.zeros(shape + (3, 3))
+    J_pose[..., 0, 0] = J_pose[..., 1, 1] = J_pose[..., 2, 2] = 1.0
+    J_pose[..., 0, 2] = -v * dt * s
+    J_pose[..., 1, 2] = v * dt * c
+    J_u = np.zeros(shape + (3, 2))
+    J_u[..., 0, 0] = dt * c
+    J_u[..., 0, 1] = -0.5 * v * dt * dt * s
+    J_u[..., 1, 0] = dt * s
+    J_u[..., 1, 1] = 0.5 * v * dt * dt * c
+    J_u[..., 2, 1] = dt
     return J_pose, J_u
 
 

@@ -150,3 +150,16 @@ def test_proportional_noise_std():
 def test_bad_model_values_name_the_field(factory, field):
     with pytest.raises(ValueError, match=field):
         factory()
+
+
+def test_motion_jacobians_broadcast_over_particles():
+    rng = np.random.default_rng(2)
+    poses = rng.normal(size=(6, 3))
+    u, dt = np.array([1.2, 0.4]), 0.1
+    J_pose, J_u = m.motion_jacobians(poses, u, dt)
+    assert J_pose.shape == (6, 3, 3) and J_u.shape == (6, 3, 2)
+    for p in range(6):
+        single_pose, single_u = m.motion_jacobians(poses[p], u, dt)
+        assert_jacobian(single_pose, lambda x, p=p: m.motion(x, u, dt), poses[p], wrap_rows=(2,))
+        np.testing.assert_array_equal(J_pose[p], single_pose)
+        np.testing.assert_array_equal(J_u[p], single_u)
