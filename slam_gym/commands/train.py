@@ -43,7 +43,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--eval-particles", type=int, default=None,
                    help="particles in evaluation (default: --particles)")
     p.add_argument("--n-steps", type=int, default=None,
-                   help="cut every training path to this many filter iterations")
+                   help="cut every training and evaluation path to this many iterations")
     p.add_argument("--learning-rate", type=float, default=3e-4)
     p.add_argument("--rollout-steps", type=int, default=256,
                    help="PPO/A2C steps per env per update")
@@ -129,7 +129,8 @@ def run(args) -> int:
         def _evaluate(self):
             start = time.perf_counter()
             rows = evaluate_policy(ModelPolicy(self.model, discrete), "brooks-bailey", levels,
-                                   eval_seeds, n_particles=eval_particles)
+                                   eval_seeds, n_particles=eval_particles,
+                                   n_steps=args.n_steps)
             groups = summarise(rows)
             record = {
                 "timesteps": int(self.num_timesteps),

@@ -1,0 +1,85 @@
+"""The command line: output contracts of each command on tiny configurations."""
+
+import json
+
+import numpy as np
+import pytest
+
+from slam_gym.cli import main
+from slam_gym.evaluation import read_results
+
+
+def run_json(capsys, argv):
+    assert main(argv + ["--json"]) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+def test_simulate_json_keys_and_picture(tmp_path, capsys):
+    out = run_json(capsys, ["simulate", "--scenario", "brooks-bailey", "--clutter-level", "2",
+                            "--seed", "3", "--out", str(tmp_path)])
+    for key in ("path_length_m", "iterations", "n_landmarks", "n_visible", "n_detections",
+                "n_false_alarms", "loop_closed"):
+        assert key in out
+    assert 350 <= out["path_length_m"] <= 450 and out["n_landmarks"] == 35
+    assert out["loop_closed"] is True
+    # alpha = 0.4, beta = 0.04: detections and false alarms per landmark-in-range event
+    assert out["n_detections"] / out["n_visible"] == pytest.approx(0.4, abs=0.03)
+    assert out["n_false_alarms"] / out["n_visible"] == pytest.approx(0.04, abs=0.01)
+    assert (tmp_path / "world.png").stat().st_size > 10_000
+
+
+def test_bad_arguments_exit_with_a_message(tmp_path, capsys):
+    assert main(["reproduce", "brooks-bailey", "--systems", "magic", "--out", str(tmp_path)]) == 2
+    assert "systems" in capsys.readouterr().err
+
+
+def test_reproduce_brooks_bailey_tiny_and_resumable(tmp_path, capsys):
+    argv = ["reproduce", "brooks-bailey", "--systems", "fastslam,ekf", "--clutter-levels", "3",
+            "--trials", "2", "--particles", "20", "--no-figures", "--workers", "2",
+            "--out", str(tmp_path)]
+    doc = run_json(capsys, argv)
+    rows = read_results(tmp_path / "results.jsonl")
+    assert len(rows) == 4 and {r["system"] for r in rows} == {"fastslam", "ekf-submap"}
+    assert all(r["status"] == "ok" for r in rows)
+    assert (tmp_path / "summary.json").exists() and (tmp_path / "table.md").exists()
+    assert doc["summary"]["n_runs"] == 4
+    run_json(capsys, argv)  # a rerun finds every run done
+    assert len(read_results(tmp_path / "results.jsonl")) == 4
+
+
+def test_benchmark_tiny(tmp_path, capsys):
+    doc = run_json(capsys, ["benchmark", "--policies", "fixed-10s,always", "--clutter-levels",
+                            "0", "--seeds", "1", "--particles", "10", "--no-figures",
+                            "--workers", "1", "--executor", "serial", "--out", str(tmp_path)])
+    rows = read_results(tmp_path / "results.jsonl")
+    assert {r["policy"] for r in rows} == {"fixed-10s", "always"}
+    fused = {r["policy"]: r["n_fusions"] for r in rows}
+    assert fused["always"] >= fused["fixed-10s"]
+    assert doc["summary"]["n_runs"] == 2
+
+
+def test_speed_tiny(tmp_path, capsys):
+    out = run_json(capsys, ["speed", "--systems", "hybrid", "--particles", "10,40",
+                            "--clutter-levels", "1", "--iterations", "60", "--env-decisions",
+                            "5", "--skip-esdf", "--out", str(tmp_path)])
+    rows = out["systems"]
+    assert [r["n_particles"] for r in rows] == [10, 40]
+    for r in rows:
+        assert r["iterations"] == 60 and r["iterations_per_s"] > 0
+        assert r["real_time_ratio"] == pytest.approx(r["iterations_per_s"] * 0.1)
+    assert out["env"]["decisions"] == 5
+    assert json.loads((tmp_path / "speed.json").read_text())["systems"] == rows
+
+
+def test_train_smoke_and_the_model_loads_and_acts(tmp_path, capsys):
+    import policies
+
+    out = run_json(capsys, ["train", "--timesteps", "256", "--n-envs", "1", "--particles", "5",
+                            "--n-steps", "200", "--rollout-steps", "64", "--eval-every", "100000",
+                            "--eval-seeds", "0", "--clutter-levels", "0", "--out", str(tmp_path)])
+    assert out["algo"] == "ppo" and out["observation_transform"] == "log1p"
+    assert (tmp_path / "model.zip").exists() and (tmp_path / "eval_log.jsonl").exists()
+    policy = policies.make("learned", path=str(tmp_path / "model.zip"))
+    assert policy.observation_transform == "log1p"
+    action = policy.act(np.ones(17, dtype=np.float32), {})
+    assert action.shape == (2,) and action.dtype == np.int64 and set(action) <= {0, 1}
