@@ -298,8 +298,10 @@ class SubmapSLAM:
         validate_node_budget(node_budget)
         check_range("loop_closure_unseen_s", loop_closure_unseen_s, 0.0, 1e9)
         if isinstance(back_end, str):
-            require(back_end == "ekf", "back_end", back_end, "'ekf' or a GlobalMap")
-            back_end = GlobalMap(
+            from filters.submap_optimise import make_back_end  # that module imports this one
+
+            back_end = make_back_end(
+                back_end,
                 initial_pose,
                 initial_pose_cov,
                 gate_probability=gate_probability,
@@ -405,18 +407,12 @@ class SubmapSLAM:
         self._fusions_since_optimise += 1
         return report
 
-    def optimise(self):
-        """Relinearise the global map over the stored sub-maps (DESIGN 3.10): not implemented yet.
+    def optimise(self, method: str = "gauss-newton", **options):
+        """DESIGN 3.10: minimise CM (12) over the stored sub-maps and replace the global estimate
+        by the optimum and its Gauss-Newton covariance (:mod:`filters.submap_optimise`)."""
+        from filters.submap_optimise import optimise_submaps
 
-        The hook is ``self.submaps`` (each fused local map with its origin index) plus the
-        back-end's ``initial_pose``/``initial_pose_cov`` (the anchor of the pose chain); the
-        optimiser must replace ``self.back_end.x``/``P`` and then reset
-        ``time_since_optimise_s``/``fusions_since_optimise`` via :meth:`_optimised`.
-        """
-        raise NotImplementedError(
-            "SubmapSLAM.optimise() is not implemented yet: the nonlinear optimisation over the "
-            "stored sub-maps (self.submaps, DESIGN section 3.10) is added by a separate module"
-        )
+        return optimise_submaps(self, method, **options)
 
     def _optimised(self):
         """Book-keeping after an optimisation (for the optimiser's implementation)."""

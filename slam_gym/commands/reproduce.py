@@ -36,6 +36,9 @@ def add_parser(subparsers) -> None:
     bb.add_argument("--no-figures", action="store_true", help="skip the trace figures")
     add_run_options(bb, default_out="out/reproduce-brooks-bailey")
     bb.set_defaults(run=run_brooks_bailey)
+    from slam_gym.commands import reproduce_cm
+
+    reproduce_cm.add_parser(targets)
 
 
 def run_brooks_bailey(args) -> int:

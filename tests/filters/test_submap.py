@@ -383,7 +383,7 @@ def test_compass_goes_to_the_front_end_relative_to_the_origin():
     assert f.front_end.x[2] == pytest.approx(0.02 + K * (0.05 - 0.02))
 
 
-def test_optimise_is_a_clear_hook():
+def test_fused_submaps_are_stored_and_optimise_uses_them():
     stream = make_stream("brooks-bailey", seed=2, n_steps=30)
     f = _system(stream)
     for step in stream:
@@ -392,14 +392,18 @@ def test_optimise_is_a_clear_hook():
     stored = f.submaps[0]
     assert stored.origin_index == 0 and stored.end_index == 1
     assert set(stored.id_map) == set(stored.gaussian.ids.tolist())
-    with pytest.raises(NotImplementedError, match="submaps"):
-        f.optimise()
+    f.optimise()
+    assert f.n_optimisations == 1
+    assert f.interface_features()["fusions_since_optimise"] == 0
+    P = f.back_end.P
+    np.testing.assert_allclose(P, P.T, atol=1e-12)
+    assert np.linalg.eigvalsh(P).min() > 0
 
 
 def test_bad_options_name_the_field():
     front = EKFSLAM(SENSOR, ClutterModel(), NOISE)
     with pytest.raises(ValueError, match="back_end"):
-        SubmapSLAM(front, "relative")
+        SubmapSLAM(front, "graph")
     with pytest.raises(ValueError, match="loop_closure_unseen_s"):
         SubmapSLAM(front, loop_closure_unseen_s=-1.0)
     with pytest.raises(ValueError, match="gate_probability"):
