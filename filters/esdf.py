@@ -94,6 +94,12 @@ class SparseInformation:
         self.version = 0
         self._cache: dict[str, tuple[int, object]] = {}
 
+    def __getstate__(self):
+        # the cache holds a SuperLU factor, which does not pickle; it is rebuilt on demand
+        state = self.__dict__.copy()
+        state["_cache"] = {}
+        return state
+
     # ----------------------------------------------------------------- structure
     @property
     def n_entities(self) -> int:

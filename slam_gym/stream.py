@@ -74,6 +74,16 @@ class Stream:
         return self.n_steps
 
 
+class StepList:
+    """A ``make_steps`` for a stream held in memory (picklable, so envs and episodes pickle)."""
+
+    def __init__(self, steps: list[Step]):
+        self.steps = steps
+
+    def __call__(self) -> Iterator[Step]:
+        return iter(self.steps)
+
+
 def steps_from_list(steps: list[Step]) -> Callable[[], Iterator[Step]]:
     """A ``make_steps`` for a stream held in memory."""
-    return lambda: iter(steps)
+    return StepList(steps)

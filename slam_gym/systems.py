@@ -44,8 +44,11 @@ class System:
         self._known_ids_keyword = known_ids_keyword
 
     def __getattr__(self, attribute):
-        # everything else (front_end, local_origin, submaps, ...) is the estimator's
-        return getattr(self.__dict__["estimator"], attribute)
+        # everything else (front_end, back_end, submaps, ...) is the estimator's
+        estimator = self.__dict__.get("estimator")
+        if estimator is None:  # while unpickling, before __dict__ is restored
+            raise AttributeError(attribute)
+        return getattr(estimator, attribute)
 
     def predict(self, u, dt):
         self.estimator.predict(u, dt)

@@ -1,0 +1,197 @@
+"""``SlamGym/MRCLAM-v0``: the interface env of :mod:`slam_gym.envs.hybrid_slam` on recorded data.
+
+:class:`MRCLAMEnv` plays one robot of a UTIAS MRCLAM data set (Leung et al., IJRR 2011) through
+the same hybrid system, observation, action, reward and termination as
+:class:`~slam_gym.envs.hybrid_slam.HybridSLAMEnv`; only the stream differs
+(:meth:`MRCLAMEnv._make_stream` loads it with :func:`slam_gym.datasets.load_mrclam`). The reward
+is computed against the motion-capture ground truth (pose every step, landmarks from
+``Landmark_Groundtruth.dat``) by :class:`~slam_gym.episode.Episode`, exactly as in simulation.
+
+Keyword arguments (besides those of :class:`~slam_gym.envs.hybrid_slam.HybridSLAMConfig`):
+
+``data_dir``
+    An MRCLAM data set directory (``Barcodes.dat``, ``Landmark_Groundtruth.dat``,
+    ``RobotN_{Odometry,Measurement,Groundtruth}.dat``). Default: the copy of Dataset 7 in
+    ``../shared/data/mrclam/MRCLAM_Dataset7`` beside the repository, when it exists.
+``robot``
+    1-5 (default 1).
+``sensor_noise_scale``
+    Factor (default 1.0) on the range and bearing std estimated by the loader from the
+    residuals against the truth. The MRCLAM camera's errors are strongly correlated from one
+    frame to the next (and its range error depends on the bearing), so a filter that takes them
+    as white noise with the measured std becomes over-confident; a factor > 1 is the usual
+    remedy (see ``slam-gym reproduce mrclam --noise-scale``).
+``terminate_on_failure``
+    True (default, as the simulated env): the episode ends at BB's failure criterion. False: the
+    episode goes on to the end of the recording after a failure (the failure is still flagged
+    in ``info`` and penalised once), which is how ``reproduce mrclam`` compares policies with the
+    systems over the whole run.
+
+``n_steps`` cuts the recording to its first ``n_steps`` filter iterations (0.1 s each).
+The options that describe a *simulated* world (``scenario``, ``clutter_level``, ``alpha``,
+``beta``, ``scenario_overrides``) do not apply and raise ``ValueError``: the recording fixes the
+world, and the sensor, odometry and clutter models are estimated from it (the loader's
+calibration, in ``env.stream.metadata["calibration"]``). The base config keeps its default
+scenario fields, unused.
+
+Seeding: the recording is fixed, so ``reset(options={"world_seed": s})`` selects nothing: it is
+accepted (the evaluation code passes it) and dropped, so it changes nothing at all
+(``info["world_seed"]`` is the base class's draw and means nothing here). ``reset(seed=s)``
+seeds the filter (particles, data association sampling), so the same seed gives the same
+episode bit for bit. The stream is loaded once per (directory, robot,
+``n_steps``, ``sensor_noise_scale``) and cached on the instance.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+
+from filters.models import RangeBearingSensor
+from filters.validation import check_range, require
+from slam_gym.envs.hybrid_slam import HybridSLAMEnv
+
+MRCLAM_ROBOTS = (1, 2, 3, 4, 5)
+#: base-config options that describe a simulated world and do not apply to recorded data
+SIMULATION_ONLY_OPTIONS = ("scenario", "clutter_level", "alpha", "beta", "scenario_overrides")
+MRCLAM_FILES = ("Barcodes.dat", "Landmark_Groundtruth.dat")
+ROBOT_FILES = ("Odometry", "Measurement", "Groundtruth")
+
+
+def default_mrclam_dir() -> Path | None:
+    """``../shared/data/mrclam/MRCLAM_Dataset7`` beside the repository, if it exists."""
+    repo_root = Path(__file__).resolve().parents[2]
+    path = repo_root.parent / "shared" / "data" / "mrclam" / "MRCLAM_Dataset7"
+    return path if path.is_dir() else None
+
+
+def check_robot(robot) -> int:
+    require(
+        isinstance(robot, (int, np.integer)) and not isinstance(robot, bool)
+        and int(robot) in MRCLAM_ROBOTS,
+        "robot", robot, f"one of {list(MRCLAM_ROBOTS)}",
+    )
+    return int(robot)
+
+
+def check_mrclam_dir(data_dir, robot: int) -> Path:
+    """The resolved data directory; ``ValueError`` naming ``data_dir`` unless it holds the
+    tables of ``robot``."""
+    if data_dir is None:
+        found = default_mrclam_dir()
+        require(
+            found is not None, "data_dir", None,
+            "an MRCLAM data set directory (no default copy at "
+            "../shared/data/mrclam/MRCLAM_Dataset7 beside the repository)",
+        )
+        data_dir = found
+    require(
+        isinstance(data_dir, (str, Path)) and str(data_dir) != "", "data_dir", data_dir,
+        "a directory path",
+    )
+    path = Path(data_dir).expanduser().resolve()
+    require(path.is_dir(), "data_dir", str(data_dir), "an existing MRCLAM data set directory")
+    needed = [*MRCLAM_FILES, *(f"Robot{robot}_{kind}.dat" for kind in ROBOT_FILES)]
+    missing = [name for name in needed if not (path / name).is_file()]
+    require(
+        not missing, "data_dir", str(data_dir),
+        f"an MRCLAM directory holding {', '.join(needed)} (missing: {', '.join(missing)})",
+    )
+    return path
+
+
+def mrclam_stream(data_dir, robot: int, *, max_steps=None, sensor_noise_scale: float = 1.0):
+    """The MRCLAM stream of ``robot`` with its range and bearing std scaled by
+    ``sensor_noise_scale`` (the outlier labels, field of view and clutter rates stay those of
+    the loader's calibration); shared by the env and ``reproduce mrclam`` so both play the same
+    stream."""
+    from slam_gym.datasets import load_mrclam
+
+    robot = check_robot(robot)
+    check_range("sensor_noise_scale", sensor_noise_scale, 0.0, 1000.0, low_open=True)
+    stream = load_mrclam(check_mrclam_dir(data_dir, robot), robot, max_steps=max_steps)
+    if sensor_noise_scale == 1.0:
+        return stream
+    s = stream.sensor
+    sensor = RangeBearingSensor(
+        range_std_m=s.range_std_m * sensor_noise_scale,
+        bearing_std_rad=s.bearing_std_rad * sensor_noise_scale,
+        max_range_m=s.max_range_m,
+        fov_rad=s.fov_rad,
+    )
+    metadata = {**stream.metadata, "sensor_noise_scale": float(sensor_noise_scale)}
+    return dataclasses.replace(stream, sensor=sensor, metadata=metadata)
+
+
+class MRCLAMEnv(HybridSLAMEnv):
+    """The hybrid-SLAM interface env on one MRCLAM robot (see the module docstring)."""
+
+    RESET_OPTIONS = ("world_seed", "n_steps", "max_decisions")
+
+    def __init__(
+        self,
+        render_mode: str | None = None,
+        *,
+        data_dir=None,
+        robot: int = 1,
+        sensor_noise_scale: float = 1.0,
+        terminate_on_failure: bool = True,
+        **config,
+    ):
+        for name in SIMULATION_ONLY_OPTIONS:
+            require(
+                name not in config, name, config.get(name),
+                "left out for MRCLAMEnv (the recording fixes the world, the sensor and the "
+                "clutter; choose data_dir and robot)",
+            )
+        self.robot = check_robot(robot)
+        self.data_dir = check_mrclam_dir(data_dir, self.robot)
+        check_range("sensor_noise_scale", sensor_noise_scale, 0.0, 1000.0, low_open=True)
+        self.sensor_noise_scale = float(sensor_noise_scale)
+        require(
+            isinstance(terminate_on_failure, bool), "terminate_on_failure", terminate_on_failure,
+            "a bool",
+        )
+        self.terminate_on_failure = terminate_on_failure
+        self._streams: dict[tuple, object] = {}
+        super().__init__(render_mode=render_mode, **config)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """As the base class; ``options["world_seed"]`` is accepted and ignored (one recording
+        per robot), so it changes nothing at all (the base class would otherwise draw the
+        filter's seed differently with and without it)."""
+        options = {k: v for k, v in (options or {}).items() if k != "world_seed"}
+        return super().reset(seed=seed, options=options)
+
+    def _make_stream(self, world_seed: int):
+        """The recording (``world_seed`` selects nothing: there is one recording per robot)."""
+        key = (str(self.data_dir), self.robot, self.config.n_steps, self.sensor_noise_scale)
+        if key not in self._streams:
+            self._streams[key] = mrclam_stream(
+                self.data_dir, self.robot, max_steps=self.config.n_steps,
+                sensor_noise_scale=self.sensor_noise_scale,
+            )
+        return self._streams[key]
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = super().step(action)
+        if terminated and not self.terminate_on_failure and not self.episode.done:
+            # failed but data remain: go on (the base class penalised the failure once)
+            terminated = False
+            c = self.config
+            truncated = c.max_decisions is not None and self.n_decisions >= c.max_decisions
+        return obs, reward, terminated, bool(truncated), info
+
+    def _run_interval(self):
+        if self.terminate_on_failure:
+            return super()._run_interval()
+        ep = self.episode
+        nees_values, errors = [], []
+        for _ in range(self.config.decision_interval):
+            if ep.advance(1) == 0:
+                break
+            nees_values.append(ep.last_nees)
+            errors.append(ep.last_position_error_m)
+        return nees_values, errors
