@@ -51,6 +51,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from filters.submap import INTERFACE_FEATURE_NAMES
 from filters.validation import check_range, require
 from slam_gym.episode import Episode
 from slam_gym.metrics import nees_band
@@ -58,25 +59,8 @@ from slam_gym.scenarios import CLUTTER_LEVELS, get_scenario, make_stream, scenar
 
 logger = logging.getLogger(__name__)
 
-FEATURE_NAMES: tuple[str, ...] = (
-    "local_map_age_s",
-    "local_map_distance_m",
-    "ess_ratio",
-    "particle_position_spread_m",
-    "particle_heading_spread_rad",
-    "local_feature_count",
-    "local_confirmed_count",
-    "vote_margin",
-    "innovation_ratio",
-    "global_features_in_view",
-    "global_position_std_m",
-    "global_heading_std_rad",
-    "time_since_optimise_s",
-    "fusions_since_optimise",
-    "clutter_rate",
-    "loop_closure_flag",
-    "local_map_budget_ratio",
-)
+FEATURE_NAMES: tuple[str, ...] = INTERFACE_FEATURE_NAMES
+"""The observation's features, in order (the sub-map system's interface features)."""
 
 OBSERVATION_MAX = 1e6
 """Observations are clipped to [0, OBSERVATION_MAX] (NaN -> 0): every feature is non-negative."""

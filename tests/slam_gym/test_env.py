@@ -180,6 +180,13 @@ def test_sb3_subproc_vec_env_runs():
     vec.close()
 
 
+def test_policies_know_the_same_feature_names():
+    """``policies`` imports nothing of ours, so it keeps its own copy of the names."""
+    from policies.base import INTERFACE_FEATURES
+
+    assert tuple(INTERFACE_FEATURES) == FEATURE_NAMES
+
+
 def test_discrete_wrapper_matches_the_policies_mapping():
     from policies.base import discrete_to_multi as policies_mapping
 
