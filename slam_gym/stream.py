@@ -87,3 +87,61 @@ class StepList:
 def steps_from_list(steps: list[Step]) -> Callable[[], Iterator[Step]]:
     """A ``make_steps`` for a stream held in memory."""
     return StepList(steps)
+
+
+class ArraySteps:
+    """A ``make_steps`` for recorded data held as arrays (picklable, and so are its iterators).
+
+    Step ``k`` covers ``(t_s[k], t_s[k + 1]]`` with odometry ``odometry[k]`` and the observation
+    rows ``bounds[k]:bounds[k + 1]`` of ``z`` / ``landmark_ids``; ``poses[k]`` is its true pose
+    (NaN where unknown) and ``visible[k]`` (optional, boolean over the true landmarks) marks the
+    landmarks in view.
+    """
+
+    def __init__(self, t_s, dt_s, odometry, z, landmark_ids, bounds, poses, visible=None):
+        self.t_s = np.asarray(t_s, dtype=float)
+        self.dt_s = float(dt_s)
+        self.odometry = np.asarray(odometry, dtype=float)
+        self.z = np.asarray(z, dtype=float).reshape(-1, 2)
+        self.landmark_ids = np.asarray(landmark_ids, dtype=np.int64)
+        self.bounds = np.asarray(bounds, dtype=np.int64)
+        self.poses = np.asarray(poses, dtype=float)
+        self.visible = None if visible is None else np.asarray(visible, dtype=bool)
+
+    def __len__(self) -> int:
+        return len(self.odometry)
+
+    def step(self, k: int) -> Step:
+        s, e = self.bounds[k], self.bounds[k + 1]
+        visible = None if self.visible is None else np.flatnonzero(self.visible[k])
+        return Step(
+            index=k,
+            t_s=float(self.t_s[k + 1]),
+            dt_s=self.dt_s,
+            odometry=self.odometry[k].copy(),
+            compass_rad=None,
+            z=self.z[s:e].copy(),
+            truth=StepTruth(
+                pose=self.poses[k].copy(),
+                landmark_ids=self.landmark_ids[s:e].copy(),
+                visible_ids=None if visible is None else visible.astype(np.int64),
+            ),
+        )
+
+    def __call__(self) -> Iterator[Step]:
+        return _ArrayStepIterator(self)
+
+
+class _ArrayStepIterator:
+    def __init__(self, steps: ArraySteps):
+        self.steps = steps
+        self.k = 0
+
+    def __iter__(self):
+        return self
+
+    def __next__(self) -> Step:
+        if self.k >= len(self.steps):
+            raise StopIteration
+        self.k += 1
+        return self.steps.step(self.k - 1)

@@ -87,7 +87,7 @@ from filters.models import (
 )
 from filters.validation import check_range, require
 from slam_gym.datasets.align import hold_average, interpolate_poses
-from slam_gym.stream import Step, StepTruth, Stream
+from slam_gym.stream import ArraySteps, Stream
 
 logger = logging.getLogger(__name__)
 
@@ -607,22 +607,7 @@ def load_mrclam(
     bounds = np.searchsorted(lay.row_step[rows], np.arange(n + 1), side="left")
     rel_t = lay.rel_t
 
-    def make_steps():
-        for k in range(n):
-            s, e = bounds[k], bounds[k + 1]
-            yield Step(
-                index=k,
-                t_s=float(rel_t[k + 1]),
-                dt_s=float(dt_s),
-                odometry=odometry[k].copy(),
-                compass_rad=None,
-                z=z_all[s:e].copy(),
-                truth=StepTruth(
-                    pose=poses[k].copy(),
-                    landmark_ids=ids_all[s:e].copy(),
-                    visible_ids=np.flatnonzero(visible[k]).astype(np.int64),
-                ),
-            )
+    make_steps = ArraySteps(rel_t, dt_s, odometry, z_all, ids_all, bounds, poses, visible)
 
     in_grid = lay.row_step >= 0
     counts = {

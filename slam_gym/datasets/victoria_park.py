@@ -74,7 +74,7 @@ import numpy as np
 from filters.models import ClutterModel, ProportionalVelocityNoise, RangeBearingSensor
 from filters.validation import check_range, require
 from slam_gym.datasets.align import hold_average
-from slam_gym.stream import Step, StepTruth, Stream
+from slam_gym.stream import ArraySteps, Stream
 
 logger = logging.getLogger(__name__)
 
@@ -271,23 +271,10 @@ def load_victoria_park(
     if odometry_noise is None:
         odometry_noise = default_odometry_noise(dt_s)
 
-    nan_pose = np.full(3, np.nan)
-
-    def make_steps():
-        for k in range(n):
-            s, e = bounds[k], bounds[k + 1]
-            yield Step(
-                index=k,
-                t_s=float(rel_t[k + 1]),
-                dt_s=float(dt_s),
-                odometry=odometry[k].copy(),
-                compass_rad=None,
-                z=z_all[s:e].copy(),
-                truth=StepTruth(
-                    pose=nan_pose.copy(),
-                    landmark_ids=np.full(e - s, UNKNOWN_LANDMARK_ID, dtype=np.int64),
-                ),
-            )
+    make_steps = ArraySteps(
+        rel_t, dt_s, odometry, z_all, np.full(len(z_all), UNKNOWN_LANDMARK_ID, dtype=np.int64),
+        bounds, np.full((n, 3), np.nan),
+    )
 
     gps = rec.gps.copy()
     gps[:, 0] -= t0
