@@ -36,9 +36,10 @@ def add_parser(subparsers) -> None:
     bb.add_argument("--no-figures", action="store_true", help="skip the trace figures")
     add_run_options(bb, default_out="out/reproduce-brooks-bailey")
     bb.set_defaults(run=run_brooks_bailey)
-    from slam_gym.commands import reproduce_cm
+    from slam_gym.commands import reproduce_cm, reproduce_real
 
     reproduce_cm.add_parser(targets)
+    reproduce_real.add_parser(targets)
 
 
 def run_brooks_bailey(args) -> int:

@@ -23,9 +23,18 @@ ENV_VARIANTS: dict[str, dict] = {
 }
 
 
+#: envs on recorded data: id -> (entry point, default keyword arguments)
+RECORDED_ENV_VARIANTS: dict[str, tuple[str, dict]] = {
+    "SlamGym/MRCLAM-v0": ("slam_gym.envs.mrclam:MRCLAMEnv", {}),
+}
+
+
 def register_envs() -> list[str]:
-    """Register every variant that is not registered yet; returns the ids."""
+    """Register every variant that is not registered yet; returns the simulated ids."""
     for env_id, kwargs in ENV_VARIANTS.items():
         if env_id not in gym.registry:
             gym.register(id=env_id, entry_point=ENTRY_POINT, kwargs=dict(kwargs))
+    for env_id, (entry_point, kwargs) in RECORDED_ENV_VARIANTS.items():
+        if env_id not in gym.registry:
+            gym.register(id=env_id, entry_point=entry_point, kwargs=dict(kwargs))
     return list(ENV_VARIANTS)

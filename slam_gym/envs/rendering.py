@@ -50,7 +50,7 @@ def render_frame(env, figure, render_mode):
         pose_ellipses=[(mean, cov)],
         particles=_particles_of(env.system),
         local_boundary=(mean[:2], env.stream.sensor.max_range_m),
-        world_size_m=env.stream.metadata["scenario"].world_size_m,
+        world_size_m=getattr(env.stream.metadata.get("scenario"), "world_size_m", None),
     )
     ax.set_title(
         f"t = {ep.t_s:5.1f} s   fusions {ep.n_fusions}   optimisations {ep.n_optimisations}",

@@ -1,0 +1,178 @@
+"""``slam-gym reproduce mrclam`` / ``victoria-park`` (slam_gym.commands.reproduce_real).
+
+Uses the copies of MRCLAM Dataset 7 and Victoria Park at ``../shared/data`` beside the
+repository (see its README); every run is cut to a short prefix.
+"""
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from slam_gym.commands import reproduce_real as rr
+from slam_gym.datasets import load_mrclam
+from slam_gym.evaluation import RESULT_KEYS, Job, read_results, validate_result
+from slam_gym.evaluation.results import check_row
+
+DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
+MRCLAM_DIR = DATA / "mrclam" / "MRCLAM_Dataset7"
+VP_DIR = DATA / "victoria_park"
+FINITE_KEYS = ("map_error_m", "pose_rmse_m", "anees", "nees_in_band_fraction",
+               "final_pose_error_m", "mean_pose_error_m", "filter_time_s")
+
+
+def run_command(*argv):
+    parser = argparse.ArgumentParser()
+    targets = parser.add_subparsers(dest="target", required=True)
+    rr.add_parser(targets)
+    args = parser.parse_args([str(a) for a in argv])
+    return args.run(args)
+
+
+def mrclam_job(name, kind="system", **options):
+    opts = {"data": str(MRCLAM_DIR), "max_steps": 200, "n_particles": 20} | options
+    return Job(kind, name, "mrclam:robot1", None, 0, opts)
+
+
+@pytest.mark.parametrize("name, known", [("hybrid", False), ("ekf-slam", False),
+                                         ("fastslam", True)])
+def test_mrclam_run_function_returns_required_finite_keys(name, known):
+    row = validate_result(rr.run_real_job(mrclam_job(name, known_association=known)))
+    assert set(RESULT_KEYS) <= set(row)
+    for key in FINITE_KEYS:
+        assert isinstance(row[key], float) and math.isfinite(row[key]), key
+    assert row["iterations"] == row["n_steps"] == 200
+    assert row["robot"] == 1 and row["association"] == ("known" if known else "unknown")
+    assert row["n_fusions"] == (2 if name == "hybrid" else 0)  # every 10 s over 20 s
+    stream = load_mrclam(MRCLAM_DIR, 1, max_steps=200)
+    assert row["alpha"] == stream.clutter.alpha and row["beta"] == stream.clutter.beta
+    # the RMSE is at least the mean error and the figure path has one point per second
+    assert row["pose_rmse_m"] >= row["mean_pose_error_m"] - 1e-12
+    assert len(row["figure"]["est_path_xy"]) == len(row["figure"]["true_path_xy"]) == 20
+    n_found = row["n_matched_landmarks"] + row["n_missed"]
+    assert row["n_features"] >= row["n_matched_landmarks"] and n_found <= 15
+
+
+def test_mrclam_noise_scale_reaches_the_filters():
+    row = rr.run_real_job(mrclam_job("ekf-slam", noise_scale=3.0, max_steps=50))
+    stream = load_mrclam(MRCLAM_DIR, 1, max_steps=50)
+    assert row["range_std_m"] == pytest.approx(3.0 * stream.sensor.range_std_m)
+    assert row["bearing_std_rad"] == pytest.approx(3.0 * stream.sensor.bearing_std_rad)
+
+
+def test_policy_job_drives_hybrid_in_the_mrclam_env():
+    row = validate_result(rr.run_real_job(mrclam_job("fixed-10s", kind="policy",
+                                                     max_steps=250)))
+    assert row["driven_system"] == "hybrid" and row["iterations"] == 250
+    assert row["n_fusions"] == 2  # fixed 10 s rule within 25 s
+    assert math.isfinite(row["pose_rmse_m"]) and math.isfinite(row["anees"])
+
+
+def test_known_association_only_where_the_system_has_it():
+    stream = load_mrclam(MRCLAM_DIR, 1, max_steps=5)
+    assert rr.supports_known_association("fastslam", stream)
+    assert not rr.supports_known_association("ekf-slam", stream)
+    with pytest.raises(ValueError, match="known_association"):
+        rr.run_real_job(mrclam_job("ekf-slam", known_association=True, max_steps=20))
+
+
+def test_learned_without_a_model_is_skipped_with_the_reason(tmp_path):
+    usable, skipped = rr.available_policies(
+        ["fixed-10s", "learned"], model_path=str(tmp_path / "none.zip"))
+    assert usable == ["fixed-10s"] and "none.zip" in skipped["learned"]
+
+
+def test_mrclam_command_end_to_end_and_resume(tmp_path, capsys):
+    out = tmp_path / "mrclam"
+    argv = ["mrclam", "--data", MRCLAM_DIR, "--robots", "1", "--max-steps", 120,
+            "--systems", "ekf-slam,fastslam", "--policies", "fixed-10s,learned",
+            "--model-path", tmp_path / "no-model.zip", "--known-association",
+            "--particles", 10, "--workers", 1, "--out", out, "--quiet", "--json"]
+    assert run_command(*argv) == 0
+    doc = json.loads(capsys.readouterr().out)
+    for name in ("results.jsonl", "summary.json", "table.md", "real_table.md"):
+        assert (out / name).is_file(), name
+    rows = read_results(out / "results.jsonl")
+    for row in rows:
+        check_row(row)
+        assert row["status"] == "ok", row.get("error")
+    labels = sorted((r.get("system") or r.get("policy"), r["association"]) for r in rows)
+    assert labels == [("ekf-slam", "unknown"), ("fastslam", "known"),
+                      ("fastslam", "unknown"), ("fixed-10s", "unknown")]
+    assert "learned" in doc["skipped_policies"] and doc["no_known_association_mode"] == [
+        "ekf-slam"]
+    table = (out / "real_table.md").read_text()
+    assert "| fastslam | 1 | known |" in table and "| hybrid + fixed-10s | 1 | unknown |" in table
+    assert "Policy learned skipped" in table
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["n_runs"] == 4 and summary["n_errors"] == 0
+    assert any(Path(p).is_file() for p in doc["figures"].values())
+    # a rerun into the same directory runs nothing again
+    assert run_command(*argv) == 0
+    assert len((out / "results.jsonl").read_text().splitlines()) == 4
+
+
+def test_victoria_park_end_to_end_writes_the_map_png(tmp_path, capsys):
+    out = tmp_path / "vp"
+    assert run_command("victoria-park", "--data", VP_DIR, "--max-steps", 1200,
+                       "--systems", "ekf-submap,hybrid", "--particles", 10,
+                       "--executor", "serial", "--out", out, "--quiet", "--json") == 0
+    doc = json.loads(capsys.readouterr().out)
+    for name in ("results.jsonl", "summary.json", "table.md", "real_table.md",
+                 "victoria_park_map_hybrid.png", "victoria_park_map_ekf-submap.png"):
+        assert (out / name).is_file(), name
+    png = (out / "victoria_park_map_hybrid.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
+    rows = read_results(out / "results.jsonl")
+    assert len(rows) == 2
+    for row in rows:
+        assert row["status"] == "ok", row.get("error")
+        # no truth: NEES, success and map error are undefined
+        for key in ("success", "anees", "nees_in_band_fraction", "map_error_m"):
+            assert row[key] is None
+        assert row["iterations"] == 1200 and row["n_fusions"] == 3  # 30 s, fused every 10 s
+        assert 0.0 <= row["gps_rmse_m"] < 20.0 and row["n_gps_fixes_used"] >= 10
+        assert row["gps_median_error_m"] <= row["gps_max_error_m"]
+        assert 0 <= row["n_trees"] <= row["n_features"]
+    assert "path RMSE vs GPS" in (out / "real_table.md").read_text()
+    assert set(doc["figures"]) == {"ekf-submap", "hybrid"}
+
+
+def test_victoria_park_aligned_path_is_in_the_gps_frame_and_matches_the_rmse():
+    from slam_gym.datasets import load_victoria_park
+
+    row = rr.run_real_job(Job("system", "ekf-submap", "victoria-park", None, 0,
+                              {"data": str(VP_DIR), "max_steps": 1600}))
+    assert math.isclose(row["duration_s"], 40.0)
+    est = np.asarray(row["figure"]["est_path_xy"])  # aligned, one point per second
+    assert est.shape == (40, 2)
+    t_est = 0.025 * (1 + 40 * np.arange(40))
+    gps = load_victoria_park(VP_DIR, max_steps=10).metadata["gps"]
+    gps = gps[(gps[:, 0] >= t_est[0]) & (gps[:, 0] <= t_est[-1])]
+    at_gps = np.column_stack([np.interp(gps[:, 0], t_est, est[:, 0]),
+                              np.interp(gps[:, 0], t_est, est[:, 1])])
+    rmse = float(np.sqrt(np.mean(np.sum((at_gps - gps[:, 1:3]) ** 2, axis=1))))
+    # the 1 Hz path resampled at the GPS times reproduces the reported error (the car moves
+    # less than ~4 m per second, the interpolation error is a small part of it)
+    assert rmse == pytest.approx(row["gps_rmse_m"], abs=0.5)
+    assert row["final_pose_error_m"] <= row["gps_max_error_m"] + 1e-12
+
+
+@pytest.mark.parametrize(
+    "argv, field",
+    [
+        (["mrclam", "--data", MRCLAM_DIR, "--robots", "7"], "robot"),
+        (["mrclam", "--data", MRCLAM_DIR, "--systems", "ekf,slam"], "--systems"),
+        (["mrclam", "--data", "/no/such/dir"], "--data"),
+        (["mrclam", "--data", MRCLAM_DIR, "--particles", "0"], "--particles"),
+        (["mrclam", "--data", MRCLAM_DIR, "--noise-scale", "-1"], "--noise-scale"),
+        (["victoria-park", "--data", VP_DIR, "--max-steps", "0"], "--max-steps"),
+        (["victoria-park", "--data", VP_DIR, "--systems", "esdf"], "--systems"),
+    ],
+)
+def test_bad_arguments_raise_value_error_naming_the_field(tmp_path, argv, field):
+    with pytest.raises(ValueError, match=field):
+        run_command(*argv, "--out", tmp_path, "--quiet")
