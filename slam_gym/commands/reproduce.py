@@ -31,7 +31,8 @@ def add_parser(subparsers) -> None:
     bb.add_argument("--clutter-levels", default="0,1,2,3")
     bb.add_argument("--particles", type=int, default=500)
     bb.add_argument("--fusion-interval-s", type=float, default=10.0)
-    bb.add_argument("--optimise", choices=["never", "at-end", "every-fusion"], default="never",
+    bb.add_argument("--optimise", choices=["never", "at-end", "every-fusion", "after-loop-closure"],
+                    default="never",
                     help="optimise() schedule of the sub-map systems (BB: never)")
     bb.add_argument("--no-figures", action="store_true", help="skip the trace figures")
     add_run_options(bb, default_out="out/reproduce-brooks-bailey")

@@ -7,7 +7,9 @@ of DESIGN section 6.
 
 System jobs (BB Table 1, CM) take options:
 ``n_particles`` (500), ``fusion_interval_s`` (10, BB's rule; sub-map systems only),
-``optimise`` (``"never"``, ``"at-end"``: once after the last fusion, or ``"every-fusion"``),
+``optimise`` (``"never"``, ``"at-end"``: once after the last fusion, ``"every-fusion"``, or
+``"after-loop-closure"``: once, right after the first fusion that matches a global feature no
+fusion had touched for 60 s),
 ``back_end`` (``"ekf"``/``"relative"``), ``known_association`` (False; forced on for the ESDFs),
 ``stop_on_failure`` (True: stop at BB's failure, the outcome is known), ``n_steps`` (cut the path).
 Policy jobs take ``n_particles`` (500), ``decision_interval`` (10), ``front_end``, ``back_end``,
@@ -38,7 +40,9 @@ POLICY_OPTIONS = {
     "model_path": None,
     "n_steps": None,
 }
-OPTIMISE_MODES = ("never", "at-end", "every-fusion")
+OPTIMISE_MODES = ("never", "at-end", "every-fusion", "after-loop-closure")
+LOOP_CLOSURE_UNSEEN_S = 60.0
+"""A fusion closes a loop when it matches a global feature no fusion has touched for this long."""
 
 
 def _options(given: dict, defaults: dict, what: str) -> dict:
@@ -86,14 +90,25 @@ def run_system(
     submap = name in SUBMAP_SYSTEMS
     # without sub-maps, advance in 1 s chunks so that a failure stops the run promptly
     every = int(round((fusion_interval_s if submap else 1.0) / stream.dt_s))
+    last_fused_s: dict[int, float] = {}
+    loop_closed = False
     while not episode.done:
         episode.advance(max(1, every))
         if stop_on_failure and episode.failure.failed:
             break
         if submap:
-            episode.fuse()
+            report = episode.fuse()
             if optimise == "every-fusion":
                 episode.optimise()
+            elif optimise == "after-loop-closure" and not loop_closed:
+                matched = {g for loc, g in report.id_map.items() if loc != g}
+                loop_closed = any(
+                    episode.t_s - last_fused_s.get(g, episode.t_s) > LOOP_CLOSURE_UNSEEN_S
+                    for g in matched
+                )
+                if loop_closed:
+                    episode.optimise()
+            last_fused_s.update(dict.fromkeys(report.id_map.values(), episode.t_s))
     if submap and optimise == "at-end":
         episode.optimise()
     return episode
