@@ -124,8 +124,10 @@ def summarise(
         kind, name, scenario, level, options = gkey
         members = groups[gkey]
         ok = [r for r in members if r.get("status") == STATUS_OK]
-        n_success = sum(1 for r in ok if r.get("success") is True)
-        ci = list(wilson_interval(n_success, len(ok))) if ok else None
+        # success is undefined (null) where there is no pose truth, e.g. Victoria Park
+        judged = [r for r in ok if r.get("success") is not None]
+        n_success = sum(1 for r in judged if r.get("success") is True)
+        ci = list(wilson_interval(n_success, len(judged))) if judged else None
         first = next((r for r in ok if r.get("alpha") is not None), {})
         group: dict[str, Any] = {
             kind: name,
@@ -138,7 +140,7 @@ def summarise(
             "n_ok": len(ok),
             "n_errors": len(members) - len(ok),
             "n_success": n_success,
-            "success_rate": n_success / len(ok) if ok else None,
+            "success_rate": n_success / len(judged) if judged else None,
             "success_ci95": ci,
         }
         for key in _MEAN_KEYS:

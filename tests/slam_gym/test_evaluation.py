@@ -392,6 +392,16 @@ def test_summary_on_hand_made_results(tmp_path):
     assert "| ekf | n_particles=50 | 1 | 1 | 0 | 100 % [21, 100] |" in markdown_table(groups)
 
 
+def test_success_rate_leaves_out_runs_where_success_is_undefined():
+    """Real data without pose truth (Victoria Park) has success null: no rate, not 0 %."""
+    rows = [_row("hybrid", 1, s, success=None) for s in range(3)]
+    rows += [_row("ekf", 1, s, success=s == 0) for s in range(2)]
+    rows.append(_row("ekf", 1, 9, success=None))
+    undefined, ekf = summarise(rows)
+    assert undefined["success_rate"] is None and undefined["success_ci95"] is None
+    assert ekf["n_ok"] == 3 and ekf["n_success"] == 1 and ekf["success_rate"] == 0.5
+
+
 def test_wilson_interval_properties():
     assert wilson_interval(3, 4) == pytest.approx((0.3006, 0.9544), abs=5e-5)
     for n in (1, 7, 50):
