@@ -13,7 +13,7 @@ from gymnasium import spaces
 
 import policies
 import policies.learned as learned
-from policies.base import discrete_to_multi, multi_to_discrete
+from policies.base import INTERFACE_FEATURES, discrete_to_multi, multi_to_discrete
 
 N_OBS = 5
 
@@ -278,3 +278,15 @@ def test_importing_policies_loads_neither_sb3_nor_the_rest_of_the_project():
         [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60
     )
     assert out.stdout.strip() == ""
+
+
+def test_the_shipped_model_loads_acts_and_says_how_it_was_made():
+    import json
+
+    policy = policies.make("learned")
+    assert policy.path == learned.DEFAULT_MODEL_PATH
+    assert policy.observation_transform == "log1p"  # from learned-default.json
+    config = json.loads(learned.DEFAULT_MODEL_PATH.with_suffix(".json").read_text())
+    assert config["command"].startswith("slam-gym train")
+    action = policy.act(np.zeros(len(INTERFACE_FEATURES), dtype=np.float32), {})
+    assert action.shape == (2,) and action.dtype == np.int64
