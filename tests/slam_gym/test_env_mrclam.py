@@ -44,9 +44,9 @@ def same(a, b) -> bool:
 
 
 def test_default_data_dir_is_the_shared_copy():
-    assert default_mrclam_dir() == MRCLAM_DIR.resolve()
+    assert default_mrclam_dir().resolve() == MRCLAM_DIR.resolve()
     env = MRCLAMEnv(robot=3, n_particles=5, n_steps=20)
-    assert env.data_dir == MRCLAM_DIR.resolve() and env.robot == 3
+    assert env.data_dir.resolve() == MRCLAM_DIR.resolve() and env.robot == 3
 
 
 def test_gymnasium_env_checker_without_warnings():
