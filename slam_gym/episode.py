@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from filters.existence import CONFIRMED_PROBABILITY
+from filters.types import LandmarkEstimate
 from slam_gym.metrics import FailureDetector, FeatureTruth, nees, nees_band, score_map
 
 
@@ -137,12 +138,22 @@ class Episode:
         return result
 
     # ------------------------------------------------------------------ metrics
-    def map_score(self, min_existence: float = CONFIRMED_PROBABILITY):
+    def confirmed_landmarks(self, min_existence: float = CONFIRMED_PROBABILITY):
+        """The system's map without the features not (yet) believed to exist (BB 5.1)."""
         lm = self.system.landmarks()
         keep = np.asarray(lm.existence) >= min_existence
+        return LandmarkEstimate(
+            ids=np.asarray(lm.ids)[keep],
+            means=np.asarray(lm.means)[keep],
+            covs=np.asarray(lm.covs)[keep],
+            existence=np.asarray(lm.existence)[keep],
+        )
+
+    def map_score(self, min_existence: float = CONFIRMED_PROBABILITY):
+        lm = self.confirmed_landmarks(min_existence)
         return score_map(
-            np.asarray(lm.ids)[keep],
-            np.asarray(lm.means)[keep],
+            lm.ids,
+            lm.means,
             self.feature_truth,
             self.stream.landmarks_true,
             self.detected_landmarks,

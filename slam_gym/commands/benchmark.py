@@ -5,7 +5,14 @@ from __future__ import annotations
 import numpy as np
 
 from slam_gym.commands.common import emit, out_dir
-from slam_gym.commands.runs import add_run_options, execute, int_list, name_list, print_table
+from slam_gym.commands.runs import (
+    add_run_options,
+    execute,
+    int_list,
+    name_list,
+    plot_episode_map,
+    print_table,
+)
 
 QUICK = {
     "policies": "fixed-10s,esdf-innovation,learned",
@@ -81,7 +88,7 @@ def run(args) -> int:
 
 def episode_figures(names, args, level, out) -> dict:
     """Uncertainty and NEES traces of every policy on one seed, and that seed's map."""
-    from slam_gym.evaluation import plot_nees, plot_run_map, plot_uncertainty_traces
+    from slam_gym.evaluation import plot_nees, plot_uncertainty_traces
     from slam_gym.evaluation.core import run_policy
 
     traces, nees, runs = {}, {}, []
@@ -103,12 +110,8 @@ def episode_figures(names, args, level, out) -> dict:
             nees, out / "nees.png", dt_s=dt,
             title=f"Vehicle NEES, clutter level {level}, seed {args.seed_start}")),
     }
-    name, episode, env = runs[0]  # the map of the first policy named
-    lm = episode.system.landmarks()
-    keep = np.asarray(lm.existence) >= 0.95
-    figures["map"] = str(plot_run_map(
-        out / "map.png", landmarks_true=env.stream.landmarks_true,
-        landmark_means=np.asarray(lm.means)[keep], landmark_covs=np.asarray(lm.covs)[keep],
-        path_true=np.array(episode.trace.true_poses), path_est=np.array(episode.trace.est_poses),
-        title=f"{name}, clutter level {level}, seed {args.seed_start}"))
+    name, episode, _ = runs[0]  # the map of the first policy named
+    figures["map"] = plot_episode_map(
+        episode, out / "map.png", f"{name}, clutter level {level}, seed {args.seed_start}"
+    )
     return figures

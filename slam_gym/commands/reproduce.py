@@ -5,7 +5,14 @@ from __future__ import annotations
 import numpy as np
 
 from slam_gym.commands.common import emit, out_dir
-from slam_gym.commands.runs import add_run_options, execute, int_list, name_list, print_table
+from slam_gym.commands.runs import (
+    add_run_options,
+    execute,
+    int_list,
+    name_list,
+    plot_episode_map,
+    print_table,
+)
 
 #: BB Table 1, success rates per clutter level (BB 5.3)
 BB_TABLE1 = {
@@ -78,7 +85,7 @@ def run_brooks_bailey(args) -> int:
 
 def trace_figures(systems, seed, n_particles, out) -> dict:
     """BB Figs. 3 (compass, no clutter) and 4 (no compass): trace of the vehicle covariance."""
-    from slam_gym.evaluation import plot_nees, plot_run_map, plot_uncertainty_traces
+    from slam_gym.evaluation import plot_nees, plot_uncertainty_traces
     from slam_gym.evaluation.core import make_job_stream, run_system
 
     figures = {}
@@ -101,13 +108,7 @@ def trace_figures(systems, seed, n_particles, out) -> dict:
             title=f"Vehicle NEES, {scenario}, seed {seed}",
         ))
         if figure == "fig4" and "hybrid" in episodes:
-            ep = episodes["hybrid"]
-            lm = ep.system.landmarks()
-            keep = np.asarray(lm.existence) >= 0.95
-            figures["map"] = str(plot_run_map(
-                out / "map_hybrid.png", landmarks_true=stream.landmarks_true,
-                landmark_means=np.asarray(lm.means)[keep], landmark_covs=np.asarray(lm.covs)[keep],
-                path_true=np.array(ep.trace.true_poses), path_est=np.array(ep.trace.est_poses),
-                title=f"HYBRID, {scenario}, seed {seed}",
-            ))
+            figures["map"] = plot_episode_map(
+                episodes["hybrid"], out / "map_hybrid.png", f"HYBRID, {scenario}, seed {seed}"
+            )
     return figures

@@ -6,8 +6,6 @@ import logging
 
 import numpy as np
 
-from filters.existence import CONFIRMED_PROBABILITY
-
 logger = logging.getLogger(__name__)
 
 FRAME_SIZE_IN = (6.4, 6.4)
@@ -37,16 +35,15 @@ def render_frame(env, figure, render_mode):
     ax = figure.add_subplot(111)
     ep = env.episode
     trace = ep.trace
-    lm = env.system.landmarks()
-    confirmed = np.asarray(lm.existence) >= CONFIRMED_PROBABILITY
+    lm = ep.confirmed_landmarks()
     mean, cov = env.system.pose()
     draw_map(
         ax,
         landmarks_true=env.stream.landmarks_true,
         true_path=np.array(trace.true_poses) if trace and trace.true_poses else None,
         est_path=np.array(trace.est_poses) if trace and trace.est_poses else None,
-        est_landmarks=np.asarray(lm.means)[confirmed],
-        est_landmark_covs=np.asarray(lm.covs)[confirmed],
+        est_landmarks=lm.means,
+        est_landmark_covs=lm.covs,
         pose_ellipses=[(mean, cov)],
         particles=_particles_of(env.system),
         local_boundary=(mean[:2], env.stream.sensor.max_range_m),
