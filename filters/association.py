@@ -132,6 +132,11 @@ def joint_covariance(P, cols, J, noise=None, groups=None):
 def mahalanobis_squared(nu, S):
     """``nu^T S^-1 nu`` for nu (..., m) and S (..., m, m) (broadcast)."""
     nu = np.asarray(nu, dtype=float)
+    S = np.asarray(S, dtype=float)
+    if nu.shape[-1] == 2:  # range-bearing and point pairings: the 2x2 inverse in closed form
+        a, b, c = S[..., 0, 0], 0.5 * (S[..., 0, 1] + S[..., 1, 0]), S[..., 1, 1]
+        n0, n1 = nu[..., 0], nu[..., 1]
+        return (c * n0 * n0 - 2.0 * b * n0 * n1 + a * n1 * n1) / (a * c - b * b)
     S = np.broadcast_to(S, nu.shape[:-1] + S.shape[-2:])
     sol = np.linalg.solve(S, nu[..., None])[..., 0]
     return np.einsum("...i,...i->...", nu, sol)

@@ -54,6 +54,7 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from filters.existence import CONFIRMED_PROBABILITY
 from filters.geometry import wrap_angle
@@ -104,19 +105,78 @@ def correspondence_vote(weights, votes) -> VoteResult:
     require(bool(weights.min() >= 0.0), "weights", weights.min(), "non-negative")
     total = weights.sum()
     require(bool(np.isfinite(total) and total > 0.0), "weights", total, "a positive finite sum")
-    if votes.min() == votes.max():  # unanimous (the common case): no sorting needed
-        return VoteResult(int(votes[0]), 1.0, votes[:1].copy(), np.ones(1))
-    order = np.argsort(votes, kind="stable")
-    ordered = votes[order]
-    starts = np.flatnonzero(np.concatenate([[True], ordered[1:] != ordered[:-1]]))
-    options = ordered[starts]
-    shares = np.add.reduceat(weights[order], starts) / total
-    top = int(np.argmax(shares))
-    if len(shares) > 1:
-        runner_up = np.max(np.delete(shares, top))
-    else:
-        runner_up = 0.0
-    return VoteResult(int(options[top]), float(shares[top] - runner_up), options, shares)
+    options = np.empty(len(votes), dtype=np.int64)
+    shares = np.empty(len(votes))
+    n = _tally(weights, votes, options, shares)
+    top, margin = _winner(shares, n)
+    return VoteResult(int(options[top]), float(margin), options[:n].copy(), shares[:n].copy())
+
+
+def vote_all(log_weights, votes):
+    """BB 3.1 for the K observations of a scan at once (the filters' fast path).
+
+    ``log_weights`` (K, P): each particle's log weight after observation k; ``votes`` (K, P) as in
+    :func:`correspondence_vote`. Returns ``winners`` (K,), ``margins`` (K,) and the share of the
+    clutter vote (K,), exactly as K calls of :func:`correspondence_vote` would.
+    """
+    return _vote_all(np.asarray(log_weights, dtype=float), np.asarray(votes, dtype=np.int64))
+
+
+@njit(cache=True)
+def _tally(weights, votes, options, shares):
+    """Distinct options in ascending order and their weight shares; returns their number."""
+    total = weights.sum()
+    first, last = votes.min(), votes.max()
+    if first == last:  # unanimous (the common case): no sorting needed
+        options[0] = first
+        shares[0] = 1.0
+        return 1
+    n = 0
+    for i in np.argsort(votes, kind="mergesort"):
+        if n == 0 or votes[i] != options[n - 1]:
+            options[n] = votes[i]
+            shares[n] = 0.0
+            n += 1
+        shares[n - 1] += weights[i]
+    for i in range(n):
+        shares[i] /= total
+    return n
+
+
+@njit(cache=True)
+def _winner(shares, n):
+    """The heaviest option (the first on ties) and its margin over the runner-up."""
+    top = 0
+    for i in range(1, n):
+        if shares[i] > shares[top]:
+            top = i
+    runner_up = 0.0
+    for i in range(n):
+        if i != top and shares[i] > runner_up:
+            runner_up = shares[i]
+    return top, shares[top] - runner_up
+
+
+@njit(cache=True)
+def _vote_all(log_weights, votes):
+    K, P = votes.shape
+    winners = np.empty(K, dtype=np.int64)
+    margins = np.empty(K)
+    clutter_shares = np.zeros(K)
+    options = np.empty(P, dtype=np.int64)
+    shares = np.empty(P)
+    weights = np.empty(P)
+    for k in range(K):
+        top_log = log_weights[k].max()
+        for p in range(P):
+            weights[p] = np.exp(log_weights[k, p] - top_log)
+        n = _tally(weights, votes[k], options, shares)
+        top, margins[k] = _winner(shares, n)
+        winners[k] = options[top]
+        for i in range(n):
+            if options[i] == CLUTTER_VOTE:
+                clutter_shares[k] = shares[i]
+    return winners, margins, clutter_shares
 
 
 # --------------------------------------------------------------------------- common set (BB 3.2)

@@ -33,7 +33,10 @@ below a cull threshold.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+from numba import vectorize
 
 CONFIRMED_PROBABILITY = 0.95
 """BB 5.1: only features with p(exists) above this are fused into the global map."""
@@ -46,23 +49,25 @@ def gate_area(S, gate_chi2):
     return np.pi * gate_chi2 * np.sqrt(np.maximum(det, 0.0))
 
 
+# The three updates below are numpy ufuncs (they broadcast over arrays) compiled by numba, so the
+# compiled FastSLAM scan (filters.fastslam_kernel) calls the very same functions per element.
+@vectorize(["float64(float64, float64, float64, float64, float64)"], cache=True)
 def false_alarm_in_gate_probability(beta, n_visible, gate_area_rb, max_range_m, fov_rad):
     """Probability that at least one false alarm lands in a gate of the given area (see module)."""
-    rate = beta * np.asarray(n_visible, dtype=float) * np.asarray(gate_area_rb, dtype=float)
-    return -np.expm1(-rate / (max_range_m * fov_rad))
+    return -math.expm1(-beta * n_visible * gate_area_rb / (max_range_m * fov_rad))
 
 
+@vectorize(["float64(float64, float64, float64)"], cache=True)
 def detection_update(p, alpha, p_fa):
     """BB (11): existence after the feature was detected (p and p_fa broadcast)."""
-    p = np.asarray(p, dtype=float)
     num = p * alpha
     den = num + (1.0 - p) * p_fa
-    return np.where(den > 0.0, num / np.where(den > 0.0, den, 1.0), 1.0)
+    return num / den if den > 0.0 else 1.0
 
 
+@vectorize(["float64(float64, float64, float64)"], cache=True)
 def miss_update(p, alpha, p_fa):
     """Existence after a feature predicted in view was not detected (complement of BB (11))."""
-    p = np.asarray(p, dtype=float)
     num = p * (1.0 - alpha)
     den = num + (1.0 - p) * (1.0 - p_fa)
-    return np.where(den > 0.0, num / np.where(den > 0.0, den, 1.0), 0.0)
+    return num / den if den > 0.0 else 0.0

@@ -8,7 +8,10 @@ State (padded arrays over P particles and a feature capacity C that doubles when
 ``poses`` (P, 3), ``weights`` (P,), feature ``means`` (P, C, 2), ``covs`` (P, C, 2, 2),
 ``existence`` (P, C), ``active`` (P, C) and ``correspondence_ids`` (P, C) (BB (8); -1 = not yet a
 common feature). Each particle's active features are packed in slots ``0 .. count_p - 1``. No
-Python loop runs over particles; loops run over the few observations of a step.
+Python loop runs over particles: what concerns all particles at once (votes, ids, culling,
+resampling) is numpy; the per-particle sequence of a scan (each observation refines the proposal
+the next one is associated with) and the motion prediction run compiled, in
+:mod:`filters.fastslam_kernel` (the reason and the measured gain are given there).
 
 One filter iteration
 --------------------
@@ -69,8 +72,8 @@ that a feature can always be un-confirmed (with alpha = 1 a single miss would ot
 exactly 0, and a feature at p = 1 could never decay; it also keeps ``1 - alpha e p_vis`` >= 0.011).
 Every ``cull_interval_steps`` updates, features with existence below ``cull_threshold`` are removed.
 
-Correspondences (BB 3.1) are voted per observation with
-:func:`filters.conversion.correspondence_vote`; all features modified or created by the
+Correspondences (BB 3.1) are voted per observation, with the weights after that observation
+(:func:`filters.conversion.vote_all`); all features modified or created by the
 observation get the winner's id (a new id from the shared :class:`filters.types.FeatureIds` when
 *new feature* wins). When clutter wins, modified features keep their id and created ones get -1
 (no common feature yet). ``last_associations[k]`` is the winning id (-1 = clutter).
@@ -86,33 +89,19 @@ from __future__ import annotations
 import logging
 
 import numpy as np
-from scipy.special import ndtr
 
 from filters.conversion import (
-    CLUTTER_VOTE,
     NEW_VOTE,
     common_features,
-    correspondence_vote,
     feature_moments,
     moment_match,
     pose_moments,
+    vote_all,
 )
-from filters.existence import (
-    CONFIRMED_PROBABILITY,
-    detection_update,
-    false_alarm_in_gate_probability,
-    gate_area,
-    miss_update,
-)
+from filters.existence import CONFIRMED_PROBABILITY
+from filters.fastslam_kernel import ScanModel, draw_poses, propagate, scan_update
 from filters.geometry import wrap_angle
-from filters.models import (
-    ClutterModel,
-    RangeBearingSensor,
-    inverse_observe,
-    inverse_observe_jacobians,
-    motion,
-    motion_jacobians,
-)
+from filters.models import ClutterModel, RangeBearingSensor
 from filters.types import FeatureIds, GaussianMap, LandmarkEstimate
 from filters.validation import check_range, require
 
@@ -123,67 +112,6 @@ GATE_CHI2_999 = 13.815510557964274
 BB_LANDMARK_DENSITY = 35.0 / (120.0 * 120.0)
 """BB 5.2: 35 landmarks over 120 m x 120 m; the default density of not-yet-mapped landmarks."""
 _TWO_PI = 2.0 * np.pi
-
-
-def _sample_gaussian3(cov, normals):
-    """Samples ``L sqrt(D) n`` (P, 3) for PSD covariances (P, 3, 3) via a guarded LDL^T.
-
-    Works for singular covariances (FS2 proposals from rank-2 motion noise): a pivot that is
-    zero up to round-off (relative 1e-12 of the trace) gets a zero column.
-    """
-    tiny = 1e-12 * np.maximum(np.trace(cov, axis1=1, axis2=2), 1e-300)
-    d0 = cov[:, 0, 0]
-    ok0 = d0 > tiny
-    s0 = np.where(ok0, d0, 1.0)
-    l10 = np.where(ok0, cov[:, 1, 0] / s0, 0.0)
-    l20 = np.where(ok0, cov[:, 2, 0] / s0, 0.0)
-    d1 = cov[:, 1, 1] - l10 * l10 * d0
-    ok1 = d1 > tiny
-    l21 = np.where(ok1, (cov[:, 2, 1] - l20 * l10 * d0) / np.where(ok1, d1, 1.0), 0.0)
-    d2 = cov[:, 2, 2] - l20 * l20 * d0 - l21 * l21 * d1
-    y0 = np.sqrt(np.where(ok0, d0, 0.0)) * normals[:, 0]
-    y1 = np.sqrt(np.where(ok1, d1, 0.0)) * normals[:, 1]
-    y2 = np.sqrt(np.where(d2 > tiny, d2, 0.0)) * normals[:, 2]
-    return np.stack([y0, l10 * y0 + y1, l20 * y0 + l21 * y1 + y2], axis=1)
-
-
-def _motion_noise_cov(poses, u, dt, Q):
-    """``J_u Q J_u^T`` (P, 3, 3) for every particle, J_u the control Jacobian of
-    :func:`filters.models.motion` (broadcast over the particles' poses)."""
-    _, J_u = motion_jacobians(poses, u, dt)
-    return J_u @ Q @ np.swapaxes(J_u, -1, -2)
-
-
-def _feature_ekf(pose, mx, my, sxx, sxy, syy, z, R):
-    """EKF update of features (n,) components by observations z (n, 2) from known poses (n, 3),
-    elementwise: ``K = Sigma H^T S^-1``, ``m += K nu``, ``Sigma -= K H Sigma`` (the FS2 map
-    update at the sampled pose). Returns the updated ``(mx, my, sxx, sxy, syy)``."""
-    dx = mx - pose[:, 0]
-    dy = my - pose[:, 1]
-    q = np.maximum(dx * dx + dy * dy, 1e-12)
-    r = np.sqrt(q)
-    nu_r = z[:, 0] - r
-    nu_b = wrap_angle(z[:, 1] - np.arctan2(dy, dx) + pose[:, 2])
-    h00, h01, h10, h11 = dx / r, dy / r, -dy / q, dx / q
-    t00 = h00 * sxx + h01 * sxy  # H Sigma
-    t01 = h00 * sxy + h01 * syy
-    t10 = h10 * sxx + h11 * sxy
-    t11 = h10 * sxy + h11 * syy
-    S00 = h00 * t00 + h01 * t01 + R[0, 0]
-    S01 = h10 * t00 + h11 * t01 + R[0, 1]
-    S11 = h10 * t10 + h11 * t11 + R[1, 1]
-    inv_det = 1.0 / (S00 * S11 - S01 * S01)
-    K00 = (t00 * S11 - t10 * S01) * inv_det
-    K01 = (t10 * S00 - t00 * S01) * inv_det
-    K10 = (t01 * S11 - t11 * S01) * inv_det
-    K11 = (t11 * S00 - t01 * S01) * inv_det
-    return (
-        mx + K00 * nu_r + K01 * nu_b,
-        my + K10 * nu_r + K11 * nu_b,
-        sxx - (K00 * t00 + K01 * t10),
-        sxy - (K00 * t01 + K01 * t11),
-        syy - (K10 * t01 + K11 * t11),
-    )
 
 
 _FEATURE_FIELDS = ("_mx", "_my", "_sxx", "_sxy", "_syy", "_ex", "_active", "_cid")
@@ -297,7 +225,21 @@ class FastSLAM2:
         self.cull_interval_steps = int(cull_interval_steps)
         self.feature_budget = int(feature_budget)
         self.clutter_rate_memory = float(clutter_rate_memory)
-        self._R = sensor.R
+        R = np.asarray(sensor.R, dtype=float)
+        require(R[0, 1] == 0.0 and R[1, 0] == 0.0, "sensor", sensor, "a diagonal R")
+        self._scan_model = ScanModel(
+            r_var=float(R[0, 0]),
+            b_var=float(R[1, 1]),
+            detection_probability=float(self.detection_probability),
+            beta=float(clutter.beta),
+            gate_chi2=self.gate_chi2,
+            max_range_m=float(sensor.max_range_m),
+            fov_rad=float(sensor.fov_rad),
+            range_std_m=float(sensor.range_std_m),
+            bearing_std_rad=float(sensor.bearing_std_rad),
+            new_landmark_density=self.new_landmark_density,
+            max_existence=self.max_existence,
+        )
         self._capacity = int(initial_capacity)
         self._clutter_num = 0.0
         self._clutter_den = 0.0
@@ -305,6 +247,7 @@ class FastSLAM2:
 
     # ------------------------------------------------------------------ state
     def _reset(self, pose0):
+        self._outputs = {}
         P, C = self.n_particles, self._capacity
         self._poses = np.tile(pose0, (P, 1))
         self._logw = np.zeros(P)
@@ -390,18 +333,18 @@ class FastSLAM2:
         if self._pending:
             self._sample_pending()
             self._maybe_resample()
-        Q = np.asarray(self.odometry_noise.covariance(u, dt), dtype=float)
-        self._prop_cov = _motion_noise_cov(self._poses, u, dt, Q)
-        self._poses = motion(self._poses, u, dt)
+        Q = np.ascontiguousarray(self.odometry_noise.covariance(u, dt), dtype=float)
+        self._prop_cov = np.empty((self.n_particles, 3, 3))
+        propagate(self._poses, self._prop_cov, float(u[0]), float(u[1]), dt, Q)
         self._pending = True
         self._age_s += dt
         self._distance_m += abs(float(u[0])) * dt
+        self._outputs = {}
 
     def _sample_pending(self):
         """Draw every particle's pose from its proposal N(x, P) (FS2)."""
         normals = self.rng.standard_normal((self.n_particles, 3))
-        self._poses = self._poses + _sample_gaussian3(self._prop_cov, normals)
-        self._poses[:, 2] = wrap_angle(self._poses[:, 2])
+        draw_poses(self._poses, self._prop_cov, normals)
         self._prop_cov = np.zeros((self.n_particles, 3, 3))
         self._pending = False
 
@@ -417,6 +360,7 @@ class FastSLAM2:
         check_range("std_rad", std_rad, 0.0, 10.0, low_open=True)
         var = std_rad**2
         nu = wrap_angle(theta - self._poses[:, 2])
+        self._outputs = {}
         if self._pending:
             Pc = self._prop_cov
             s = Pc[:, 2, 2] + var
@@ -442,124 +386,54 @@ class FastSLAM2:
         sampling, no vote); the weight factor is the FS2 marginal likelihood ``N(nu; 0, S)``
         times the detection ratio of the feature (``L_new`` for a particle lacking it), after
         the missed-detection product (module docstring).
+
+        The per-particle work runs in :func:`filters.fastslam_kernel.scan_update`; the random
+        numbers (one uniform per observation and particle for DAS, three normals per particle
+        for the pose draw) come from ``rng`` in that order.
         """
         z = np.asarray(z, dtype=float).reshape(-1, 2) if np.size(z) else np.zeros((0, 2))
         require(bool(np.all(np.isfinite(z))), "z", z, "finite range-bearing pairs (K, 2)")
         require(bool(np.all(z[:, 0] >= 0.0)), "z", z, "ranges >= 0")
-        K = len(z)
-        known = None
+        K, P = len(z), self.n_particles
+        known_cids = None
         if associations is not None:
             known = np.asarray(associations, dtype=np.int64).reshape(-1)
             require(len(known) == K, "associations", associations, f"length {K} like z")
             require(bool(np.all(known >= -1)), "associations", associations, "labels >= -1")
+            known_cids = np.array([self._label_id(int(label)) for label in known], dtype=np.int64)
         if not self._pending:
-            self._prop_cov = np.zeros((self.n_particles, 3, 3))
-            self._pending = True
+            self._prop_cov = np.zeros((P, 3, 3))
+        self._grow(int(self._count.max()) + K)
+        uniforms = self.rng.random((K, P)) if known_cids is None else np.zeros((K, P))
+        normals = self.rng.standard_normal((P, 3))
+        votes = np.empty((K, P), dtype=np.int64)
+        slots = np.empty((K, P), dtype=np.int64)
+        logw_after = np.empty((K, P))
+        scan_update(
+            self._poses, self._prop_cov, self._logw,
+            self._mx, self._my, self._sxx, self._sxy, self._syy, self._ex, self._active,
+            self._cid, self._count, z, uniforms, normals, known_cids, votes, slots, logw_after,
+            *self._scan_model,
+        )
+        self._pending = False
 
-        P, C = self.n_particles, self._capacity
-        alpha = self.detection_probability
-        beta = self.clutter.beta
-        n_hi = int(self._count.max())
-
-        # Visibility of every feature from the proposal (soft at the range limit), the clutter
-        # density and the missed-detection terms 1 - alpha e p_vis of the scan likelihood.
-        p_vis = self._visibility(n_hi)
-        seen = alpha * self._ex[:, :n_hi] * p_vis
-        miss_term = 1.0 - seen
-        n_vis = np.maximum((self._ex[:, :n_hi] * p_vis).sum(axis=1), K / (alpha + beta))
-        clutter_density = beta * n_vis / (self.sensor.max_range_m * self.sensor.fov_rad)
-        self._logw += np.log(miss_term).sum(axis=1)
-
-        if known is None and K and n_hi:
-            near_all = self._candidates(z, n_hi)
-            near_any = near_all.any(axis=1)
+        # --- correspondence votes (BB 3.1), one per observation, with the weights after it
+        if known_cids is None:
+            winners, margins, clutter_shares = vote_all(logw_after, votes)
+            for k in np.flatnonzero(winners == NEW_VOTE):
+                winners[k] = self.ids.new(1)[0]
+            for share in clutter_shares:
+                self._remember_clutter(share)
         else:
-            near_all = np.zeros((K, P, n_hi), dtype=bool)
-            near_any = np.zeros((K, n_hi), dtype=bool)
-        claimed = np.zeros((P, n_hi), dtype=bool)
-        choices = np.full((K, P), CLUTTER_VOTE, dtype=np.int64)  # slot, CLUTTER_ or NEW_VOTE
-        gate_areas = np.zeros((K, P))
-        new_existence = np.zeros((K, P))
-        winners = np.full(K, -1, dtype=np.int64)
-        votes = np.full((K, P), CLUTTER_VOTE, dtype=np.int64)
-        margins = np.ones(K)
-        rows = np.arange(P)
-        for k in range(K):
-            zk = z[k]
-            l_new = alpha * self.new_landmark_density * max(zk[0], self.sensor.range_std_m)
-            new_existence[k] = np.minimum(l_new / (l_new + clutter_density), self.max_existence)
-            if known is not None:
-                label = int(known[k])
-                if label < 0:
-                    continue
-                if label not in self._label_cid:
-                    self._label_cid[label] = int(self.ids.new(1)[0])
-                cid = self._label_cid[label]
-                winners[k] = cid
-                votes[k] = cid
-                if n_hi == 0:
-                    choices[k] = NEW_VOTE
-                    continue
-                match = self._active[:, :n_hi] & (self._cid[:, :n_hi] == cid) & ~claimed
-                has = match.any(axis=1)
-                slot = np.argmax(match, axis=1)
-                flat = (rows * C + slot)[:, None]
-                t = self._terms(zk, *(np.take(getattr(self, f), flat) for f in _FEATURE_FIELDS[:5]))
-                lik = np.exp(-0.5 * t["d2"][:, 0]) / (_TWO_PI * np.sqrt(t["det"][:, 0]))
-                ratio = np.take(seen, rows * n_hi + slot) / np.take(miss_term, rows * n_hi + slot)
-                self._logw += np.log(np.maximum(np.where(has, ratio * lik, l_new), 1e-300))
-                self._refine(has, t, np.zeros(P, dtype=np.int64))
-                gate_areas[k] = np.pi * self.gate_chi2 * np.sqrt(t["det"][:, 0])
-                choices[k] = np.where(has, slot, NEW_VOTE)
-                claimed[rows[has], slot[has]] = True
-                continue
+            winners, margins = known_cids, np.ones(K)
+        # every feature modified or created by an observation takes its winner's id (clutter
+        # winning leaves modified features their id and created ones without one)
+        ks, ps = np.nonzero(slots >= 0)
+        flat = ps * self._capacity + slots[ks, ps]
+        won = winners[ks]
+        np.put(self._cid, flat, np.where(won >= 0, won, np.take(self._cid, flat)))
 
-            # --- Data Association Sampling (FS2 / DAS)
-            cols = np.flatnonzero(near_any[k])
-            n_c = len(cols)
-            hyp = np.empty((P, n_c + 2))
-            t = None
-            if n_c:
-                near = near_all[k][:, cols] & ~claimed[:, cols]
-                t = self._terms(zk, *(getattr(self, f)[:, cols] for f in _FEATURE_FIELDS[:5]))
-                ratio = seen[:, cols] / miss_term[:, cols]
-                like = ratio * np.exp(-0.5 * t["d2"]) / _TWO_PI
-                gated = near & (t["d2"] < self.gate_chi2)
-                hyp[:, :n_c] = np.where(gated, like / np.sqrt(np.abs(t["det"])), 0.0)
-            hyp[:, n_c] = l_new
-            hyp[:, n_c + 1] = clutter_density
-            cum = np.cumsum(hyp, axis=1)
-            total = cum[:, -1]
-            pick = np.minimum((cum < (self.rng.random(P) * total)[:, None]).sum(axis=1), n_c + 1)
-            # a zero-likelihood hypothesis can only be picked through round-off: step past it
-            pick = np.where(hyp.reshape(-1)[rows * (n_c + 2) + pick] > 0.0, pick, n_c)
-            self._logw += np.log(np.maximum(total, 1e-300))
-            kind = np.where(pick == n_c, NEW_VOTE, CLUTTER_VOTE)
-            if n_c:
-                chose = pick < n_c
-                j = np.minimum(pick, n_c - 1)
-                self._refine(chose, t, j)
-                det_j = t["det"].reshape(-1)[rows * n_c + j]
-                gate_areas[k] = np.pi * self.gate_chi2 * np.sqrt(np.abs(det_j))
-                slot = cols[j]
-                claimed[rows[chose], slot[chose]] = True
-                choices[k] = np.where(chose, slot, kind)
-                cid_of = np.take(self._cid, rows * C + slot)
-                votes[k] = np.where(chose, np.where(cid_of >= 0, cid_of, NEW_VOTE), kind)
-            else:
-                choices[k] = kind
-                votes[k] = kind
-
-            # --- correspondence vote (BB 3.1)
-            result = correspondence_vote(np.exp(self._logw - self._logw.max()), votes[k])
-            margins[k] = result.margin
-            winners[k] = int(self.ids.new(1)[0]) if result.winner == NEW_VOTE else result.winner
-            self._remember_clutter(result.share_of(CLUTTER_VOTE))
-
-        # --- sample the poses, then existence and map updates at the sampled poses (FS2)
-        self._sample_pending()
-        self._miss_update(p_vis, claimed, n_vis)
-        self._apply(z, choices, winners, gate_areas, new_existence, n_vis)
+        self._outputs = {}
         self._steps += 1
         if self._steps % self.cull_interval_steps == 0:
             self._cull()
@@ -569,194 +443,13 @@ class FastSLAM2:
         self._vote_margins = margins
         self._maybe_resample()
 
-    def _visibility(self, n_hi):
-        """Probability (P, n_hi) that each active feature lies inside the sensor's range.
-
-        The sensor sees a landmark when its *true* range is below ``max_range``; given the
-        particle's estimate this happens with probability ``Phi((r_max - r) / sigma_r)``, with
-        ``sigma_r^2 = u^T (Sigma_j + A) u`` the radial variance of the feature (``Sigma_j``) and
-        of the proposal position (``A``), ``u`` the unit line of sight. A soft limit keeps
-        particles that predict a feature a few centimetres either side of the range limit from
-        getting very different weights and existence updates. A limited field of view is applied
-        as a hard bearing test on the mean.
-        """
-        x = self._poses
-        Pc = self._prop_cov
-        dx = self._mx[:, :n_hi] - x[:, 0:1]
-        dy = self._my[:, :n_hi] - x[:, 1:2]
-        q = np.maximum(dx * dx + dy * dy, 1e-12)
-        r = np.sqrt(q)
-        radial = (
-            dx * dx * (self._sxx[:, :n_hi] + Pc[:, 0, 0:1])
-            + 2.0 * dx * dy * (self._sxy[:, :n_hi] + Pc[:, 0, 1:2])
-            + dy * dy * (self._syy[:, :n_hi] + Pc[:, 1, 1:2])
-        ) / q
-        sigma = np.sqrt(np.maximum(radial, 0.0)) + 1e-9
-        p_vis = np.where(self._active[:, :n_hi], ndtr((self.sensor.max_range_m - r) / sigma), 0.0)
-        if self.sensor.fov_rad < _TWO_PI:
-            bearing = wrap_angle(np.arctan2(dy, dx) - x[:, 2:3])
-            p_vis = np.where(np.abs(bearing) <= 0.5 * self.sensor.fov_rad, p_vis, 0.0)
-        return p_vis
-
-    def _candidates(self, z, n_hi):
-        """Per observation, the features near the point it maps to from each pose mean.
-
-        A cheap Cartesian pre-gate computed once per scan: the radius ``sqrt(gate) * (sum of the
-        stds of pose position, heading x range, range noise, bearing noise x range, largest
-        feature)`` bounds the chi-square gate (a sum of stds bounds the std of the sum; the
-        proposal only shrinks within the scan), plus 0.5 m for the linearisation.
-        Returns ``near`` (K, P, n_hi).
-        """
-        x = self._poses
-        Pc = self._prop_cov
-        active = self._active[:, :n_hi]
-        trace = self._sxx[:, :n_hi] + self._syy[:, :n_hi]
-        feat_std = float(np.sqrt(np.max(np.where(active, trace, 0.0))))
-        sig_pos = np.sqrt(np.maximum(Pc[:, 0, 0] + Pc[:, 1, 1], 0.0))
-        sig_th = np.sqrt(np.maximum(Pc[:, 2, 2], 0.0))
-        r = z[:, 0:1]
-        radius = (
-            np.sqrt(self.gate_chi2)
-            * (
-                sig_pos
-                + r * sig_th
-                + self.sensor.range_std_m
-                + r * self.sensor.bearing_std_rad
-                + feat_std
-            )
-            + 0.5
-        )  # (K, P)
-        ang = x[:, 2] + z[:, 1:2]
-        dx = self._mx[None, :, :n_hi] - (x[:, 0] + r * np.cos(ang))[..., None]
-        dy = self._my[None, :, :n_hi] - (x[:, 1] + r * np.sin(ang))[..., None]
-        return (dx * dx + dy * dy < (radius * radius)[..., None]) & active
-
-    def _terms(self, zk, mx, my, sxx, sxy, syy):
-        """Innovation and ``S = G P G^T + H_m Sigma H_m^T + R`` for features (P, n) components.
-
-        Elementwise 2x2 algebra on (P, n) arrays (faster than batched matmul for n ~ 1). With
-        ``G = [-H_m | e]``, ``e = (0, -1)^T`` and the proposal ``P = [[A, c], [c^T, p]]``:
-        ``S = H_m (A + Sigma) H_m^T + [[0, u0], [u0, 2 u1 + p]] + R``, ``u = H_m c``.
-        """
-        x = self._poses
-        Pc = self._prop_cov
-        dx = mx - x[:, 0:1]
-        dy = my - x[:, 1:2]
-        q = np.maximum(dx * dx + dy * dy, 1e-12)
-        r = np.sqrt(q)
-        nu_r = zk[0] - r
-        nu_b = wrap_angle(zk[1] - np.arctan2(dy, dx) + x[:, 2:3])
-        h00, h01, h10, h11 = dx / r, dy / r, -dy / q, dx / q
-        m00 = sxx + Pc[:, 0, 0:1]
-        m01 = sxy + Pc[:, 0, 1:2]
-        m11 = syy + Pc[:, 1, 1:2]
-        t00 = h00 * m00 + h01 * m01
-        t01 = h00 * m01 + h01 * m11
-        t10 = h10 * m00 + h11 * m01
-        t11 = h10 * m01 + h11 * m11
-        c0, c1 = Pc[:, 0, 2:3], Pc[:, 1, 2:3]
-        S00 = h00 * t00 + h01 * t01 + self._R[0, 0]
-        S01 = h10 * t00 + h11 * t01 + (h00 * c0 + h01 * c1)
-        S11 = h10 * t10 + h11 * t11 + 2.0 * (h10 * c0 + h11 * c1) + Pc[:, 2, 2:3] + self._R[1, 1]
-        det = S00 * S11 - S01 * S01
-        d2 = (S11 * nu_r * nu_r - 2.0 * S01 * nu_r * nu_b + S00 * nu_b * nu_b) / det
-        return {
-            "nu_r": nu_r,
-            "nu_b": nu_b,
-            "S00": S00,
-            "S01": S01,
-            "S11": S11,
-            "det": det,
-            "d2": d2,
-            "h": (h00, h01, h10, h11),
-        }
-
-    def _refine(self, chose, t, j):
-        """FS2 proposal in Kalman form, ``x += P G^T S^-1 nu``, ``P -= P G^T S^-1 G P``, for the
-        particles with ``chose`` (others get zero gain); ``j`` (P,) the column in ``t``."""
-        P = self.n_particles
-        flat = np.arange(P) * t["d2"].shape[1] + j
-
-        def at(a):
-            return a.reshape(-1)[flat]
-
-        S00, S01, S11 = at(t["S00"]), at(t["S01"]), at(t["S11"])
-        inv_det = np.divide(chose.astype(float), at(t["det"]), out=np.zeros(P), where=chose)
-        h00, h01, h10, h11 = (at(h) for h in t["h"])
-        Pc = self._prop_cov
-        # P g0 and P g1, the columns of P G^T, with g0 = (-h00, -h01, 0), g1 = (-h10, -h11, -1)
-        Pg0 = -(Pc[:, :, 0] * h00[:, None] + Pc[:, :, 1] * h01[:, None])
-        Pg1 = -(Pc[:, :, 0] * h10[:, None] + Pc[:, :, 1] * h11[:, None] + Pc[:, :, 2])
-        K0 = (Pg0 * S11[:, None] - Pg1 * S01[:, None]) * inv_det[:, None]
-        K1 = (Pg1 * S00[:, None] - Pg0 * S01[:, None]) * inv_det[:, None]
-        self._poses += K0 * at(t["nu_r"])[:, None] + K1 * at(t["nu_b"])[:, None]
-        self._poses[:, 2] = wrap_angle(self._poses[:, 2])
-        # symmetric in exact arithmetic; consumers read it symmetrised or by its lower triangle
-        self._prop_cov = Pc - (K0[:, :, None] * Pg0[:, None, :] + K1[:, :, None] * Pg1[:, None, :])
-
-    def _miss_update(self, p_vis, claimed, n_vis):
-        """Complement of BB (11) for every feature not associated in this scan, with the
-        detection probability ``alpha * p_vis`` (soft visibility, :meth:`_visibility`).
-
-        P_fa is that of the smallest gate, the one of R alone (module docstring)."""
-        if p_vis.size == 0:
-            return
-        n_hi = p_vis.shape[1]
-        area = gate_area(self._R, self.gate_chi2)
-        p_fa = false_alarm_in_gate_probability(
-            self.clutter.beta, n_vis, area, self.sensor.max_range_m, self.sensor.fov_rad
-        )
-        ex = self._ex[:, :n_hi]
-        missed = ~claimed & (p_vis > 0.0)
-        updated = miss_update(ex, self.detection_probability * p_vis, p_fa[:, None])
-        self._ex[:, :n_hi] = np.where(missed, updated, ex)
-
-    def _apply(self, z, choices, winners, gate_areas, new_existence, n_vis):
-        """EKF updates and initialisations at the sampled poses, existence and ids, for all the
-        observations of a scan at once (a particle updates a feature at most once per scan)."""
-        C = self._capacity
-        ks, ps = np.nonzero(choices >= 0)
-        if len(ks):
-            flat = ps * C + choices[ks, ps]
-            comps = [np.take(getattr(self, f), flat) for f in _FEATURE_FIELDS[:5]]
-            updated = _feature_ekf(self._poses[ps], *comps, z[ks], self._R)
-            for name, value in zip(_FEATURE_FIELDS[:5], updated, strict=True):
-                np.put(getattr(self, name), flat, value)
-            p_fa = false_alarm_in_gate_probability(
-                self.clutter.beta,
-                n_vis[ps],
-                gate_areas[ks, ps],
-                self.sensor.max_range_m,
-                self.sensor.fov_rad,
-            )
-            ex = detection_update(np.take(self._ex, flat), self.detection_probability, p_fa)
-            np.put(self._ex, flat, np.minimum(ex, self.max_existence))
-            won = winners[ks]
-            np.put(self._cid, flat, np.where(won >= 0, won, np.take(self._cid, flat)))
-        is_new = choices == NEW_VOTE
-        if is_new.any():
-            rank = np.cumsum(is_new, axis=0) - 1  # several new features of one particle per scan
-            kn, pn = np.nonzero(is_new)
-            slot = self._count[pn] + rank[kn, pn]
-            self._grow(int(slot.max()) + 1)
-            flat = pn * self._capacity + slot
-            pose, zz = self._poses[pn], z[kn]
-            _, Gz = inverse_observe_jacobians(pose, zz)
-            m = inverse_observe(pose, zz)
-            sig = (Gz * np.diag(self._R)) @ np.swapaxes(Gz, 1, 2)
-            values = (
-                m[:, 0],
-                m[:, 1],
-                sig[:, 0, 0],
-                sig[:, 0, 1],
-                sig[:, 1, 1],
-                new_existence[kn, pn],
-                True,
-                winners[kn],
-            )
-            for name, value in zip(_FEATURE_FIELDS, values, strict=True):
-                np.put(getattr(self, name), flat, value)
-            self._count += is_new.sum(axis=0)
+    def _label_id(self, label):
+        """The common id tied to a known landmark label (-1 for a known false alarm)."""
+        if label < 0:
+            return -1
+        if label not in self._label_cid:
+            self._label_cid[label] = int(self.ids.new(1)[0])
+        return self._label_cid[label]
 
     def _cull(self):
         """Remove features with existence below ``cull_threshold`` and re-pack the slots."""
@@ -803,12 +496,17 @@ class FastSLAM2:
 
     def pose(self):
         """Weighted mean (circular mean heading) and covariance of the particle poses."""
-        return pose_moments(self._poses, self.weights, self._pose_covs())
+        if "pose" not in self._outputs:
+            self._outputs["pose"] = pose_moments(self._poses, self.weights, self._pose_covs())
+        mean, cov = self._outputs["pose"]
+        return mean.copy(), cov.copy()
 
     def _common(self):
-        return common_features(
-            self.weights, self._cid, self._active, self._ex, tie_break=self._sxx + self._syy
-        )
+        if "common" not in self._outputs:
+            self._outputs["common"] = common_features(
+                self.weights, self._cid, self._active, self._ex, tie_break=self._sxx + self._syy
+            )
+        return self._outputs["common"]
 
     def landmarks(self) -> LandmarkEstimate:
         """The common features (BB 3.2) with per-feature moments and weighted existence."""

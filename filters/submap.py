@@ -50,12 +50,12 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from filters.association import (
     DEFAULT_NODE_BUDGET,
     ChiSquareTable,
     Hypothesis,
-    individual_compatibility,
     jcbb,
     point_difference_candidates,
     validate_gate_probability,
@@ -64,7 +64,7 @@ from filters.association import (
 from filters.ekf_slam import _validate_cov, _validate_pose, kalman_update
 from filters.existence import CONFIRMED_PROBABILITY
 from filters.geometry import compose, compose_jacobians, transform_point, wrap_angle
-from filters.models import innovation, observe, observe_jacobians
+from filters.models import observe
 from filters.types import FusionReport, GaussianMap, LandmarkEstimate
 from filters.validation import check_range, require
 
@@ -328,6 +328,7 @@ class SubmapSLAM:
         self._fusions_since_optimise = 0
         self._last_seen: dict[int, float] = {}
         self._obs_stats = _GlobalObservationStats()
+        self._composed = None  # the composed pose of the current state (_compose_with_origin)
 
     # ------------------------------------------------------------------ filter interface
     @property
@@ -342,9 +343,11 @@ class SubmapSLAM:
     def predict(self, u, dt):
         self.front_end.predict(u, dt)
         self._t += float(dt)
+        self._composed = None
 
     def update(self, z):
         self.front_end.update(z)
+        self._composed = None
         self._obs_stats = self._observe_global(np.asarray(z, dtype=float).reshape(-1, 2))
 
     def update_heading(self, theta, std_rad):
@@ -352,13 +355,18 @@ class SubmapSLAM:
         check_range("theta", theta, -1e6, 1e6)
         v_theta = self.back_end.x[2]
         self.front_end.update_heading(float(wrap_angle(theta - v_theta)), std_rad)
+        self._composed = None
 
     def _compose_with_origin(self):
-        v, P_v = self.back_end.origin()
-        xl, Pl = self.front_end.pose()
-        J_a, J_b = compose_jacobians(v, xl)
-        cov = J_a @ P_v @ J_a.T + J_b @ Pl @ J_b.T
-        return compose(v, xl), 0.5 * (cov + cov.T), J_a
+        """``(v- (+) x_v^L, its covariance, J_a)``; computed once per state (every method that
+        changes the front-end or the back-end resets it)."""
+        if self._composed is None:
+            v, P_v = self.back_end.origin()
+            xl, Pl = self.front_end.pose()
+            J_a, J_b = compose_jacobians(v, xl)
+            cov = J_a @ P_v @ J_a.T + J_b @ Pl @ J_b.T
+            self._composed = (compose(v, xl), 0.5 * (cov + cov.T), J_a)
+        return tuple(a.copy() for a in self._composed)
 
     def pose(self):
         """``v- (+) x_v^L`` with covariance ``J_a P_v- J_a^T + J_b P_L J_b^T`` (BB Fig. 3)."""
@@ -401,6 +409,7 @@ class SubmapSLAM:
             )
         )
         self.front_end.restart()
+        self._composed = None
         for gid in report.id_map.values():
             self._last_seen[gid] = self._t
         self.n_fusions += 1
@@ -417,57 +426,35 @@ class SubmapSLAM:
     def _optimised(self):
         """Book-keeping after an optimisation (for the optimiser's implementation)."""
         self.n_optimisations += 1
+        self._composed = None
         self._t_last_optimise = self._t
         self._fusions_since_optimise = 0
 
     # ------------------------------------------------------------------ interface features
-    def _global_prediction(self):
-        """Predicted observations of the global features from the composed pose.
-
-        Returns ``(zhat, S, S_upper)`` (N, 2), (N, 2, 2), (N, 2, 2): ``S`` the innovation
-        covariance with the cross-covariance between the composed pose and the features
-        (``J_a P_v-,m``), ``S_upper = 2 (H_p Sigma H_p^T + H_m P_mm H_m^T) + R`` an upper bound
-        of ``S`` (for any joint covariance, ``[[A, B], [B^T, C]] <= 2 diag(A, C)``).
-        """
-        pose, sigma, J_a = self._compose_with_origin()
-        g = self.back_end
-        cols = g.feature_cols()
-        m = g.x[cols]
-        P_mm = g.P[cols[:, :, None], cols[:, None, :]]
-        C = np.einsum("ij,jnk->nik", J_a, g.P[:3, cols])  # (N, 3, 2) cov(pose, m_n)
-        zhat = observe(pose, m)
-        H_p, H_m = observe_jacobians(pose, m)
-        R = self.front_end.sensor.R
-        A = H_p @ sigma @ np.swapaxes(H_p, 1, 2)
-        B = H_m @ P_mm @ np.swapaxes(H_m, 1, 2)
-        X = H_p @ C @ np.swapaxes(H_m, 1, 2)
-        S = A + B + X + np.swapaxes(X, 1, 2) + R
-        S_upper = 2.0 * (A + B) + R
-        return zhat, 0.5 * (S + np.swapaxes(S, 1, 2)), S_upper
-
     def _observe_global(self, z) -> _GlobalObservationStats:
-        """Innovation ratio and loop-closure flag of the observations ``z`` of the last update."""
+        """Innovation ratio and loop-closure flag of the observations ``z`` of the last update
+        (:func:`_nearest_global_innovations`)."""
         g = self.back_end
         if g.n_features == 0 or len(z) == 0:
             return _GlobalObservationStats()
-        zhat, S, S_upper = self._global_prediction()
-        nu = innovation(z[:, None, :], zhat[None])
-        d2, mask = individual_compatibility(nu, S[None], self._gate)
-        gated = np.flatnonzero(mask.any(axis=1))
+        pose, sigma, J_a = self._compose_with_origin()
+        R = self.front_end.sensor.R
+        nearest, ratio = _nearest_global_innovations(
+            z, pose, sigma, J_a, np.asarray(g.x, dtype=float), np.asarray(g.P, dtype=float),
+            g.feature_cols(), float(R[0, 0]), float(R[1, 1]), self._gate(1),
+        )
+        gated = np.flatnonzero(nearest >= 0)
         if len(gated) == 0:
             return _GlobalObservationStats()
-        nearest = np.argmin(np.where(mask[gated], d2[gated], np.inf), axis=1)
-        sigma = np.sqrt(np.linalg.eigvalsh(S_upper[nearest])[:, -1])
-        ratio = np.linalg.norm(nu[gated, nearest], axis=1) / (2.0 * sigma)
         flag = 0.0
-        for j, r in zip(nearest, ratio, strict=True):
+        for j, r in zip(nearest[gated], ratio[gated], strict=True):
             gid = int(g.ids[j])
             last = self._last_seen.get(gid, 0.0)  # features of a given back-end: seen at start
             if r > 1.0 and self._t - last > self.loop_closure_unseen_s:
                 flag = 1.0
             self._last_seen[gid] = self._t
         return _GlobalObservationStats(
-            innovation_ratio=float(ratio.max()), loop_closure_flag=flag, n_gated=len(gated)
+            innovation_ratio=float(ratio[gated].max()), loop_closure_flag=flag, n_gated=len(gated)
         )
 
     def global_features_in_view(self) -> int:
@@ -494,3 +481,67 @@ class SubmapSLAM:
         missing = [k for k in INTERFACE_FEATURE_NAMES if k not in out]
         require(not missing, "front_end.local_statistics()", sorted(out), f"to include {missing}")
         return {k: float(out[k]) for k in INTERFACE_FEATURE_NAMES}
+
+
+@njit(cache=True)
+def _nearest_global_innovations(z, pose, sigma, J_a, x, P, cols, r_var, b_var, gate_chi2):
+    """The global feature each observation is nearest to, and its innovation ratio.
+
+    Predicts every global feature ``m_n`` from the composed pose ``pose`` (covariance
+    ``sigma``, ``J_a`` its Jacobian w.r.t. the origin ``v-``): ``S_n = H_p sigma H_p^T + H_m P_mm
+    H_m^T + X + X^T + R`` with the pose-feature cross term ``X = H_p J_a P[v-, m_n] H_m^T``.
+    For observation ``k``, ``nearest[k]`` is the feature with the smallest ``nu^T S_n^-1 nu``
+    inside the gate ``gate_chi2`` (-1: none) and ``ratio[k] = ||nu|| / (2 sigma_n)``, with
+    ``sigma_n^2`` the largest eigenvalue of the upper bound ``2 (H_p sigma H_p^T + H_m P_mm
+    H_m^T) + R`` of ``S_n`` (for any joint covariance ``[[A, B], [B^T, C]] <= 2 diag(A, C)``):
+    CM's innovation test ``||nu|| > 2 sigma`` (CM III.B) reads ``ratio > 1``.
+    """
+    N, K = cols.shape[0], z.shape[0]
+    z_range, z_bearing = np.empty(N), np.empty(N)
+    S00, S01, S11, upper_eig = np.empty(N), np.empty(N), np.empty(N), np.empty(N)
+    Hp = np.empty((2, 3))
+    Hm = np.empty((2, 2))
+    cross = np.empty((3, 2))  # J_a P[v-, m_n]: cov(pose, m_n)
+    for n in range(N):
+        c0, c1 = cols[n, 0], cols[n, 1]
+        dx, dy = x[c0] - pose[0], x[c1] - pose[1]
+        q = max(dx * dx + dy * dy, 1e-12)
+        r = np.sqrt(q)
+        z_range[n] = r
+        z_bearing[n] = (np.arctan2(dy, dx) - pose[2] + np.pi) % (2.0 * np.pi) - np.pi
+        Hm[0, 0], Hm[0, 1], Hm[1, 0], Hm[1, 1] = dx / r, dy / r, -dy / q, dx / q
+        Hp[0, 0], Hp[0, 1], Hp[0, 2] = -Hm[0, 0], -Hm[0, 1], 0.0
+        Hp[1, 0], Hp[1, 1], Hp[1, 2] = -Hm[1, 0], -Hm[1, 1], -1.0
+        for i in range(3):
+            for a in range(2):
+                cross[i, a] = J_a[i, 0] * P[0, cols[n, a]] + J_a[i, 1] * P[1, cols[n, a]] + (
+                    J_a[i, 2] * P[2, cols[n, a]]
+                )
+        A = Hp @ sigma @ Hp.T
+        pmm = np.empty((2, 2))
+        for a in range(2):
+            for b in range(2):
+                pmm[a, b] = P[cols[n, a], cols[n, b]]
+        B = Hm @ pmm @ Hm.T
+        X = Hp @ cross @ Hm.T
+        S00[n] = A[0, 0] + B[0, 0] + 2.0 * X[0, 0] + r_var
+        S01[n] = 0.5 * (A[0, 1] + A[1, 0] + B[0, 1] + B[1, 0]) + X[0, 1] + X[1, 0]
+        S11[n] = A[1, 1] + B[1, 1] + 2.0 * X[1, 1] + b_var
+        u00 = 2.0 * (A[0, 0] + B[0, 0]) + r_var
+        u01 = (A[0, 1] + A[1, 0]) + (B[0, 1] + B[1, 0])
+        u11 = 2.0 * (A[1, 1] + B[1, 1]) + b_var
+        upper_eig[n] = 0.5 * (u00 + u11) + np.hypot(0.5 * (u00 - u11), u01)
+    nearest = np.full(K, -1, dtype=np.int64)
+    ratio = np.zeros(K)
+    for k in range(K):
+        best = np.inf
+        for n in range(N):
+            nu_r = z[k, 0] - z_range[n]
+            nu_b = (z[k, 1] - z_bearing[n] + np.pi) % (2.0 * np.pi) - np.pi
+            det = S00[n] * S11[n] - S01[n] * S01[n]
+            d2 = (S11[n] * nu_r * nu_r - 2.0 * S01[n] * nu_r * nu_b + S00[n] * nu_b * nu_b) / det
+            if d2 <= gate_chi2 and d2 < best:
+                best = d2
+                nearest[k] = n
+                ratio[k] = np.hypot(nu_r, nu_b) / (2.0 * np.sqrt(upper_eig[n]))
+    return nearest, ratio

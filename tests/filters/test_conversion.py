@@ -16,6 +16,7 @@ from filters.conversion import (
     moment_match,
     nearest_spd,
     pose_moments,
+    vote_all,
 )
 
 
@@ -297,3 +298,21 @@ def test_moment_match_rejects_bad_input():
         moment_match(poses[:2], weights, means, covs, common)
     with pytest.raises(ValueError, match="weights"):
         moment_match(poses, np.zeros(3), means, covs, common)
+
+
+def test_vote_all_equals_one_vote_per_observation():
+    rng = np.random.default_rng(4)
+    K, P = 6, 40
+    log_w = rng.normal(size=(K, P)) * 3.0
+    votes = rng.choice([NEW_VOTE, CLUTTER_VOTE, 3, 8, 11], size=(K, P))
+    votes[2] = 8  # a unanimous observation
+    votes[4, : P // 2], votes[4, P // 2 :] = 3, 11
+    log_w[4] = 0.0  # an exact tie: the smaller id wins
+    winners, margins, clutter = vote_all(log_w, votes)
+    for k in range(K):
+        one = correspondence_vote(np.exp(log_w[k] - log_w[k].max()), votes[k])
+        assert winners[k] == one.winner
+        assert margins[k] == pytest.approx(one.margin, abs=1e-12)
+        assert clutter[k] == pytest.approx(one.share_of(CLUTTER_VOTE), abs=1e-12)
+    assert winners[2] == 8 and margins[2] == 1.0
+    assert winners[4] == 3 and margins[4] == pytest.approx(0.0, abs=1e-12)

@@ -8,19 +8,18 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
+from filters import fastslam_kernel as kernel
 from filters.conversion import CLUTTER_VOTE, NEW_VOTE
-from filters.fastslam import (
-    FastSLAM2,
-    _feature_ekf,
-    _motion_noise_cov,
-    _sample_gaussian3,
-)
+from filters.fastslam import FastSLAM2
 from filters.geometry import wrap_angle
 from filters.models import (
     ClutterModel,
     ProportionalVelocityNoise,
     RangeBearingSensor,
     innovation,
+    inverse_observe,
+    inverse_observe_jacobians,
+    motion,
     motion_jacobians,
     observe,
     observe_jacobians,
@@ -72,86 +71,96 @@ def run(f, stream, known=False, every=None):
 # --------------------------------------------------------------------------- building blocks
 def test_terms_and_refine_match_matrix_kalman_form():
     rng = np.random.default_rng(1)
-    f = make_filter(n_particles=4)
-    f._poses = rng.normal(size=(4, 3))
-    A = rng.normal(size=(4, 3, 2))  # rank-2 proposal covariance, as from the motion model
-    f._prop_cov = A @ np.swapaxes(A, 1, 2) * 0.01
-    m = f._poses[:, None, :2] + rng.normal(size=(4, 2, 2)) * 5
-    B = rng.normal(size=(4, 2, 2, 2))
-    sig = B @ np.swapaxes(B, -1, -2) * 0.1
+    sensor = RangeBearingSensor()
+    R = sensor.R
     zk = np.array([4.0, 0.3])
-    t = f._terms(zk, m[..., 0], m[..., 1], sig[..., 0, 0], sig[..., 0, 1], sig[..., 1, 1])
-    G, Hm = observe_jacobians(f._poses[:, None, :], m)
-    S = G @ f._prop_cov[:, None] @ np.swapaxes(G, -1, -2) + Hm @ sig @ np.swapaxes(Hm, -1, -2)
-    S = S + f.sensor.R
-    np.testing.assert_allclose(t["S00"], S[..., 0, 0], atol=1e-12)
-    np.testing.assert_allclose(t["S01"], S[..., 0, 1], atol=1e-12)
-    np.testing.assert_allclose(t["S11"], S[..., 1, 1], atol=1e-12)
-    nu = innovation(zk, observe(f._poses[:, None, :], m))
-    np.testing.assert_allclose(t["nu_r"], nu[..., 0], atol=1e-12)
-    np.testing.assert_allclose(t["nu_b"], nu[..., 1], atol=1e-12)
-    d2 = np.einsum("pni,pnij,pnj->pn", nu, np.linalg.inv(S), nu)
-    np.testing.assert_allclose(t["d2"], d2, rtol=1e-9)
+    for _ in range(4):
+        pose = rng.normal(size=3)
+        A = rng.normal(size=(3, 2))  # rank-2 proposal covariance, as from the motion model
+        Pc = A @ A.T * 0.01
+        m = pose[:2] + rng.normal(size=2) * 5
+        B = rng.normal(size=(2, 2))
+        sig = B @ B.T * 0.1
+        t = kernel._observation_terms(
+            zk[0], zk[1], *pose, Pc, m[0], m[1], sig[0, 0], sig[0, 1], sig[1, 1], R[0, 0], R[1, 1]
+        )
+        nu_r, nu_b, S00, S01, S11, det, d2, h00, h01, h10, h11 = t
+        G, Hm = observe_jacobians(pose, m)
+        S = G @ Pc @ G.T + Hm @ sig @ Hm.T + R
+        np.testing.assert_allclose([[S00, S01], [S01, S11]], S, atol=1e-12)
+        np.testing.assert_allclose(det, np.linalg.det(S), rtol=1e-9)
+        np.testing.assert_allclose([[h00, h01], [h10, h11]], Hm, atol=1e-12)
+        nu = innovation(zk, observe(pose, m))
+        np.testing.assert_allclose([nu_r, nu_b], nu, atol=1e-12)
+        np.testing.assert_allclose(d2, nu @ np.linalg.solve(S, nu), rtol=1e-9)
 
-    x0, P0 = f._poses.copy(), f._prop_cov.copy()
-    j = np.array([0, 1, 1, 0])
-    chose = np.array([True, True, False, True])
-    f._refine(chose, t, j)
-    for p in range(4):
-        if not chose[p]:  # zero gain (up to the heading re-wrap)
-            np.testing.assert_allclose(f._poses[p], x0[p], atol=1e-15)
-            np.testing.assert_array_equal(f._prop_cov[p], P0[p])
-            continue
-        Gp, Sp = G[p, j[p]], S[p, j[p]]
-        K = P0[p] @ Gp.T @ np.linalg.inv(Sp)
-        x = x0[p] + K @ nu[p, j[p]]
-        np.testing.assert_allclose(wrap_angle(f._poses[p] - x), 0.0, atol=1e-12)
-        np.testing.assert_allclose(f._prop_cov[p], P0[p] - K @ Gp @ P0[p], atol=1e-12)
-        assert np.linalg.eigvalsh(0.5 * (f._prop_cov[p] + f._prop_cov[p].T)).min() > -1e-12
+        x, P = pose.copy(), Pc.copy()
+        kernel._refine(x, P, nu_r, nu_b, S00, S01, S11, det, h00, h01, h10, h11)
+        K = Pc @ G.T @ np.linalg.inv(S)
+        np.testing.assert_allclose(wrap_angle(x - (pose + K @ nu)), 0.0, atol=1e-12)
+        np.testing.assert_allclose(P, Pc - K @ G @ Pc, atol=1e-12)
+        assert np.linalg.eigvalsh(0.5 * (P + P.T)).min() > -1e-12
 
 
 def test_feature_ekf_matches_matrix_ekf():
     rng = np.random.default_rng(2)
-    n = 6
-    pose = rng.normal(size=(n, 3))
-    m = pose[:, :2] + rng.normal(size=(n, 2)) * 8
-    B = rng.normal(size=(n, 2, 2))
-    sig = B @ np.swapaxes(B, 1, 2) * 0.2
-    z = observe(pose, m) + rng.normal(size=(n, 2)) * 0.05
     R = np.diag([0.05**2, 0.02**2])
-    mx, my, sxx, sxy, syy = _feature_ekf(
-        pose, m[:, 0], m[:, 1], sig[:, 0, 0], sig[:, 0, 1], sig[:, 1, 1], z, R
-    )
-    for i in range(n):
-        _, H = observe_jacobians(pose[i], m[i])
-        S = H @ sig[i] @ H.T + R
-        K = sig[i] @ H.T @ np.linalg.inv(S)
-        m_new = m[i] + K @ innovation(z[i], observe(pose[i], m[i]))
-        sig_new = (np.eye(2) - K @ H) @ sig[i]
-        np.testing.assert_allclose([mx[i], my[i]], m_new, atol=1e-10)
-        np.testing.assert_allclose([[sxx[i], sxy[i]], [sxy[i], syy[i]]], sig_new, atol=1e-12)
+    for _ in range(6):
+        pose = rng.normal(size=3)
+        m = pose[:2] + rng.normal(size=2) * 8
+        B = rng.normal(size=(2, 2))
+        sig = B @ B.T * 0.2
+        z = observe(pose, m) + rng.normal(size=2) * 0.05
+        mx, my, sxx, sxy, syy = kernel._feature_ekf(
+            *pose, m[0], m[1], sig[0, 0], sig[0, 1], sig[1, 1], z[0], z[1], R[0, 0], R[1, 1]
+        )
+        _, H = observe_jacobians(pose, m)
+        S = H @ sig @ H.T + R
+        K = sig @ H.T @ np.linalg.inv(S)
+        m_new = m + K @ innovation(z, observe(pose, m))
+        sig_new = (np.eye(2) - K @ H) @ sig
+        np.testing.assert_allclose([mx, my], m_new, atol=1e-10)
+        np.testing.assert_allclose([[sxx, sxy], [sxy, syy]], sig_new, atol=1e-12)
 
 
-def test_motion_noise_cov_matches_motion_jacobians():
+def test_new_feature_is_the_inverse_observation_with_its_covariance():
+    f = make_filter(n_particles=3, initial_pose=(1.0, -2.0, 0.4))
+    f.predict([0.0, 0.0], 0.1)  # zero motion: the proposal stays at the initial pose
+    z = np.array([[7.0, -0.6], [3.0, 1.2]])
+    f.update(z, associations=[0, 1])
+    pose = f.poses[0]
+    m_expected = inverse_observe(pose, z)
+    _, Gz = inverse_observe_jacobians(pose, z)
+    cov_expected = Gz @ f.sensor.R @ np.swapaxes(Gz, 1, 2)
+    np.testing.assert_allclose(f.means[0, :2], m_expected, atol=1e-12)
+    np.testing.assert_allclose(f.covs[0, :2], cov_expected, atol=1e-15)
+    assert f.active[:, :2].all() and f._count.tolist() == [2, 2, 2]
+
+def test_propagate_matches_the_motion_model_and_its_jacobian():
     rng = np.random.default_rng(3)
-    poses = rng.normal(size=(5, 3))
+    poses = rng.normal(size=(5, 3)) * [3.0, 3.0, 3.0]
     u, dt = np.array([1.3, -0.7]), 0.1
     Q = np.array([[0.04, 0.01], [0.01, 0.09]])
-    out = _motion_noise_cov(poses, u, dt, Q)
+    moved, covs = poses.copy(), np.empty((5, 3, 3))
+    kernel.propagate(moved, covs, u[0], u[1], dt, Q)
+    np.testing.assert_allclose(moved, motion(poses, u, dt), atol=1e-14)
     for p in range(5):
         _, J = motion_jacobians(poses[p], u, dt)
-        np.testing.assert_allclose(out[p], J @ Q @ J.T, atol=1e-15)
+        np.testing.assert_allclose(covs[p], J @ Q @ J.T, atol=1e-15)
 
 
 @pytest.mark.parametrize("rank", [1, 2, 3])
-def test_sample_gaussian3_reproduces_singular_covariances(rank):
+def test_pose_draw_reproduces_singular_covariances(rank):
     rng = np.random.default_rng(rank)
     J = rng.normal(size=(3, rank))
-    C = J @ J.T * 0.3
+    C = J @ J.T * 0.003  # heading std well below pi: the draw wraps the heading
     n = 100_000
-    x = _sample_gaussian3(np.broadcast_to(C, (n, 3, 3)), rng.standard_normal((n, 3)))
+    x = np.zeros((n, 3))
+    covs = np.ascontiguousarray(np.broadcast_to(C, (n, 3, 3)))
+    kernel.draw_poses(x, covs, rng.standard_normal((n, 3)))
     # each entry of the sample covariance is within ~6 standard errors
     tol = 6.0 * np.sqrt((np.outer(np.diag(C), np.diag(C)) + C**2) / n) + 1e-12
+    assert np.abs(x[:, 2]).max() < np.pi
     assert np.all(np.abs(np.cov(x.T) - C) < tol)
     if rank < 3:  # the samples stay in the covariance's range
         null = np.linalg.svd(J)[0][:, rank:]
@@ -443,7 +452,14 @@ def test_visibility_is_soft_at_the_range_limit():
     f = make_filter(n_particles=1)
     _place_features(f, [[(24.9, 0.0), (25.0, 0.0), (25.1, 0.0), (5.0, 0.0), (40.0, 0.0)]],
                     [[0, 1, 2, 3, 4]], var=0.01)
-    p_vis = f._visibility(5)[0]
+    Pc = np.zeros((3, 3))
+    p_vis = [
+        kernel._visibility(
+            0.0, 0.0, 0.0, Pc, f._mx[0, j], f._my[0, j], f._sxx[0, j], f._sxy[0, j],
+            f._syy[0, j], f.sensor.max_range_m, f.sensor.fov_rad,
+        )
+        for j in range(5)
+    ]
     sigma = 0.1  # radial std of a feature with covariance 0.01 I, pose known
     np.testing.assert_allclose(
         p_vis[:3], [0.5 * (1 + math.erf(d / sigma / np.sqrt(2))) for d in (0.1, 0.0, -0.1)]

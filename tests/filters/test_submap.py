@@ -11,8 +11,20 @@ from scipy.stats import chi2
 
 from filters.ekf_slam import EKFSLAM
 from filters.geometry import compose, compose_jacobians, transform_point, wrap_angle
-from filters.models import ClutterModel, ProportionalVelocityNoise, RangeBearingSensor, observe
-from filters.submap import INTERFACE_FEATURE_NAMES, GlobalMap, SubmapSLAM
+from filters.models import (
+    ClutterModel,
+    ProportionalVelocityNoise,
+    RangeBearingSensor,
+    innovation,
+    observe,
+    observe_jacobians,
+)
+from filters.submap import (
+    INTERFACE_FEATURE_NAMES,
+    GlobalMap,
+    SubmapSLAM,
+    _nearest_global_innovations,
+)
 from filters.types import GaussianMap
 from slam_gym.scenarios import make_stream
 
@@ -350,6 +362,24 @@ def _one_feature_system(unseen_s):
     return SubmapSLAM(front, g, loop_closure_unseen_s=unseen_s)
 
 
+
+def _dense_global_prediction(f):
+    """Predicted observations of the global features with S (from the joint covariance of the
+    composed pose and each feature) and the upper bound 2 (H_p sigma H_p^T + H_m P_mm H_m^T) + R."""
+    pose, sigma, J_a = f._compose_with_origin()
+    g = f.back_end
+    zhat, S, S_up = [], [], []
+    for c in g.feature_cols():
+        C = J_a @ g.P[:3, c]
+        Pmm = g.P[np.ix_(c, c)]
+        Hp, Hm = observe_jacobians(pose, g.x[c])
+        H = np.hstack([Hp, Hm])
+        zhat.append(observe(pose, g.x[c]))
+        S.append(H @ np.block([[sigma, C], [C.T, Pmm]]) @ H.T + SENSOR.R)
+        S_up.append(2.0 * (Hp @ sigma @ Hp.T + Hm @ Pmm @ Hm.T) + SENSOR.R)
+    return np.array(zhat), np.array(S), np.array(S_up)
+
+
 @pytest.mark.parametrize("unseen_s, expected_flag", [(5.0, 1.0), (100.0, 0.0)])
 def test_loop_closure_flag_and_innovation_ratio(unseen_s, expected_flag):
     """A global feature not seen for longer than loop_closure_unseen_s, re-observed with an
@@ -357,7 +387,7 @@ def test_loop_closure_flag_and_innovation_ratio(unseen_s, expected_flag):
     the gate, raises the flag."""
     f = _one_feature_system(unseen_s)
     f.predict(np.array([0.0, 0.0]), 10.0)
-    zhat, S, S_up = f._global_prediction()
+    zhat, S, S_up = _dense_global_prediction(f)
     w, V = np.linalg.eigh(S[0])
     nu = 3.5 * np.sqrt(w[-1]) * V[:, -1]  # d2 = 12.25 < chi2(0.999, 2) = 13.8
     f.update(zhat[:1] + nu)
@@ -425,3 +455,46 @@ def test_observe_matches_predicted_view_count():
     f.back_end.x[3] = 30.0  # beyond 25 m
     assert f.global_features_in_view() == 0
     assert observe(f.pose()[0], f.back_end.x[3:5])[0] > SENSOR.max_range_m
+
+
+def test_global_innovations_match_the_dense_computation():
+    # A back-end state [v-, m_1 .. m_N] with a full covariance, a composed pose correlated with
+    # v- through J_a, and observations of some features (plus one of nothing).
+    rng = np.random.default_rng(11)
+    N = 7
+    x = np.concatenate([[1.0, 2.0, 0.3], rng.uniform(-15, 15, size=2 * N)])
+    A = rng.normal(size=(3 + 2 * N, 3 + 2 * N)) * 0.05
+    P = A @ A.T + 0.01 * np.eye(3 + 2 * N)
+    J_a = np.eye(3) + rng.normal(size=(3, 3)) * 0.1
+    pose = x[:3] + np.array([2.0, -1.0, 0.2])
+    sigma = J_a @ P[:3, :3] @ J_a.T + np.diag([0.02, 0.03, 0.001])
+    cols = 3 + 2 * np.arange(N)[:, None] + np.arange(2)
+    m = x[cols]
+    R = SENSOR.R
+    z = observe(pose, m[[4, 1, 6]]) + rng.normal(size=(3, 2)) * [0.05, 0.01]
+    z = np.vstack([z, [[40.0, 3.0]]])
+    gate = chi2.ppf(0.999, 2)
+    nearest, ratio = _nearest_global_innovations(
+        z, pose, sigma, J_a, x, P, cols, R[0, 0], R[1, 1], gate
+    )
+    Hp, Hm = observe_jacobians(pose, m)
+    for k in range(len(z)):
+        best, best_d2 = -1, np.inf
+        for n in range(N):
+            # dense: the joint covariance of (pose, m_n) with cov(pose, m_n) = J_a P[v-, m_n]
+            C = J_a @ P[:3, cols[n]]
+            joint = np.block([[sigma, C], [C.T, P[np.ix_(cols[n], cols[n])]]])
+            H = np.hstack([Hp[n], Hm[n]])
+            S = H @ joint @ H.T + R
+            nu = innovation(z[k], observe(pose, m[n]))
+            d2 = nu @ np.linalg.solve(S, nu)
+            if d2 <= gate and d2 < best_d2:
+                best, best_d2 = n, d2
+                upper = 2.0 * H @ np.block(
+                    [[sigma, np.zeros((3, 2))], [np.zeros((2, 3)), joint[3:, 3:]]]
+                ) @ H.T + R
+                expected_ratio = np.linalg.norm(nu) / (2.0 * np.sqrt(np.linalg.eigvalsh(upper)[-1]))
+        assert nearest[k] == best
+        if best >= 0:
+            assert ratio[k] == pytest.approx(expected_ratio, rel=1e-9)
+    assert list(nearest[:3]) == [4, 1, 6] and nearest[3] == -1

@@ -1,0 +1,432 @@
+"""Compiled per-particle work of one FastSLAM 2.0 scan update (numba).
+
+:class:`filters.fastslam.FastSLAM2` keeps its state in (P, C) arrays and does the bookkeeping
+that concerns all particles at once (voting, ids, culling, resampling) in numpy. What is
+sequential within one particle (the observations of a scan refine the particle's proposal one
+after the other) runs here, in one compiled pass over the particles: visibility and the
+missed-detection terms, Data Association Sampling, the FS2 proposal refinement, the pose draw,
+and the existence and map updates at the drawn pose. The equations are those of the
+:mod:`filters.fastslam` module docstring, which this module follows line by line.
+
+Why compiled: with numpy vectorised over the particles every observation costs some hundred
+array operations of a few microseconds each whatever the particle count, which capped the
+default training env at 60-65 decisions per second and HYBRID at 500 particles at 38x real
+time (docs/PERFORMANCE.md, issues #4 and #6). The random numbers are drawn by the caller with
+its own ``numpy.random.Generator`` and passed in, so the stream and the seeding are unchanged.
+
+The scalar measurement functions below are the ones of :mod:`filters.models` (``h``, its
+Jacobian w.r.t. the feature, the inverse observation ``g`` and its Jacobian w.r.t. ``z``)
+written out per element; ``tests/filters/test_fastslam_kernel.py`` checks them against the
+vectorised reference.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+from numba import njit
+
+from filters.conversion import CLUTTER_VOTE as CLUTTER
+from filters.conversion import NEW_VOTE as NEW
+from filters.existence import detection_update, false_alarm_in_gate_probability, miss_update
+
+_TWO_PI = 2.0 * math.pi
+_SQRT_HALF = math.sqrt(0.5)
+
+
+class ScanModel(NamedTuple):
+    """The constants of one scan update (sensor, clutter and filter options), in the order of
+    the last parameters of :func:`scan_update` (passed unpacked: numba types scalars faster than
+    a named tuple)."""
+
+    r_var: float
+    b_var: float
+    detection_probability: float
+    beta: float
+    gate_chi2: float
+    max_range_m: float
+    fov_rad: float
+    range_std_m: float
+    bearing_std_rad: float
+    new_landmark_density: float
+    max_existence: float
+
+
+@njit(cache=True, inline="always")
+def _wrap(angle):
+    return (angle + math.pi) % _TWO_PI - math.pi
+
+
+@njit(cache=True, inline="always")
+def _observation_terms(zr, zb, x, y, th, Pc, mx, my, sxx, sxy, syy, r_var, b_var):
+    """Innovation, ``S = G P G^T + H_m Sigma H_m^T + R`` and ``H_m`` of one feature for one
+    particle with proposal ``(x, y, th)``, ``Pc`` (3, 3) (module doc of filters.fastslam)."""
+    dx = mx - x
+    dy = my - y
+    q = max(dx * dx + dy * dy, 1e-12)
+    r = math.sqrt(q)
+    nu_r = zr - r
+    nu_b = _wrap(zb - math.atan2(dy, dx) + th)
+    h00, h01, h10, h11 = dx / r, dy / r, -dy / q, dx / q
+    m00 = sxx + Pc[0, 0]
+    m01 = sxy + Pc[0, 1]
+    m11 = syy + Pc[1, 1]
+    t00 = h00 * m00 + h01 * m01
+    t01 = h00 * m01 + h01 * m11
+    t10 = h10 * m00 + h11 * m01
+    t11 = h10 * m01 + h11 * m11
+    c0, c1 = Pc[0, 2], Pc[1, 2]
+    S00 = h00 * t00 + h01 * t01 + r_var
+    S01 = h10 * t00 + h11 * t01 + (h00 * c0 + h01 * c1)
+    S11 = h10 * t10 + h11 * t11 + 2.0 * (h10 * c0 + h11 * c1) + Pc[2, 2] + b_var
+    det = S00 * S11 - S01 * S01
+    d2 = (S11 * nu_r * nu_r - 2.0 * S01 * nu_r * nu_b + S00 * nu_b * nu_b) / det
+    return nu_r, nu_b, S00, S01, S11, det, d2, h00, h01, h10, h11
+
+
+@njit(cache=True)
+def _refine(pose, Pc, nu_r, nu_b, S00, S01, S11, det, h00, h01, h10, h11):
+    """FS2 proposal in Kalman form: ``x += P G^T S^-1 nu``, ``P -= P G^T S^-1 G P`` with
+    ``G = [-H_m | (0, -1)^T]`` (in place; well defined for a singular P)."""
+    inv_det = 1.0 / det
+    pg0 = np.empty(3)
+    pg1 = np.empty(3)
+    for i in range(3):
+        pg0[i] = -(Pc[i, 0] * h00 + Pc[i, 1] * h01)
+        pg1[i] = -(Pc[i, 0] * h10 + Pc[i, 1] * h11 + Pc[i, 2])
+    k0 = np.empty(3)
+    k1 = np.empty(3)
+    for i in range(3):
+        k0[i] = (pg0[i] * S11 - pg1[i] * S01) * inv_det
+        k1[i] = (pg1[i] * S00 - pg0[i] * S01) * inv_det
+        pose[i] += k0[i] * nu_r + k1[i] * nu_b
+    pose[2] = _wrap(pose[2])
+    for i in range(3):
+        for j in range(3):
+            Pc[i, j] -= k0[i] * pg0[j] + k1[i] * pg1[j]
+
+
+@njit(cache=True)
+def _ldl_draw(cov, normals, out):
+    """``out = L sqrt(D) n`` for a PSD ``cov`` (3, 3) via a guarded LDL^T: a pivot that is zero
+    up to round-off (relative 1e-12 of the trace) gets a zero column, so singular proposals
+    (rank-2 motion noise) are sampled correctly."""
+    tiny = 1e-12 * max(cov[0, 0] + cov[1, 1] + cov[2, 2], 1e-300)
+    d0 = cov[0, 0]
+    ok0 = d0 > tiny
+    l10 = cov[1, 0] / d0 if ok0 else 0.0
+    l20 = cov[2, 0] / d0 if ok0 else 0.0
+    d1 = cov[1, 1] - l10 * l10 * d0
+    ok1 = d1 > tiny
+    l21 = (cov[2, 1] - l20 * l10 * d0) / d1 if ok1 else 0.0
+    d2 = cov[2, 2] - l20 * l20 * d0 - l21 * l21 * d1
+    y0 = math.sqrt(d0) * normals[0] if ok0 else 0.0
+    y1 = math.sqrt(d1) * normals[1] if ok1 else 0.0
+    y2 = math.sqrt(d2) * normals[2] if d2 > tiny else 0.0
+    out[0] = y0
+    out[1] = l10 * y0 + y1
+    out[2] = l20 * y0 + l21 * y1 + y2
+
+
+@njit(cache=True)
+def draw_poses(poses, prop_cov, normals):
+    """Draw every particle's pose from its proposal ``N(x, P)`` (in place; FS2)."""
+    step = np.empty(3)
+    for p in range(poses.shape[0]):
+        _ldl_draw(prop_cov[p], normals[p], step)
+        poses[p, 0] += step[0]
+        poses[p, 1] += step[1]
+        poses[p, 2] = _wrap(poses[p, 2] + step[2])
+
+
+@njit(cache=True)
+def propagate(poses, prop_cov, v, omega, dt, Q):
+    """Motion prediction of every particle, in place: the pose through the unicycle mid-point
+    model (:func:`filters.models.motion`) and the FS2 proposal prior ``J_u Q J_u^T`` in
+    ``prop_cov`` (``J_u`` of :func:`filters.models.motion_jacobians`)."""
+    half_v_dt2 = 0.5 * v * dt * dt
+    J = np.zeros((3, 2))
+    J[2, 1] = dt
+    for p in range(poses.shape[0]):
+        heading = poses[p, 2] + 0.5 * omega * dt
+        c, s = math.cos(heading), math.sin(heading)
+        J[0, 0], J[0, 1] = dt * c, -half_v_dt2 * s
+        J[1, 0], J[1, 1] = dt * s, half_v_dt2 * c
+        for i in range(3):
+            jq0 = J[i, 0] * Q[0, 0] + J[i, 1] * Q[1, 0]
+            jq1 = J[i, 0] * Q[0, 1] + J[i, 1] * Q[1, 1]
+            for j in range(3):
+                prop_cov[p, i, j] = jq0 * J[j, 0] + jq1 * J[j, 1]
+        poses[p, 0] += v * dt * c
+        poses[p, 1] += v * dt * s
+        poses[p, 2] = _wrap(poses[p, 2] + omega * dt)
+
+
+@njit(cache=True, inline="always")
+def _feature_ekf(x, y, th, mx, my, sxx, sxy, syy, zr, zb, r_var, b_var):
+    """EKF update of one feature from a known pose: ``K = Sigma H^T S^-1``, ``m += K nu``,
+    ``Sigma -= K H Sigma`` (the FS2 map update at the sampled pose)."""
+    dx = mx - x
+    dy = my - y
+    q = max(dx * dx + dy * dy, 1e-12)
+    r = math.sqrt(q)
+    nu_r = zr - r
+    nu_b = _wrap(zb - math.atan2(dy, dx) + th)
+    h00, h01, h10, h11 = dx / r, dy / r, -dy / q, dx / q
+    t00 = h00 * sxx + h01 * sxy
+    t01 = h00 * sxy + h01 * syy
+    t10 = h10 * sxx + h11 * sxy
+    t11 = h10 * sxy + h11 * syy
+    S00 = h00 * t00 + h01 * t01 + r_var
+    S01 = h10 * t00 + h11 * t01
+    S11 = h10 * t10 + h11 * t11 + b_var
+    inv_det = 1.0 / (S00 * S11 - S01 * S01)
+    K00 = (t00 * S11 - t10 * S01) * inv_det
+    K01 = (t10 * S00 - t00 * S01) * inv_det
+    K10 = (t01 * S11 - t11 * S01) * inv_det
+    K11 = (t11 * S00 - t01 * S01) * inv_det
+    return (
+        mx + K00 * nu_r + K01 * nu_b,
+        my + K10 * nu_r + K11 * nu_b,
+        sxx - (K00 * t00 + K01 * t10),
+        sxy - (K00 * t01 + K01 * t11),
+        syy - (K10 * t01 + K11 * t11),
+    )
+
+
+@njit(cache=True)
+def _visibility(x, y, th, Pc, mx, my, sxx, sxy, syy, max_range_m, fov_rad):
+    """Probability that a feature lies inside the sensor's range: ``Phi((r_max - r) / sigma_r)``
+    with ``sigma_r^2`` the radial variance of feature and proposal position; a limited field of
+    view is a hard bearing test on the mean (module doc of filters.fastslam)."""
+    dx = mx - x
+    dy = my - y
+    q = max(dx * dx + dy * dy, 1e-12)
+    r = math.sqrt(q)
+    if fov_rad < _TWO_PI and abs(_wrap(math.atan2(dy, dx) - th)) > 0.5 * fov_rad:
+        return 0.0
+    radial = (
+        dx * dx * (sxx + Pc[0, 0]) + 2.0 * dx * dy * (sxy + Pc[0, 1]) + dy * dy * (syy + Pc[1, 1])
+    ) / q
+    sigma = math.sqrt(max(radial, 0.0)) + 1e-9
+    margin = (max_range_m - r) / sigma
+    if margin > 8.5:  # Phi(8.5) = 1 - 1e-17: 1 in double precision
+        return 1.0
+    if margin < -40.0:  # Phi underflows
+        return 0.0
+    return 0.5 * math.erfc(-margin * _SQRT_HALF)
+
+
+@njit(cache=True)
+def scan_update(
+    poses,
+    prop_cov,
+    logw,
+    mx,
+    my,
+    sxx,
+    sxy,
+    syy,
+    ex,
+    active,
+    cid,
+    count,
+    z,
+    uniforms,
+    normals,
+    known_cids,
+    votes,
+    slots,
+    logw_after,
+    r_var,
+    b_var,
+    detection_probability,
+    beta,
+    gate_chi2,
+    max_range_m,
+    fov_rad,
+    range_std_m,
+    bearing_std_rad,
+    new_landmark_density,
+    max_existence,
+):
+    """One scan for every particle (module doc of filters.fastslam), in place.
+
+    State (P, ...) arrays are updated in place; ``count`` (P,) grows by the features created
+    (the caller guarantees ``C >= count + K``). ``uniforms`` (K, P) drive DAS, ``normals``
+    (P, 3) the pose draw. ``known_cids`` (K,) is None for DAS, else the common id each
+    observation belongs to (-1: a known false alarm). Outputs (K, P): ``votes`` (a common id,
+    CLUTTER or NEW; a feature without id votes NEW), ``slots`` (the slot updated or created,
+    -1 for clutter) and ``logw_after`` (the log weight after each observation, for voting).
+    The remaining parameters are the fields of :class:`ScanModel`.
+    """
+    P = poses.shape[0]
+    K = z.shape[0]
+    n_hi = 0
+    for p in range(P):
+        n_hi = max(n_hi, count[p])
+    alpha = detection_probability
+    field = max_range_m * fov_rad
+    gate_scale = math.sqrt(gate_chi2)
+    area_r = math.pi * gate_chi2 * math.sqrt(r_var * b_var)
+    p_vis = np.empty(n_hi)
+    ratio = np.empty(n_hi)
+    claimed = np.empty(n_hi, dtype=np.bool_)
+    hyp_slot = np.empty(n_hi + 2, dtype=np.int64)
+    hyp_value = np.empty(n_hi + 2)
+    gate_areas = np.empty(K)
+    new_existence = np.empty(K)
+    step = np.empty(3)
+    for p in range(P):
+        pose = poses[p]
+        Pc = prop_cov[p]
+        n = count[p]
+        # --- visibility and the missed-detection product prod_j (1 - alpha e_j p_vis,j)
+        expected_visible = 0.0
+        for j in range(n):
+            claimed[j] = False
+            if not active[p, j]:
+                p_vis[j] = 0.0
+                ratio[j] = 0.0
+                continue
+            p_vis[j] = _visibility(
+                pose[0], pose[1], pose[2], Pc, mx[p, j], my[p, j],
+                sxx[p, j], sxy[p, j], syy[p, j], max_range_m, fov_rad,
+            )
+            seen = alpha * ex[p, j] * p_vis[j]
+            logw[p] += math.log(1.0 - seen)
+            ratio[j] = seen / (1.0 - seen)
+            expected_visible += ex[p, j] * p_vis[j]
+        n_vis = max(expected_visible, K / (alpha + beta))
+        clutter_density = beta * n_vis / field
+
+        # --- observations in turn: association, weight, proposal refinement
+        for k in range(K):
+            zr, zb = z[k, 0], z[k, 1]
+            l_new = alpha * new_landmark_density * max(zr, range_std_m)
+            new_existence[k] = min(l_new / (l_new + clutter_density), max_existence)
+            chosen = -1
+            if known_cids is not None:
+                target = known_cids[k]
+                votes[k, p] = target
+                if target < 0:
+                    slots[k, p] = CLUTTER
+                    logw_after[k, p] = logw[p]
+                    continue
+                for j in range(n):
+                    if active[p, j] and not claimed[j] and cid[p, j] == target:
+                        chosen = j
+                        break
+                if chosen >= 0:
+                    t = _observation_terms(
+                        zr, zb, pose[0], pose[1], pose[2], Pc, mx[p, chosen], my[p, chosen],
+                        sxx[p, chosen], sxy[p, chosen], syy[p, chosen], r_var, b_var,
+                    )
+                    lik = math.exp(-0.5 * t[6]) / (_TWO_PI * math.sqrt(t[5]))
+                    logw[p] += math.log(max(ratio[chosen] * lik, 1e-300))
+                else:
+                    logw[p] += math.log(max(l_new, 1e-300))
+                    slots[k, p] = NEW
+            else:
+                # Data Association Sampling among the gated features, new feature and clutter
+                sig_pos = math.sqrt(max(Pc[0, 0] + Pc[1, 1], 0.0))
+                sig_th = math.sqrt(max(Pc[2, 2], 0.0))
+                spread = sig_pos + zr * sig_th + range_std_m + zr * bearing_std_rad
+                angle = pose[2] + zb
+                px = pose[0] + zr * math.cos(angle)
+                py = pose[1] + zr * math.sin(angle)
+                n_hyp = 0
+                for j in range(n):
+                    if not active[p, j] or claimed[j]:
+                        continue
+                    # cheap Cartesian pre-gate: a sum of stds bounds the std of the sum
+                    radius = gate_scale * (spread + math.sqrt(sxx[p, j] + syy[p, j])) + 0.5
+                    ddx = mx[p, j] - px
+                    ddy = my[p, j] - py
+                    if ddx * ddx + ddy * ddy >= radius * radius:
+                        continue
+                    t = _observation_terms(
+                        zr, zb, pose[0], pose[1], pose[2], Pc, mx[p, j], my[p, j],
+                        sxx[p, j], sxy[p, j], syy[p, j], r_var, b_var,
+                    )
+                    if t[6] < gate_chi2:
+                        like = ratio[j] * math.exp(-0.5 * t[6]) / (_TWO_PI * math.sqrt(abs(t[5])))
+                        if like > 0.0:
+                            hyp_slot[n_hyp] = j
+                            hyp_value[n_hyp] = like
+                            n_hyp += 1
+                hyp_slot[n_hyp] = NEW
+                hyp_value[n_hyp] = l_new
+                hyp_slot[n_hyp + 1] = CLUTTER
+                hyp_value[n_hyp + 1] = clutter_density
+                total = 0.0
+                for i in range(n_hyp + 2):
+                    total += hyp_value[i]
+                threshold = uniforms[k, p] * total
+                pick = n_hyp + 1
+                cumulative = 0.0
+                for i in range(n_hyp + 2):
+                    cumulative += hyp_value[i]
+                    if cumulative >= threshold:
+                        pick = i
+                        break
+                if hyp_value[pick] <= 0.0:  # only through round-off: step past it
+                    pick = n_hyp
+                logw[p] += math.log(max(total, 1e-300))
+                chosen = hyp_slot[pick]
+                if chosen >= 0:
+                    votes[k, p] = cid[p, chosen] if cid[p, chosen] >= 0 else NEW
+                    t = _observation_terms(
+                        zr, zb, pose[0], pose[1], pose[2], Pc, mx[p, chosen], my[p, chosen],
+                        sxx[p, chosen], sxy[p, chosen], syy[p, chosen], r_var, b_var,
+                    )
+                else:
+                    votes[k, p] = chosen
+                    slots[k, p] = chosen
+            if chosen >= 0:
+                _refine(pose, Pc, t[0], t[1], t[2], t[3], t[4], t[5], t[7], t[8], t[9], t[10])
+                claimed[chosen] = True
+                gate_areas[k] = math.pi * gate_chi2 * math.sqrt(abs(t[5]))
+                slots[k, p] = chosen
+            logw_after[k, p] = logw[p]
+
+        # --- draw the pose from the refined proposal, then existence and map at that pose
+        _ldl_draw(Pc, normals[p], step)
+        pose[0] += step[0]
+        pose[1] += step[1]
+        pose[2] = _wrap(pose[2] + step[2])
+        Pc[:, :] = 0.0
+        p_fa_miss = false_alarm_in_gate_probability(beta, n_vis, area_r, max_range_m, fov_rad)
+        for j in range(n):
+            if not claimed[j] and p_vis[j] > 0.0:
+                ex[p, j] = miss_update(ex[p, j], alpha * p_vis[j], p_fa_miss)
+        for k in range(K):
+            j = slots[k, p]
+            zr, zb = z[k, 0], z[k, 1]
+            if j >= 0:
+                mx[p, j], my[p, j], sxx[p, j], sxy[p, j], syy[p, j] = _feature_ekf(
+                    pose[0], pose[1], pose[2], mx[p, j], my[p, j],
+                    sxx[p, j], sxy[p, j], syy[p, j], zr, zb, r_var, b_var,
+                )
+                p_fa = false_alarm_in_gate_probability(
+                    beta, n_vis, gate_areas[k], max_range_m, fov_rad
+                )
+                ex[p, j] = min(detection_update(ex[p, j], alpha, p_fa), max_existence)
+            elif j == NEW:
+                j = count[p]
+                count[p] += 1
+                c = math.cos(pose[2] + zb)
+                s = math.sin(pose[2] + zb)
+                mx[p, j] = pose[0] + zr * c
+                my[p, j] = pose[1] + zr * s
+                # G_z diag(R) G_z^T with G_z = [[c, -r s], [s, r c]]
+                rs2 = zr * zr * b_var
+                sxx[p, j] = c * c * r_var + s * s * rs2
+                sxy[p, j] = c * s * (r_var - rs2)
+                syy[p, j] = s * s * r_var + c * c * rs2
+                ex[p, j] = new_existence[k]
+                active[p, j] = True
+                cid[p, j] = -1
+                slots[k, p] = j
