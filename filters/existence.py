@@ -36,7 +36,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import vectorize
+from numba import njit
 
 CONFIRMED_PROBABILITY = 0.95
 """BB 5.1: only features with p(exists) above this are fused into the global map."""
@@ -49,25 +49,68 @@ def gate_area(S, gate_chi2):
     return np.pi * gate_chi2 * np.sqrt(np.maximum(det, 0.0))
 
 
-# The three updates below are numpy ufuncs (they broadcast over arrays) compiled by numba, so the
-# compiled FastSLAM scan (filters.fastslam_kernel) calls the very same functions per element.
-@vectorize(["float64(float64, float64, float64, float64, float64)"], cache=True)
-def false_alarm_in_gate_probability(beta, n_visible, gate_area_rb, max_range_m, fov_rad):
+# Each formula is written once, for one element, compiled (``*_one``: the compiled FastSLAM scan,
+# filters.fastslam_kernel, calls these); the array functions below apply it element by element
+# over broadcast arrays.
+@njit(cache=True)
+def false_alarm_in_gate_probability_one(beta, n_visible, gate_area_rb, max_range_m, fov_rad):
     """Probability that at least one false alarm lands in a gate of the given area (see module)."""
     return -math.expm1(-beta * n_visible * gate_area_rb / (max_range_m * fov_rad))
 
 
-@vectorize(["float64(float64, float64, float64)"], cache=True)
-def detection_update(p, alpha, p_fa):
-    """BB (11): existence after the feature was detected (p and p_fa broadcast)."""
+@njit(cache=True)
+def detection_update_one(p, alpha, p_fa):
+    """BB (11): existence after the feature was detected."""
     num = p * alpha
     den = num + (1.0 - p) * p_fa
     return num / den if den > 0.0 else 1.0
 
 
-@vectorize(["float64(float64, float64, float64)"], cache=True)
-def miss_update(p, alpha, p_fa):
+@njit(cache=True)
+def miss_update_one(p, alpha, p_fa):
     """Existence after a feature predicted in view was not detected (complement of BB (11))."""
     num = p * (1.0 - alpha)
     den = num + (1.0 - p) * (1.0 - p_fa)
     return num / den if den > 0.0 else 0.0
+
+
+def false_alarm_in_gate_probability(beta, n_visible, gate_area_rb, max_range_m, fov_rad):
+    """:func:`false_alarm_in_gate_probability_one` over broadcast arrays."""
+    return _elementwise(_false_alarm_loop, beta, n_visible, gate_area_rb, max_range_m, fov_rad)
+
+
+def detection_update(p, alpha, p_fa):
+    """:func:`detection_update_one` (BB (11)) over broadcast arrays."""
+    return _elementwise(_detection_loop, p, alpha, p_fa)
+
+
+def miss_update(p, alpha, p_fa):
+    """:func:`miss_update_one` over broadcast arrays."""
+    return _elementwise(_miss_loop, p, alpha, p_fa)
+
+
+def _elementwise(loop, *args):
+    arrays = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in args))
+    out = np.empty(arrays[0].shape)
+    loop(*(np.ascontiguousarray(a).reshape(-1) for a in arrays), out.reshape(-1))
+    return out if out.ndim else out[()]
+
+
+@njit(cache=True)
+def _false_alarm_loop(beta, n_visible, area, max_range_m, fov_rad, out):
+    for i in range(out.size):
+        out[i] = false_alarm_in_gate_probability_one(
+            beta[i], n_visible[i], area[i], max_range_m[i], fov_rad[i]
+        )
+
+
+@njit(cache=True)
+def _detection_loop(p, alpha, p_fa, out):
+    for i in range(out.size):
+        out[i] = detection_update_one(p[i], alpha[i], p_fa[i])
+
+
+@njit(cache=True)
+def _miss_loop(p, alpha, p_fa, out):
+    for i in range(out.size):
+        out[i] = miss_update_one(p[i], alpha[i], p_fa[i])

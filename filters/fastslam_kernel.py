@@ -30,7 +30,11 @@ from numba import njit
 
 from filters.conversion import CLUTTER_VOTE as CLUTTER
 from filters.conversion import NEW_VOTE as NEW
-from filters.existence import detection_update, false_alarm_in_gate_probability, miss_update
+from filters.existence import (
+    detection_update_one,
+    false_alarm_in_gate_probability_one,
+    miss_update_one,
+)
 
 _TWO_PI = 2.0 * math.pi
 _SQRT_HALF = math.sqrt(0.5)
@@ -398,10 +402,10 @@ def scan_update(
         pose[1] += step[1]
         pose[2] = _wrap(pose[2] + step[2])
         Pc[:, :] = 0.0
-        p_fa_miss = false_alarm_in_gate_probability(beta, n_vis, area_r, max_range_m, fov_rad)
+        p_fa_miss = false_alarm_in_gate_probability_one(beta, n_vis, area_r, max_range_m, fov_rad)
         for j in range(n):
             if not claimed[j] and p_vis[j] > 0.0:
-                ex[p, j] = miss_update(ex[p, j], alpha * p_vis[j], p_fa_miss)
+                ex[p, j] = miss_update_one(ex[p, j], alpha * p_vis[j], p_fa_miss)
         for k in range(K):
             j = slots[k, p]
             zr, zb = z[k, 0], z[k, 1]
@@ -410,10 +414,10 @@ def scan_update(
                     pose[0], pose[1], pose[2], mx[p, j], my[p, j],
                     sxx[p, j], sxy[p, j], syy[p, j], zr, zb, r_var, b_var,
                 )
-                p_fa = false_alarm_in_gate_probability(
+                p_fa = false_alarm_in_gate_probability_one(
                     beta, n_vis, gate_areas[k], max_range_m, fov_rad
                 )
-                ex[p, j] = min(detection_update(ex[p, j], alpha, p_fa), max_existence)
+                ex[p, j] = min(detection_update_one(ex[p, j], alpha, p_fa), max_existence)
             elif j == NEW:
                 j = count[p]
                 count[p] += 1
