@@ -36,6 +36,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--env-decisions", type=int, default=300,
                    help="decisions for the env throughput (0 to skip)")
+    p.add_argument("--skip-paper-episode", action="store_true",
+                   help="skip timing one whole env episode at the paper's 500 particles")
     p.add_argument("--skip-esdf", action="store_true")
     add_common_options(p, default_out="out/speed")
     p.set_defaults(run=run)
@@ -67,29 +69,38 @@ def measure_system(name, level, n_particles, seed, iterations):
     return row
 
 
-def measure_env(decisions, seed):
-    """Decisions per second of SlamGym/HybridSLAM-v0 at its default (training) configuration."""
+def measure_env(decisions, seed, **config):
+    """Decisions per second of SlamGym/HybridSLAM-v0 (default: its training configuration),
+    resets included, fusing every 10 s; ``decisions=None`` runs exactly one whole episode."""
     from slam_gym.envs.hybrid_slam import HybridSLAMEnv
 
-    env = HybridSLAMEnv()
+    env = HybridSLAMEnv(**config)
     start = time.process_time()
     env.reset(seed=seed)
     done_decisions = 0
-    while done_decisions < decisions:
+    while decisions is None or done_decisions < decisions:
         fuse = int(env.episode.iteration % 100 == 0)
         _, _, terminated, truncated, _ = env.step(np.array([fuse, 0]))
         done_decisions += 1
         if terminated or truncated:
+            if decisions is None:
+                break
             env.reset()
     cpu = time.process_time() - start
     return {
         "env": "SlamGym/HybridSLAM-v0",
         "n_particles": env.config.n_particles,
+        "clutter_level": env.config.clutter_level,
         "decision_interval": env.config.decision_interval,
         "decisions": done_decisions,
+        "iterations": env.episode.iteration,
         "cpu_time_s": cpu,
         "decisions_per_s": done_decisions / cpu,
     }
+
+
+PAPER_ENV_CONFIG = {"n_particles": 500}
+"""BB's configuration in the env: 500 particles (the default clutter level 2, brooks-bailey)."""
 
 
 ESDF_GROWTH_SCENARIO = {
@@ -154,6 +165,8 @@ def run(args) -> int:
     }
     if args.env_decisions > 0:
         result["env"] = measure_env(args.env_decisions, args.seed)
+    if args.env_decisions > 0 and not args.skip_paper_episode:
+        result["env_paper_episode"] = measure_env(None, args.seed, **PAPER_ENV_CONFIG)
     if not args.skip_esdf:
         result["esdf"] = measure_esdf(args.seed)
     out = out_dir(args)
@@ -171,6 +184,10 @@ def run(args) -> int:
         e = result["env"]
         lines.append(f"env {e['env']} ({e['n_particles']} particles, interval "
                      f"{e['decision_interval']}): {e['decisions_per_s']:.0f} decisions/s")
+    if "env_paper_episode" in result:
+        e = result["env_paper_episode"]
+        lines.append(f"env paper configuration ({e['n_particles']} particles): one whole episode "
+                     f"of {e['decisions']} decisions in {e['cpu_time_s']:.1f} s")
     for r in result.get("esdf", []):
         lines.append(f"ESDF state {r['state_dim_min']}-{r['state_dim_max']}: median "
                      f"{r['ms_per_update_median']:.3f} ms, mean {r['ms_per_update_mean']:.3f} ms "

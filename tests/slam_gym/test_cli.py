@@ -61,14 +61,25 @@ def test_benchmark_tiny(tmp_path, capsys):
 def test_speed_tiny(tmp_path, capsys):
     out = run_json(capsys, ["speed", "--systems", "hybrid", "--particles", "10,40",
                             "--clutter-levels", "1", "--iterations", "60", "--env-decisions",
-                            "5", "--skip-esdf", "--out", str(tmp_path)])
+                            "5", "--skip-paper-episode", "--skip-esdf", "--out", str(tmp_path)])
     rows = out["systems"]
     assert [r["n_particles"] for r in rows] == [10, 40]
     for r in rows:
         assert r["iterations"] == 60 and r["iterations_per_s"] > 0
         assert r["real_time_ratio"] == pytest.approx(r["iterations_per_s"] * 0.1)
     assert out["env"]["decisions"] == 5
+    assert "env_paper_episode" not in out
     assert json.loads((tmp_path / "speed.json").read_text())["systems"] == rows
+
+
+def test_speed_times_exactly_one_whole_env_episode():
+    from slam_gym.commands.speed import measure_env
+
+    e = measure_env(None, 0, n_particles=10, n_steps=95)
+    # one episode, not reset: it ended (end of the cut path or a failure); reset() itself runs
+    # the first interval, every decision one more (the last one possibly cut short)
+    assert 10 < e["iterations"] <= 95 and e["decisions"] == -(-(e["iterations"] - 10) // 10)
+    assert e["cpu_time_s"] > 0 and e["n_particles"] == 10
 
 
 def test_train_smoke_and_the_model_loads_and_acts(tmp_path, capsys):
