@@ -26,7 +26,9 @@ class DeadReckoning:
         self.last_associations = np.zeros(0, dtype=np.int64)
 
     def predict(self, u, dt):
-        """x <- f(x, u); P <- F P F^T + G Q G^T."""
+        """x <- f(x, u); P <- F P F^T + G Q G^T (nothing for ``dt == 0``: no motion)."""
+        if float(dt) == 0.0:
+            return
         F, G = motion_jacobians(self.x, u, dt)
         Q = self.odometry_noise.covariance(u, dt)
         self.x = motion(self.x, u, dt)

@@ -300,6 +300,8 @@ class EKFSLAM:
         u = np.asarray(u, dtype=float)
         require(u.shape == (2,) and np.all(np.isfinite(u)), "u", u, "2 finite numbers (v, omega)")
         check_range("dt", dt, 0.0, 1e6)
+        if dt == 0.0:  # no time elapsed, no motion (e.g. a scan at the start pose)
+            return
         n = self._n
         x, P = self._x, self._P
         F, G = motion_jacobians(x[:3], u, dt)

@@ -329,7 +329,9 @@ class FastSLAM2:
         u = np.asarray(u, dtype=float)
         require(u.shape == (2,) and bool(np.all(np.isfinite(u))), "u", u, "a finite (v, omega)")
         dt = float(dt)
-        check_range("dt", dt, 0.0, 1e6, low_open=True)
+        check_range("dt", dt, 0.0, 1e6)
+        if dt == 0.0:  # no time elapsed, no motion (e.g. a scan at the start pose)
+            return
         if self._pending:
             self._sample_pending()
             self._maybe_resample()

@@ -13,7 +13,13 @@ Odometry noise, as each paper states it:
   filters receive is the commanded (v, omega); the filters' noise covariance is then exact;
 * ``chong-kleeman`` (CM (14)): truth moves with the commanded wheel travel; at each encoder tick,
   each wheel's measured travel is the true travel plus N(0, K |travel|); the ticks of a filter
-  step are summed and converted to (v, omega).
+  step are summed and converted to (v, omega). The variance is linear in the travel, so a step's
+  summed error has variance K |step travel| at any tick rate (the wheels never reverse within a
+  step), which is the covariance the filters use (:class:`filters.models.ChongKleemanNoise`,
+  whose tiny floor only keeps it regular at rest).
+With ``scan_at_start`` the stream begins with a motionless step (index 0, ``t_s = dt_s = 0``,
+zero odometry) holding a scan from the start pose; filters treat ``dt = 0`` as no motion. Step
+``i`` is then at ``t_s = i * dt`` and ``metadata["true_poses"][i]`` is its true pose.
 The sensor (BB 5.1): each landmark inside range and field of view is detected with probability
 alpha (range and bearing with Gaussian noise) and triggers, with probability beta, one false
 alarm uniform in range over [0, max range] and in bearing over the field of view; the
@@ -158,8 +164,10 @@ def measured_odometry(
     if isinstance(noise, ChongKleemanNoise):
         dt_tick = 1.0 / scenario.odometry_rate_hz
         travel = noise.wheel_travel(true_velocities, dt_tick)  # (n, ticks, 2)
+        # CM (14) exactly: variance K |travel| per tick, so a step's summed error has variance
+        # K |step travel| whatever the tick rate (the filters' model adds a tiny floor for rest)
         measured = travel + rng.standard_normal(travel.shape) * np.sqrt(
-            noise.wheel_variance(travel)
+            noise.k_m * np.abs(travel)
         )
         return noise.velocities(measured.sum(axis=1), scenario.dt_s)
     return commands.mean(axis=1)
@@ -208,27 +216,47 @@ def simulate(scenario: Scenario, seed: int) -> Stream:
     odometry = measured_odometry(scenario, commands, true_velocities, odometry_rng)
     sensor = sensor_of(scenario)
     clutter = ClutterModel(alpha=scenario.alpha, beta=scenario.beta)
-    n_steps = len(commands) if scenario.n_steps is None else min(scenario.n_steps, len(commands))
+    first = 1 if scenario.scan_at_start else 0  # the motionless scan at the start pose
+    n_moving = len(commands)
+    if scenario.n_steps is not None:
+        n_moving = min(scenario.n_steps - first, n_moving)
+    n_steps = first + n_moving
     dt = scenario.dt_s
     every = scenario.steps_per_scan
     empty_z, empty_ids = np.zeros((0, 2)), np.zeros(0, dtype=np.int64)
     steps = []
-    for k in range(n_steps):
+
+    def compass_at(pose):
+        if scenario.compass_std_rad is None:
+            return None
+        return float(wrap_angle(pose[2] + scenario.compass_std_rad * sensor_rng.normal()))
+
+    if first:
+        z, ids, visible = scan(poses[0], landmarks, sensor, clutter, sensor_rng)
+        steps.append(
+            Step(
+                index=0,
+                t_s=0.0,
+                dt_s=0.0,
+                odometry=np.zeros(2),
+                compass_rad=compass_at(poses[0]),
+                z=z,
+                truth=StepTruth(pose=poses[0].copy(), landmark_ids=ids, visible_ids=visible),
+            )
+        )
+    for k in range(n_moving):
         pose = poses[k + 1]
         if (k + 1) % every == 0:
             z, ids, visible = scan(pose, landmarks, sensor, clutter, sensor_rng)
         else:
             z, ids, visible = empty_z, empty_ids, None
-        compass = None
-        if scenario.compass_std_rad is not None:
-            compass = float(wrap_angle(pose[2] + scenario.compass_std_rad * sensor_rng.normal()))
         steps.append(
             Step(
-                index=k,
+                index=first + k,
                 t_s=(k + 1) * dt,
                 dt_s=dt,
                 odometry=odometry[k],
-                compass_rad=compass,
+                compass_rad=compass_at(pose),
                 z=z,
                 truth=StepTruth(pose=pose, landmark_ids=ids, visible_ids=visible),
             )
@@ -248,6 +276,6 @@ def simulate(scenario: Scenario, seed: int) -> Stream:
             "scenario": scenario,
             "seed": int(seed),
             "waypoints": waypoints,
-            "true_poses": poses[: n_steps + 1],
+            "true_poses": poses[: n_moving + 1],
         },
     )

@@ -198,7 +198,10 @@ def test_constructor_rejects_bad_models():
 def test_methods_reject_bad_input():
     f = make_filter(n_particles=3)
     with pytest.raises(ValueError, match="dt"):
-        f.predict([1.0, 0.0], 0.0)
+        f.predict([1.0, 0.0], -0.1)
+    poses = f._poses.copy()
+    f.predict([1.0, 0.0], 0.0)  # no time elapsed: no motion (a scan at the start pose)
+    np.testing.assert_array_equal(f._poses, poses)
     with pytest.raises(ValueError, match="u"):
         f.predict([1.0, np.nan], 0.1)
     with pytest.raises(ValueError, match="z"):

@@ -89,17 +89,29 @@ def test_conte_martinelli_lengths_and_speeds(name, length, speed):
         v = np.array([s.odometry[0] for s in stream])
         assert np.mean(v) == pytest.approx(speed, rel=0.01)
         scans = sum(1 for s in stream if s.truth.visible_ids is not None)
-        assert scans == len(stream) // 50  # 0.2 Hz sensor in a 10 Hz filter
+        # 0.2 Hz sensor in a 10 Hz filter, plus the scan at the start pose (motionless step 0)
+        assert scans == 1 + (len(stream) - 1) // 50
         assert len(stream.landmarks_true) == round(0.02 * 110 * 110)
 
 
-@pytest.mark.parametrize("name", ["brooks-bailey", "conte-martinelli-1", "brooks-bailey-compass"])
-def test_dead_reckoning_is_consistent(name):
+@pytest.mark.parametrize(
+    "name, overrides",
+    [
+        ("brooks-bailey", {}),
+        # CM's calibrated 0.09 m wheel base makes the heading noise so large against the
+        # translation noise that the pose distribution is banana-shaped within metres (a linear
+        # Gaussian 3-dof NEES is then not a test of the noise model); the heading alone is
+        # checked at the preset below, and (v, omega) in the CM (14) test
+        ("conte-martinelli-1", {"wheel_base_m": 0.5}),
+        ("brooks-bailey-compass", {}),
+    ],
+)
+def test_dead_reckoning_is_consistent(name, overrides):
     """ANEES of the final pose over many short runs inside the 95 % chi-square band."""
     runs = 40
     values = []
     for seed in range(runs):
-        stream = make_stream(name, seed=seed, n_steps=250)
+        stream = make_stream(name, seed=seed, n_steps=250, **overrides)
         f = DeadReckoning(stream.odometry_noise, stream.initial_pose)
         for step in stream:
             f.predict(step.odometry, step.dt_s)
@@ -108,6 +120,22 @@ def test_dead_reckoning_is_consistent(name):
         mean, cov = f.pose()
         values.append(nees(step.truth.pose, mean, cov))
     lo, hi = nees_band(runs)
+    assert lo <= np.mean(values) <= hi
+
+
+def test_dead_reckoning_heading_is_consistent_at_the_cm_preset():
+    """Heading is linear in the wheel errors: its NEES has mean 1 at CM's K and wheel base."""
+    runs = 100
+    values = []
+    for seed in range(runs):
+        stream = make_stream("conte-martinelli-1", seed=seed, n_steps=250)
+        f = DeadReckoning(stream.odometry_noise, stream.initial_pose)
+        for step in stream:
+            f.predict(step.odometry, step.dt_s)
+        mean, cov = f.pose()
+        err = (mean[2] - step.truth.pose[2] + np.pi) % (2.0 * np.pi) - np.pi
+        values.append(err**2 / cov[2, 2])
+    lo, hi = nees_band(runs, dof=1)
     assert lo <= np.mean(values) <= hi
 
 
@@ -164,3 +192,80 @@ def test_scenario_presets():
     bb = get_scenario("brooks-bailey", clutter_level=3)
     assert (bb.alpha, bb.beta) == (0.1, 0.06) and bb.max_range_m == 25.0
     assert get_scenario("brooks-bailey", alpha=0.5, beta=0.01).clutter_level is None
+
+
+def test_chong_kleeman_odometry_error_variance_is_cm14_for_the_stated_k():
+    """CM (14) at 100 Hz, summed per 0.1 s step: each wheel's error has variance K |travel|.
+
+    The simulated wheel-travel errors, normalised by sqrt(K |travel|) with CM's K = 1e-5 m, have
+    unit variance (a units or per-tick summation slip would scale it by 10 or more), and the
+    (v, omega) errors are consistent with the covariance the filters use (mean NEES 2).
+    """
+    from slam_gym.world import drive, loop_waypoints, measured_odometry, odometry_noise_of, route
+
+    scenario = get_scenario("conte-martinelli-1")
+    assert scenario.chong_kleeman_k_m == 1e-5 and scenario.odometry_rate_hz == 100.0
+    noise = odometry_noise_of(scenario)
+    normalised, nees_uv = [], []
+    for seed in range(3):
+        rngs = [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3)]
+        waypoints = loop_waypoints(scenario, rngs[0])
+        _, commands, true_velocities = drive(scenario, route(scenario, waypoints), rngs[1])
+        odometry = measured_odometry(scenario, commands, true_velocities, rngs[1])
+        dt_tick = 1.0 / scenario.odometry_rate_hz
+        true_travel = noise.wheel_travel(true_velocities, dt_tick).sum(axis=1)  # (n, 2)
+        measured_travel = noise.wheel_travel(odometry, scenario.dt_s)
+        err = measured_travel - true_travel
+        normalised.append(err / np.sqrt(scenario.chong_kleeman_k_m * np.abs(true_travel)))
+        true_u = noise.velocities(true_travel, scenario.dt_s)
+        for u, u_true in zip(odometry[::7], true_u[::7], strict=True):
+            e = u - u_true
+            nees_uv.append(float(e @ np.linalg.solve(noise.covariance(u, scenario.dt_s), e)))
+    normalised = np.concatenate(normalised)
+    n = normalised.size
+    assert n > 10_000
+    assert np.var(normalised) == pytest.approx(1.0, abs=5 * np.sqrt(2.0 / n))
+    assert abs(np.mean(normalised)) < 5 / np.sqrt(n)
+    assert np.mean(nees_uv) == pytest.approx(2.0, abs=5 * np.sqrt(4.0 / len(nees_uv)))
+
+
+def test_cm_scenarios_scan_first_at_the_start_pose_and_bb_does_not():
+    stream = make_stream("conte-martinelli-1", seed=2, n_steps=120)
+    steps = list(stream)
+    first = steps[0]
+    assert first.index == 0 and first.t_s == 0.0 and first.dt_s == 0.0
+    assert np.array_equal(first.odometry, np.zeros(2))
+    assert np.array_equal(first.truth.pose, stream.initial_pose)
+    in_range = np.linalg.norm(stream.landmarks_true - stream.initial_pose[:2], axis=1) <= 12.0
+    assert set(first.truth.visible_ids.tolist()) == set(np.flatnonzero(in_range).tolist())
+    assert len(first.z) == len(first.truth.visible_ids) > 0
+    # then a scan every 5 s, step i at t = i dt, with true_poses[i] its pose
+    assert [s.index for s in steps if len(s.z)] == [0, 50, 100]
+    assert steps[50].t_s == pytest.approx(5.0)
+    assert len(stream) == 120 and len(stream.metadata["true_poses"]) == 120
+    np.testing.assert_array_equal(stream.metadata["true_poses"][50], steps[50].truth.pose)
+    # BB is unchanged: no motionless step, scans from the first step on
+    assert not get_scenario("brooks-bailey").scan_at_start
+    bb = list(make_stream("brooks-bailey", seed=2, n_steps=5))
+    assert bb[0].dt_s == pytest.approx(0.1) and bb[0].t_s == pytest.approx(0.1)
+    with pytest.raises(ValueError, match="scan_at_start"):
+        get_scenario("brooks-bailey", scan_at_start="yes")
+
+
+@pytest.mark.parametrize(
+    "name", ["dead-reckoning", "ekf-slam", "fastslam", "hybrid", "esdf", "relative-esdf"]
+)
+def test_every_system_runs_the_motionless_start_step(name):
+    """dt = 0 is no motion: the start scan is taken from the exact initial pose."""
+    from slam_gym.episode import Episode
+    from slam_gym.systems import make_system
+
+    stream = make_stream("conte-martinelli-1", seed=1, n_steps=60)
+    system = make_system(name, stream, np.random.default_rng(0), n_particles=20)
+    episode = Episode(system, stream, known_association=name in ("esdf", "relative-esdf"))
+    episode.advance(1)
+    mean, _ = system.pose()
+    np.testing.assert_allclose(mean, stream.initial_pose, atol=1e-9)
+    episode.advance(len(stream))
+    mean, cov = system.pose()
+    assert np.all(np.isfinite(mean)) and np.all(np.isfinite(cov))
