@@ -407,8 +407,94 @@ def check_initial_pose(initial_pose) -> np.ndarray:
     return x0
 
 
-# --------------------------------------------------------------------------- the filter
-class ESDF:
+# --------------------------------------------------------------------------- the filters
+class DelayedStateFilter:
+    """What the ESDF and the relative-coordinate ESDF (:mod:`filters.relative_esdf`) share.
+
+    The options and models both take (validated here), the information form ``(eta, Lambda)`` in
+    :class:`SparseInformation` with one linearisation point per entity (``_mu``), odometry
+    compounded between epochs (:class:`OdometryAccumulator`), estimates cached per state version,
+    and the current pose as the last delayed pose (+) the pending odometry. A subclass provides
+    ``_delayed_pose()`` (mean and covariance of the last delayed pose) and may extend
+    ``_cache_stamp()``.
+    """
+
+    def __init__(self, sensor, clutter, odometry_noise, ids, recovery_window, min_odometry_var):
+        require(hasattr(sensor, "R"), "sensor", sensor, "a RangeBearingSensor")
+        require(
+            hasattr(odometry_noise, "covariance"),
+            "odometry_noise",
+            odometry_noise,
+            "a noise model with covariance(u, dt)",
+        )
+        require(
+            isinstance(recovery_window, int) and 1 <= recovery_window <= 1000,
+            "recovery_window",
+            recovery_window,
+            "an integer in [1, 1000]",
+        )
+        check_range("min_odometry_var", min_odometry_var, 0.0, 1.0, low_open=True)
+        self.sensor = sensor
+        self.clutter = clutter
+        self.odometry_noise = odometry_noise
+        self.ids = FeatureIds() if ids is None else ids
+        self.recovery_window = recovery_window
+        self.min_odometry_var = float(min_odometry_var)
+        self._R = np.asarray(sensor.R, dtype=float)
+        self._R_inv = np.linalg.inv(self._R)
+        self.info = SparseInformation()
+        self._mu: list[np.ndarray] = []
+        self._odo = OdometryAccumulator()
+        self.last_associations = np.zeros(0, dtype=np.int64)
+        self._est_cache: dict[str, tuple[object, object]] = {}
+
+    @property
+    def state_size(self) -> int:
+        """Dimension of the state (3 per pose, 2 per landmark coordinates, ...)."""
+        return self.info.dim
+
+    def information(self):
+        """``(eta, Lambda)``: dense vector and symmetric ``scipy.sparse`` CSC matrix."""
+        return self.info.vector(), self.info.matrix()
+
+    def predict(self, u, dt) -> None:
+        """Compound odometry ``u`` over ``dt`` into the pending increment (CM (8)); the state
+        changes only at the next epoch."""
+        u, dt = check_odometry(u, dt)
+        if dt == 0.0:
+            return
+        self._odo.add(u, dt, self.odometry_noise.covariance(u, dt))
+
+    @staticmethod
+    def _check_heading(theta, std_rad) -> None:
+        check_range("std_rad", std_rad, 0.0, 10.0, low_open=True)
+        require(np.isfinite(theta), "theta", theta, "a finite angle in radians")
+
+    def _cache_stamp(self):
+        return self.info.version
+
+    def _cached(self, key, fn):
+        stamp = self._cache_stamp()
+        hit = self._est_cache.get(key)
+        if hit is not None and hit[0] == stamp:
+            return hit[1]
+        val = fn()
+        self._est_cache[key] = (stamp, val)
+        return val
+
+    def _delayed_pose(self):
+        raise NotImplementedError
+
+    def pose(self):
+        """Current pose = last delayed pose (+) pending odometry, with covariance (3,), (3, 3)."""
+        m, P = self._delayed_pose()
+        delta = self._odo.delta
+        Ja, Jb = compose_jacobians(m, delta)
+        mean = compose(m, delta)
+        return mean, symmetrise(Ja @ P @ Ja.T + Jb @ self._odo.cov @ Jb.T)
+
+
+class ESDF(DelayedStateFilter):
     """Exactly Sparse Delayed-state Filter with known data association (CM section II).
 
     Parameters
@@ -440,27 +526,14 @@ class ESDF:
         loop_gap_epochs: int = 10,
         min_odometry_var: float = 1e-10,
     ):
-        require(hasattr(sensor, "R"), "sensor", sensor, "a RangeBearingSensor")
-        require(
-            hasattr(odometry_noise, "covariance"),
-            "odometry_noise",
-            odometry_noise,
-            "a noise model with covariance(u, dt)",
-        )
+        super().__init__(sensor, clutter, odometry_noise, ids, recovery_window, min_odometry_var)
         require(recovery in RECOVERY_MODES, "recovery", recovery, f"one of {RECOVERY_MODES}")
-        require(
-            isinstance(recovery_window, int) and 1 <= recovery_window <= 1000,
-            "recovery_window",
-            recovery_window,
-            "an integer in [1, 1000]",
-        )
         require(
             isinstance(loop_gap_epochs, int) and 1 <= loop_gap_epochs <= 10**6,
             "loop_gap_epochs",
             loop_gap_epochs,
             "an integer in [1, 1000000]",
         )
-        check_range("min_odometry_var", min_odometry_var, 0.0, 1.0, low_open=True)
         std0 = np.asarray(initial_pose_std, dtype=float)
         require(
             std0.shape == (3,) and bool(np.all(np.isfinite(std0) & (std0 > 0))),
@@ -469,29 +542,15 @@ class ESDF:
             "three positive finite stds (x, y, theta)",
         )
         x0 = check_initial_pose(initial_pose)
-        self.sensor = sensor
-        self.clutter = clutter
-        self.odometry_noise = odometry_noise
-        self.ids = FeatureIds() if ids is None else ids
         self.recovery = recovery
-        self.recovery_window = recovery_window
         self.loop_gap_epochs = loop_gap_epochs
-        self.min_odometry_var = float(min_odometry_var)
-        self._R = np.asarray(sensor.R, dtype=float)
-        self._R_inv = np.linalg.inv(self._R)
-
-        self.info = SparseInformation()
-        self._mu: list[np.ndarray] = []
         self._poses: list[int] = []
         self._pose_landmarks: list[list[int]] = []
         self._lm_entity: dict[int, int] = {}
         self._lm_fid: dict[int, int] = {}
         self._lm_last_epoch: dict[int, int] = {}
-        self._odo = OdometryAccumulator()
-        self.last_associations = np.zeros(0, dtype=np.int64)
         self.n_full_recoveries = 0
         self.last_update_full_recovery = False
-        self._est_cache: dict[str, tuple[int, object]] = {}
 
         e0 = self._new_entity(3, x0)
         self.info.add_information([e0], [np.eye(3)], np.diag(1.0 / std0**2), x0)
@@ -512,23 +571,7 @@ class ESDF:
     def n_landmarks(self) -> int:
         return len(self._lm_entity)
 
-    @property
-    def state_size(self) -> int:
-        """Dimension of the state (3 per delayed pose + 2 per landmark)."""
-        return self.info.dim
-
-    def information(self):
-        """``(eta, Lambda)``: dense vector and symmetric ``scipy.sparse`` CSC matrix."""
-        return self.info.vector(), self.info.matrix()
-
     # ----------------------------------------------------------------- filter steps
-    def predict(self, u, dt) -> None:
-        """Compound odometry ``u`` over ``dt`` into the pending increment (no state change)."""
-        u, dt = check_odometry(u, dt)
-        if dt == 0.0:
-            return
-        self._odo.add(u, dt, self.odometry_noise.covariance(u, dt))
-
     def _epoch_pose(self) -> int:
         """The delayed pose of the current epoch: augment with the pending odometry if any."""
         if self._odo.steps == 0:
@@ -599,8 +642,7 @@ class ESDF:
 
     def update_heading(self, theta, std_rad) -> None:
         """A compass measurement of the current heading (BB 5.5) on this epoch's delayed pose."""
-        check_range("std_rad", std_rad, 0.0, 10.0, low_open=True)
-        require(np.isfinite(theta), "theta", theta, "a finite angle in radians")
+        self._check_heading(theta, std_rad)
         k = self._epoch_pose()
         mu_k = self._mu[k]
         H = np.array([[0.0, 0.0, 1.0]])
@@ -629,29 +671,12 @@ class ESDF:
         self.n_full_recoveries += 1
 
     # ----------------------------------------------------------------- estimates
-    def _cached(self, key, fn):
-        hit = self._est_cache.get(key)
-        if hit is not None and hit[0] == self.info.version:
-            return hit[1]
-        val = fn()
-        self._est_cache[key] = (self.info.version, val)
-        return val
-
-    def _last_pose_marginal(self):
+    def _delayed_pose(self):
         def fn():
             e = self._poses[-1]
             return self.info.mean_of(e).copy(), self.info.marginals([e])[0]
 
         return self._cached("last_pose", fn)
-
-    def pose(self):
-        """Current pose = last delayed pose (+) pending odometry, with covariance (3,), (3, 3)."""
-        m, P = self._last_pose_marginal()
-        delta = self._odo.delta
-        Ja, Jb = compose_jacobians(m, delta)
-        mean = compose(m, delta)
-        cov = symmetrise(Ja @ P @ Ja.T + Jb @ self._odo.cov @ Jb.T)
-        return mean, cov
 
     def trajectory(self) -> np.ndarray:
         """Means of all delayed poses (K, 3), headings wrapped (exact solve)."""

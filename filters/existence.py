@@ -92,7 +92,7 @@ def miss_update(p, alpha, p_fa):
 def _elementwise(loop, *args):
     arrays = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in args))
     out = np.empty(arrays[0].shape)
-    loop(*(np.ascontiguousarray(a).reshape(-1) for a in arrays), out.reshape(-1))
+    loop(*(np.array(a).reshape(-1) for a in arrays), out.reshape(-1))  # copies: writable
     return out if out.ndim else out[()]
 
 

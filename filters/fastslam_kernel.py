@@ -64,16 +64,21 @@ def _wrap(angle):
 
 
 @njit(cache=True, inline="always")
-def _observation_terms(zr, zb, x, y, th, Pc, mx, my, sxx, sxy, syy, r_var, b_var):
-    """Innovation, ``S = G P G^T + H_m Sigma H_m^T + R`` and ``H_m`` of one feature for one
-    particle with proposal ``(x, y, th)``, ``Pc`` (3, 3) (module doc of filters.fastslam)."""
+def _innovation(zr, zb, x, y, th, mx, my):
+    """Innovation ``z - h(pose, m)`` (bearing wrapped) and ``H_m``, the Jacobian of ``h`` w.r.t.
+    the feature (:func:`filters.models.observe_jacobians`; ``H_pose = [-H_m | (0, -1)^T]``)."""
     dx = mx - x
     dy = my - y
     q = max(dx * dx + dy * dy, 1e-12)
     r = math.sqrt(q)
-    nu_r = zr - r
-    nu_b = _wrap(zb - math.atan2(dy, dx) + th)
-    h00, h01, h10, h11 = dx / r, dy / r, -dy / q, dx / q
+    return zr - r, _wrap(zb - math.atan2(dy, dx) + th), dx / r, dy / r, -dy / q, dx / q
+
+
+@njit(cache=True, inline="always")
+def _observation_terms(zr, zb, x, y, th, Pc, mx, my, sxx, sxy, syy, r_var, b_var):
+    """Innovation, ``S = G P G^T + H_m Sigma H_m^T + R`` and ``H_m`` of one feature for one
+    particle with proposal ``(x, y, th)``, ``Pc`` (3, 3) (module doc of filters.fastslam)."""
+    nu_r, nu_b, h00, h01, h10, h11 = _innovation(zr, zb, x, y, th, mx, my)
     m00 = sxx + Pc[0, 0]
     m01 = sxy + Pc[0, 1]
     m11 = syy + Pc[1, 1]
@@ -172,13 +177,7 @@ def propagate(poses, prop_cov, v, omega, dt, Q):
 def _feature_ekf(x, y, th, mx, my, sxx, sxy, syy, zr, zb, r_var, b_var):
     """EKF update of one feature from a known pose: ``K = Sigma H^T S^-1``, ``m += K nu``,
     ``Sigma -= K H Sigma`` (the FS2 map update at the sampled pose)."""
-    dx = mx - x
-    dy = my - y
-    q = max(dx * dx + dy * dy, 1e-12)
-    r = math.sqrt(q)
-    nu_r = zr - r
-    nu_b = _wrap(zb - math.atan2(dy, dx) + th)
-    h00, h01, h10, h11 = dx / r, dy / r, -dy / q, dx / q
+    nu_r, nu_b, h00, h01, h10, h11 = _innovation(zr, zb, x, y, th, mx, my)
     t00 = h00 * sxx + h01 * sxy
     t01 = h00 * sxy + h01 * syy
     t10 = h10 * sxx + h11 * sxy

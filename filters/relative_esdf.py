@@ -61,14 +61,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from filters.esdf import (
-    OdometryAccumulator,
-    SparseInformation,
+    DelayedStateFilter,
     check_initial_pose,
     check_observations,
-    check_odometry,
     symmetrise,
 )
-from filters.geometry import compose, compose_jacobians, transform_point_jacobians, wrap_angle
+from filters.geometry import compose, transform_point_jacobians, wrap_angle
 from filters.models import (
     innovation,
     inverse_observe,
@@ -139,7 +137,7 @@ def chain_compose(start, ds):
     return G, Ja[1:] @ Rb, Ja[0]
 
 
-class RelativeESDF:
+class RelativeESDF(DelayedStateFilter):
     """CM's relative-coordinate ESDF with known data association.
 
     Parameters (beyond those of :class:`filters.esdf.ESDF`)
@@ -163,13 +161,7 @@ class RelativeESDF:
         recovery_window: int = 4,
         min_odometry_var: float = 1e-10,
     ):
-        require(hasattr(sensor, "R"), "sensor", sensor, "a RangeBearingSensor")
-        require(
-            hasattr(odometry_noise, "covariance"),
-            "odometry_noise",
-            odometry_noise,
-            "a noise model with covariance(u, dt)",
-        )
+        super().__init__(sensor, clutter, odometry_noise, ids, recovery_window, min_odometry_var)
         require(
             isinstance(max_chain, int) and 1 <= max_chain <= 100000,
             "max_chain",
@@ -177,27 +169,9 @@ class RelativeESDF:
             "an integer in [1, 100000]",
         )
         check_range("innovation_sigmas", innovation_sigmas, 0.0, 100.0, low_open=True)
-        require(
-            isinstance(recovery_window, int) and 1 <= recovery_window <= 1000,
-            "recovery_window",
-            recovery_window,
-            "an integer in [1, 1000]",
-        )
-        check_range("min_odometry_var", min_odometry_var, 0.0, 1.0, low_open=True)
-        self.sensor = sensor
-        self.clutter = clutter
-        self.odometry_noise = odometry_noise
-        self.ids = FeatureIds() if ids is None else ids
         self.initial_pose = check_initial_pose(initial_pose)
         self.max_chain = max_chain
         self.innovation_sigmas = float(innovation_sigmas)
-        self.recovery_window = recovery_window
-        self.min_odometry_var = float(min_odometry_var)
-        self._R = np.asarray(sensor.R, dtype=float)
-        self._R_inv = np.linalg.inv(self._R)
-
-        self.info = SparseInformation()
-        self._mu: list[np.ndarray] = []
         self._quantity: list[RelativeQuantity] = []  # per relative entity
         self._bound: list[np.ndarray] = []  # per relative entity: measurement-only covariance
         self._entity_kinds: list[str] = [POSE]  # global entities (optimiser structure)
@@ -206,15 +180,12 @@ class RelativeESDF:
         self._lm_g: dict[int, int] = {}
         self._lm_fid: dict[int, int] = {}
         self._lm_coords: dict[int, list[tuple[int, int]]] = {}  # id -> [(rel entity, frame pose)]
-        self._odo = OdometryAccumulator()
         self.loop_closures: list[LoopClosure] = []
         self.last_loop_closure = False
         self.last_innovation_ratio = 0.0
-        self.last_associations = np.zeros(0, dtype=np.int64)
         self.last_optimisation: OptimiserResult | None = None
         self._opt_poses = 0  # poses covered by the last optimisation
         self._opt_version = 0
-        self._est_cache: dict[str, tuple[tuple[int, int], object]] = {}
         self._anchor_cov: dict[int, np.ndarray] = {}
 
     # ----------------------------------------------------------------- bookkeeping
@@ -231,17 +202,9 @@ class RelativeESDF:
         return len(self.loop_closures)
 
     @property
-    def state_size(self) -> int:
-        return self.info.dim
-
-    @property
     def redundancies(self) -> dict[int, list[int]]:
         """Landmark id -> its relative-coordinate entities, for landmarks with more than one."""
         return {j: [e for e, _ in c] for j, c in self._lm_coords.items() if len(c) > 1}
-
-    def information(self):
-        """``(eta, Lambda)`` of the relative state (dense vector, symmetric CSC matrix)."""
-        return self.info.vector(), self.info.matrix()
 
     def _new_relative(self, size, mean, quantity, bound) -> int:
         e = self.info.add_entity(size)
@@ -251,13 +214,6 @@ class RelativeESDF:
         return e
 
     # ----------------------------------------------------------------- filter steps
-    def predict(self, u, dt) -> None:
-        """Compound odometry over ``dt`` into the pending increment (CM (8))."""
-        u, dt = check_odometry(u, dt)
-        if dt == 0.0:
-            return
-        self._odo.add(u, dt, self.odometry_noise.covariance(u, dt))
-
     def _epoch_pose(self) -> int:
         """Pose number of this epoch; a new ``d_k^R`` integrated with CM (9) if the robot moved."""
         if self._odo.steps == 0:
@@ -362,8 +318,7 @@ class RelativeESDF:
 
     def update_heading(self, theta, std_rad) -> None:
         """A compass reading: a redundant ``"heading"`` quantity for the optimiser (no chain)."""
-        check_range("std_rad", std_rad, 0.0, 10.0, low_open=True)
-        require(np.isfinite(theta), "theta", theta, "a finite angle in radians")
+        self._check_heading(theta, std_rad)
         k = self._epoch_pose()
         if k == 0:
             return  # the start pose is the gauge: known
@@ -402,14 +357,8 @@ class RelativeESDF:
         return result
 
     # ----------------------------------------------------------------- estimates
-    def _cached(self, key, fn):
-        stamp = (self.info.version, self._opt_version)
-        hit = self._est_cache.get(key)
-        if hit is not None and hit[0] == stamp:
-            return hit[1]
-        val = fn()
-        self._est_cache[key] = (stamp, val)
-        return val
+    def _cache_stamp(self):
+        return (self.info.version, self._opt_version)
 
     def _base(self, k):
         """The global anchor for pose ``k``: (pose number b <= k, mean, covariance)."""
@@ -431,6 +380,15 @@ class RelativeESDF:
         return G[-1], J_start @ base_cov @ J_start.T, list(zip(d_ents, J_ds, strict=True))
 
     def _delayed_pose(self):
+        """Global last delayed pose: (optimised anchor) (+) relative chain (:meth:`pose` adds
+        the pending odometry).
+
+        Before any optimisation the anchor is the known start pose and the covariance is exact
+        for the linearised chain (``J Lambda^-1 J^T``). After an optimisation the anchor is the
+        optimum with its Gauss-Newton covariance, and the chain added since is taken as
+        independent of it (an approximation: both depend on shared landmark observations).
+        """
+
         def fn():
             k = len(self._pose_g) - 1
             mean, base_term, functional = self._global_functional(k, self.info.mean())
@@ -438,20 +396,6 @@ class RelativeESDF:
             return mean, symmetrise(base_term + chain)
 
         return self._cached("pose", fn)
-
-    def pose(self):
-        """Current global pose: (optimised anchor) (+) relative chain (+) pending odometry.
-
-        Before any optimisation the anchor is the known start pose and the covariance is exact
-        for the linearised chain (``J Lambda^-1 J^T``). After an optimisation the anchor is the
-        optimum with its Gauss-Newton covariance, and the chain added since is taken as
-        independent of it (an approximation: both depend on shared landmark observations).
-        """
-        m, P = self._delayed_pose()
-        delta = self._odo.delta
-        Ja, Jb = compose_jacobians(m, delta)
-        mean = compose(m, delta)
-        return mean, symmetrise(Ja @ P @ Ja.T + Jb @ self._odo.cov @ Jb.T)
 
     def trajectory(self) -> np.ndarray:
         """Global means of all delayed poses (K, 3), headings wrapped."""

@@ -64,32 +64,13 @@ from filters.association import (
 from filters.ekf_slam import _validate_cov, _validate_pose, kalman_update
 from filters.existence import CONFIRMED_PROBABILITY
 from filters.geometry import compose, compose_jacobians, transform_point, wrap_angle
+from filters.interface_features import INTERFACE_FEATURE_NAMES
 from filters.models import observe
 from filters.types import FusionReport, GaussianMap, LandmarkEstimate
 from filters.validation import check_range, require
 
 logger = logging.getLogger(__name__)
 
-INTERFACE_FEATURE_NAMES = (
-    "local_map_age_s",
-    "local_map_distance_m",
-    "ess_ratio",
-    "particle_position_spread_m",
-    "particle_heading_spread_rad",
-    "local_feature_count",
-    "local_confirmed_count",
-    "vote_margin",
-    "innovation_ratio",
-    "global_features_in_view",
-    "global_position_std_m",
-    "global_heading_std_rad",
-    "time_since_optimise_s",
-    "fusions_since_optimise",
-    "clutter_rate",
-    "loop_closure_flag",
-    "local_map_budget_ratio",
-)
-"""The interface features of docs/ARCHITECTURE.md, in a fixed order."""
 
 
 def transform_points_jacobians(pose, points):

@@ -15,8 +15,9 @@ back-end"); the optimisation decision is CM's switch from the filter to the nonl
 (CM section III.B-C). When both are 1 at one decision the env fuses first and then optimises, so
 the optimiser sees the sub-map that was just fused.
 
-This package imports nothing else of the project: the helpers below (feature reading, option
-validation, the Discrete(4) mapping) are self-contained on purpose.
+This package imports nothing else of the project but the feature names' one definition
+(:mod:`filters.interface_features`, which imports nothing): the helpers below (feature reading,
+option validation, the Discrete(4) mapping) are self-contained on purpose.
 """
 
 from __future__ import annotations
@@ -28,25 +29,9 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-INTERFACE_FEATURES: tuple[str, ...] = (
-    "local_map_age_s",
-    "local_map_distance_m",
-    "ess_ratio",
-    "particle_position_spread_m",
-    "particle_heading_spread_rad",
-    "local_feature_count",
-    "local_confirmed_count",
-    "vote_margin",
-    "innovation_ratio",
-    "global_features_in_view",
-    "global_position_std_m",
-    "global_heading_std_rad",
-    "time_since_optimise_s",
-    "fusions_since_optimise",
-    "clutter_rate",
-    "loop_closure_flag",
-    "local_map_budget_ratio",
-)
+from filters.interface_features import INTERFACE_FEATURE_NAMES
+
+INTERFACE_FEATURES: tuple[str, ...] = INTERFACE_FEATURE_NAMES
 """The interface-feature names of docs/ARCHITECTURE.md, in table order: the contract between the
 env (which fills ``info["features"]``) and the heuristics (which declare the subset they read)."""
 
