@@ -180,7 +180,10 @@ def test_process_pool_records_errors_and_resumes(tmp_path):
 
 def _start_driver(out_dir: Path, kill_group: bool) -> subprocess.Popen:
     code = (
-        "import sys\n"
+        "import signal, sys\n"
+        # Ctrl-C raises KeyboardInterrupt even where the driver inherits an ignored SIGINT (a
+        # background job of a non-interactive shell, as CI may start the tests)
+        "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
         "from test_evaluation import slow_jobs, slow_run\n"
         "from slam_gym.evaluation import run_jobs\n"
         "run_jobs(slow_jobs(), slow_run, sys.argv[1], workers=2, progress=False)\n"
