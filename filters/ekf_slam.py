@@ -270,6 +270,7 @@ class EKFSLAM:
         self._P[:3, :3] = cov
         self._age_s = 0.0
         self._distance_m = 0.0
+        self._label_fid: dict[int, int] = {}
         self.last_associations = np.zeros(0, dtype=np.int64)
 
     @property
@@ -325,8 +326,14 @@ class EKFSLAM:
         kalman_update(x, P, [2], np.ones((1, 1)), nu, np.array([[std_rad**2]]))
         x[2] = wrap_angle(x[2])
 
-    def update(self, z):
-        """Associate (gating + JCBB), update, manage existence, add and cull features."""
+    def update(self, z, associations=None):
+        """Associate (gating + JCBB), update, manage existence, add and cull features.
+
+        ``associations`` (K,) optional, for comparison (known data association, e.g. the truth
+        labels of a recording): non-negative labels tie each observation to one feature per
+        label (a new feature the first time, or again after its feature was culled), -1 is a
+        known false alarm (ignored); no gating, no JCBB. Existence and culling are unchanged.
+        """
         z = np.asarray(z, dtype=float)
         if z.size == 0:
             z = np.zeros((0, 2))
@@ -337,6 +344,11 @@ class EKFSLAM:
             "a finite (K, 2) array of (range, bearing)",
         )
         K = len(z)
+        known = None
+        if associations is not None:
+            known = np.asarray(associations, dtype=np.int64).reshape(-1)
+            require(len(known) == K, "associations", associations, f"length {K} like z")
+            require(bool(np.all(known >= -1)), "associations", associations, "labels >= -1")
         N = self.n_features
         pairing = np.full(K, -1, dtype=np.int64)
         gated_any = np.zeros(K, dtype=bool)
@@ -346,7 +358,12 @@ class EKFSLAM:
             x, P = self._x[:n], self._P[:n, :n]
             pred = predict_range_bearing(x, P, np.arange(3), self._feature_cols(), self._R)
             in_view = self._predicted_in_view(pred)
-            if K > 0:
+            if K > 0 and known is not None:
+                pairing = self._known_pairing(known)
+                matched = np.flatnonzero(pairing >= 0)
+                if len(matched):
+                    self._update_matched(z[matched], pairing[matched], pred)
+            elif K > 0:
                 cands, _, mask = range_bearing_candidates(z, x, P, pred, self._R, self._gate)
                 gated_any = mask.any(axis=1)
                 hyp = jcbb(cands, self._gate, self.config.node_budget)
@@ -361,15 +378,43 @@ class EKFSLAM:
         # ids of associations before features are added or culled
         assoc = np.full(K, -1, dtype=np.int64)
         assoc[pairing >= 0] = self._fid[pairing[pairing >= 0]]
-        new_obs = np.flatnonzero((pairing < 0) & ~gated_any)
+        if known is None:
+            new_obs = np.flatnonzero((pairing < 0) & ~gated_any)
+        else:  # the first observation of each label not (or no longer) mapped
+            present = set(self._fid[: self.n_features].tolist())
+            unmapped = np.array(
+                [lab >= 0 and self._label_fid.get(lab, -1) not in present
+                 for lab in known.tolist()],
+                dtype=bool,
+            )
+            labels = np.where(unmapped, known, -1)
+            _, first = np.unique(labels, return_index=True)
+            new_obs = np.sort(first[labels[first] >= 0])
         if len(new_obs):
             assoc[new_obs] = self._add_features(z[new_obs])
+            if known is not None:
+                new_labels = known[new_obs].tolist()
+                self._label_fid.update(zip(new_labels, assoc[new_obs].tolist(), strict=True))
         self._cull()
         # running clutter rate: observations not explained by an existing feature
         lam = self.config.clutter_rate_forgetting
         self._clutter_num = lam * self._clutter_num + float(np.count_nonzero(pairing < 0))
         self._clutter_den = lam * self._clutter_den + float(K)
         self.last_associations = assoc
+
+    def _known_pairing(self, known):
+        """Feature index per observation from known labels (-1: unmapped label or clutter);
+        a label observed twice in one scan pairs its first observation only."""
+        fids = self._fid[: self.n_features]
+        index = {int(f): i for i, f in enumerate(fids)}
+        pairing = np.full(len(known), -1, dtype=np.int64)
+        used = set()
+        for k, label in enumerate(known.tolist()):
+            i = index.get(self._label_fid.get(label, -1), -1) if label >= 0 else -1
+            if i >= 0 and i not in used:
+                pairing[k] = i
+                used.add(i)
+        return pairing
 
     def _predicted_in_view(self, pred):
         k = self.config.in_view_margin_sigma

@@ -75,8 +75,10 @@ Every ``cull_interval_steps`` updates, features with existence below ``cull_thre
 Correspondences (BB 3.1) are voted per observation, with the weights after that observation
 (:func:`filters.conversion.vote_all`); all features modified or created by the
 observation get the winner's id (a new id from the shared :class:`filters.types.FeatureIds` when
-*new feature* wins). When clutter wins, modified features keep their id and created ones get -1
-(no common feature yet). ``last_associations[k]`` is the winning id (-1 = clutter).
+*new feature* wins), except where the particle already holds another feature with that id: ids
+stay unique within a particle (:func:`filters.conversion.assign_correspondence_ids`). When
+clutter wins, modified features keep their id and created ones get -1 (no common feature yet).
+``last_associations[k]`` is the winning id (-1 = clutter).
 
 Systematic resampling runs when ``N_eff < resample_threshold * P``.
 
@@ -92,6 +94,7 @@ import numpy as np
 
 from filters.conversion import (
     NEW_VOTE,
+    assign_correspondence_ids,
     common_features,
     feature_moments,
     moment_match,
@@ -428,12 +431,11 @@ class FastSLAM2:
                 self._remember_clutter(share)
         else:
             winners, margins = known_cids, np.ones(K)
-        # every feature modified or created by an observation takes its winner's id (clutter
-        # winning leaves modified features their id and created ones without one)
+        # every feature modified or created by an observation takes its winner's id, unless its
+        # particle holds another feature with that id (clutter winning leaves modified features
+        # their id and created ones without one): filters.conversion.assign_correspondence_ids
         ks, ps = np.nonzero(slots >= 0)
-        flat = ps * self._capacity + slots[ks, ps]
-        won = winners[ks]
-        np.put(self._cid, flat, np.where(won >= 0, won, np.take(self._cid, flat)))
+        assign_correspondence_ids(self._cid, self._active, ks, ps, slots[ks, ps], winners[ks])
 
         self._outputs = {}
         self._steps += 1

@@ -129,7 +129,7 @@ def make_system(
         from filters.ekf_slam import EKFSLAM
 
         return System(name, EKFSLAM(sensor, clutter, noise, ids, initial_pose=pose0, **options),
-                      None)
+                      "associations")
     if name == "fastslam":
         from filters.fastslam import FastSLAM2
 

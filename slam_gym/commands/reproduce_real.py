@@ -95,6 +95,18 @@ MRCLAM_OPTIONS = {
     "fusion_interval_s": FUSION_INTERVAL_S,
     "decision_interval": DECISION_INTERVAL,
     "model_path": None,
+    "noise_window_s": None,
+    "sensor_bias_correction": False,
+    "motion_compensation": False,
+    "landmark_density_per_m2": None,
+    "gate_chi2": None,
+}
+#: MRCLAM options that change the stream (the loader's sensor calibration)
+MRCLAM_STREAM_OPTIONS = ("noise_window_s", "sensor_bias_correction", "motion_compensation")
+#: MRCLAM options of the FastSLAM filters (FASTSLAM, HYBRID's front-end) by filter keyword
+MRCLAM_FASTSLAM_OPTIONS = {
+    "landmark_density_per_m2": "new_landmark_density_per_m2",
+    "gate_chi2": "gate_chi2",
 }
 VP_OPTIONS = {
     "data": None,
@@ -158,6 +170,30 @@ def add_parser(targets) -> None:
     mr.add_argument(
         "--noise-scale", type=float, default=1.0,
         help="factor on the calibrated range/bearing std (default 1)",
+    )
+    mr.add_argument(
+        "--noise-window", type=float, default=None, metavar="SECONDS",
+        help="calibrate the range/bearing std by the white-noise rule over windows of this "
+        "many seconds, accounting for the time correlation of the camera's errors "
+        "(default: the root mean square of the residuals)",
+    )
+    mr.add_argument(
+        "--sensor-bias-correction", action="store_true",
+        help="subtract the camera's systematic range/bearing errors fitted against the truth",
+    )
+    mr.add_argument(
+        "--motion-compensation", action="store_true",
+        help="move each measurement to the end of its filter step with the odometry",
+    )
+    mr.add_argument(
+        "--landmark-density", type=float, default=None, metavar="PER_M2",
+        help="FastSLAM's density of not-yet-mapped landmarks (FASTSLAM and HYBRID; default: "
+        "the filter's, BB's 35 landmarks in 120 m x 120 m)",
+    )
+    mr.add_argument(
+        "--gate-chi2", type=float, default=None,
+        help="FastSLAM's association gate, chi-square with 2 dof (default: the filter's, "
+        "13.8 = 99.9 %%)",
     )
     _add_shared_options(mr, "out/reproduce-mrclam")
     mr.set_defaults(run=run_mrclam)
@@ -260,12 +296,26 @@ def run_mrclam(args) -> int:
             "distinct names")
     require(args.noise_scale > 0 and math.isfinite(args.noise_scale), "--noise-scale",
             args.noise_scale, "a number > 0")
+    for flag, value in (("--noise-window", args.noise_window),
+                        ("--landmark-density", args.landmark_density),
+                        ("--gate-chi2", args.gate_chi2)):
+        require(value is None or (value > 0 and math.isfinite(value)), flag, value,
+                "a number > 0")
     usable, skipped = available_policies(policy_names, args.model_path)
     probe = mrclam_stream(data, robots[0], max_steps=10)
     known_capable = [s for s in systems if supports_known_association(s, probe)]
     no_known_mode = [s for s in systems if s not in known_capable]
 
     base = {"data": str(data), "max_steps": args.max_steps, "noise_scale": args.noise_scale}
+    # calibration and filter options enter the job (and its resume key) only when given
+    given = {
+        "noise_window_s": args.noise_window,
+        "sensor_bias_correction": args.sensor_bias_correction or None,
+        "motion_compensation": args.motion_compensation or None,
+        "landmark_density_per_m2": args.landmark_density,
+        "gate_chi2": args.gate_chi2,
+    }
+    base |= {k: v for k, v in given.items() if v is not None}
     seeds = range(args.seed_start, args.seed_start + args.trials)
     jobs = []
     for seed in seeds:
@@ -350,6 +400,15 @@ def _mrclam_notes(args, skipped, no_known_mode, known_capable) -> list[str]:
         f"Sub-map systems fuse every {FUSION_INTERVAL_S:g} s (BB); particles: {args.particles}; "
         f"sensor noise scale: {args.noise_scale:g}; runs go on after BB's failure criterion "
         "(success = never met).",
+        "Sensor noise: "
+        + ("root mean square of the residuals against the truth" if args.noise_window is None
+           else f"white-noise rule over {args.noise_window:g} s windows (correlated errors)")
+        + ("; camera bias corrected" if args.sensor_bias_correction else "")
+        + ("; measurements moved to the step end" if args.motion_compensation else "")
+        + ". FastSLAM (FASTSLAM, HYBRID): landmark density "
+        + ("default" if args.landmark_density is None else f"{args.landmark_density:g} /m^2")
+        + ", gate " + ("default" if args.gate_chi2 is None else f"chi2 {args.gate_chi2:g}")
+        + ".",
     ]
     if args.known_association:
         notes.append(
@@ -420,29 +479,66 @@ def _mrclam_result(episode, stream, robot: int, association: str) -> dict:
     return row
 
 
+def fastslam_options(landmark_density_per_m2=None, gate_chi2=None) -> dict:
+    """The FastSLAM2 keyword options of the MRCLAM options given (None = filter default)."""
+    given = {"landmark_density_per_m2": landmark_density_per_m2, "gate_chi2": gate_chi2}
+    return {MRCLAM_FASTSLAM_OPTIONS[k]: float(v) for k, v in given.items() if v is not None}
+
+
+def _system_options(name: str, fs_options: dict) -> dict:
+    if name == "fastslam":
+        return dict(fs_options)
+    if name == "hybrid":
+        return {f"front_{k}": v for k, v in fs_options.items()}
+    return {}  # the EKF filters keep their defaults
+
+
+def _calibration_fields(opts: dict) -> dict:
+    """The sensor-calibration and FastSLAM options of a run, for its result row."""
+    return {k: opts[k] for k in (*MRCLAM_STREAM_OPTIONS, *MRCLAM_FASTSLAM_OPTIONS)}
+
+
 def run_mrclam_system(
     name: str, robot: int, seed: int, *, data, known_association=False,
     n_particles=DEFAULT_PARTICLES, max_steps=None, noise_scale=1.0,
     fusion_interval_s=FUSION_INTERVAL_S, decision_interval=DECISION_INTERVAL, model_path=None,
+    noise_window_s=None, sensor_bias_correction=False, motion_compensation=False,
+    landmark_density_per_m2=None, gate_chi2=None,
 ) -> dict:
-    """One system over one MRCLAM robot on BB's fixed schedule; the result row."""
+    """One system over one MRCLAM robot on BB's fixed schedule; the result row.
+
+    ``noise_window_s``, ``sensor_bias_correction``, ``motion_compensation``: the loader's sensor
+    calibration (:func:`slam_gym.envs.mrclam.mrclam_stream`); ``landmark_density_per_m2``,
+    ``gate_chi2``: options of the FastSLAM filters (FASTSLAM and HYBRID's front-end; the EKF
+    filters keep their defaults). Known and unknown association get the same options."""
     from slam_gym.envs.mrclam import mrclam_stream
     from slam_gym.evaluation.core import run_system
 
-    stream = mrclam_stream(data, robot, max_steps=max_steps, sensor_noise_scale=noise_scale)
+    stream = mrclam_stream(
+        data, robot, max_steps=max_steps, sensor_noise_scale=noise_scale,
+        noise_window_s=noise_window_s, sensor_bias_correction=sensor_bias_correction,
+        motion_compensation=motion_compensation,
+    )
+    fs_options = fastslam_options(landmark_density_per_m2, gate_chi2)
     episode = run_system(
         name, stream, seed, n_particles=n_particles, fusion_interval_s=fusion_interval_s,
         known_association=known_association, stop_on_failure=False, record_trace=True,
+        system_options=_system_options(name, fs_options),
     )
-    return _mrclam_result(episode, stream, robot, "known" if known_association else "unknown")
+    row = _mrclam_result(episode, stream, robot, "known" if known_association else "unknown")
+    row.update(_calibration_fields(locals()))
+    return row
 
 
 def run_mrclam_policy(
     name: str, robot: int, seed: int, *, data, n_particles=DEFAULT_PARTICLES, max_steps=None,
     noise_scale=1.0, decision_interval=DECISION_INTERVAL, model_path=None,
     known_association=False, fusion_interval_s=FUSION_INTERVAL_S,
+    noise_window_s=None, sensor_bias_correction=False, motion_compensation=False,
+    landmark_density_per_m2=None, gate_chi2=None,
 ) -> dict:
-    """HYBRID driven by interface policy ``name`` in :class:`MRCLAMEnv` over one robot."""
+    """HYBRID driven by interface policy ``name`` in :class:`MRCLAMEnv` over one robot (the
+    calibration and FastSLAM options as in :func:`run_mrclam_system`)."""
     import policies
     from slam_gym.envs.mrclam import MRCLAMEnv
 
@@ -454,6 +550,9 @@ def run_mrclam_policy(
         data_dir=data, robot=robot, n_particles=n_particles,
         decision_interval=decision_interval, n_steps=max_steps,
         sensor_noise_scale=noise_scale, terminate_on_failure=False,
+        sensor_noise_window_s=noise_window_s, sensor_bias_correction=sensor_bias_correction,
+        motion_compensation=motion_compensation,
+        front_end_options=fastslam_options(landmark_density_per_m2, gate_chi2),
     )
     policy.reset()
     obs, info = env.reset(seed=int(seed))
@@ -463,6 +562,7 @@ def run_mrclam_policy(
             break
     row = _mrclam_result(env.episode, env.stream, robot, "unknown")
     row["driven_system"] = "hybrid"
+    row.update(_calibration_fields(locals()))
     env.close()
     return row
 

@@ -83,6 +83,7 @@ from filters.models import (
     ProportionalVelocityNoise,
     RangeBearingSensor,
     innovation,
+    motion,
     observe,
 )
 from filters.validation import check_range, require
@@ -248,6 +249,90 @@ def estimate_sensor_noise(
     )
 
 
+@dataclass(frozen=True)
+class SensorBiasModel:
+    """Systematic (repeatable) camera errors, as functions of the measurement itself.
+
+    Range error ``c0 + c1 r + c2 b + c3 b^2`` and bearing error ``d0 + d1 b`` of a measurement
+    ``(r, b)``; :meth:`correct` subtracts them. On MRCLAM Dataset 7 the range error is
+    dominated by the ``b^2`` term (about -1.5 to -1.9 m/rad^2: ranges read ~0.2 m long at the
+    image centre and short at its edges, the camera's distortion), see
+    :func:`estimate_sensor_bias`.
+    """
+
+    range_coef: tuple[float, float, float, float]
+    bearing_coef: tuple[float, float]
+    n_rows: int
+
+    def bias(self, z) -> np.ndarray:
+        z = np.asarray(z, dtype=float).reshape(-1, 2)
+        c, d = self.range_coef, self.bearing_coef
+        r, b = z[:, 0], z[:, 1]
+        return np.column_stack([c[0] + c[1] * r + c[2] * b + c[3] * b * b, d[0] + d[1] * b])
+
+    def correct(self, z) -> np.ndarray:
+        """``z`` (K, 2) minus its bias (bearing wrapped, range kept >= 0)."""
+        out = np.asarray(z, dtype=float).reshape(-1, 2) - self.bias(z)
+        out[:, 0] = np.maximum(out[:, 0], 0.0)
+        out[:, 1] = wrap_angle(out[:, 1])
+        return out
+
+
+def estimate_sensor_bias(z, residuals) -> SensorBiasModel:
+    """Least-squares fit of :class:`SensorBiasModel` to ``residuals`` (K, 2) = z - h(x_true,
+    m_true) of the measurements ``z`` (K, 2) (inliers only: pass the rows
+    :func:`estimate_sensor_noise` kept). The regressors are the *measured* range and bearing, so
+    the correction can be applied to new measurements without any truth."""
+    z = np.asarray(z, dtype=float)
+    e = np.asarray(residuals, dtype=float)
+    require(z.ndim == 2 and z.shape[1] == 2, "z", z.shape, "a (K, 2) array")
+    require(e.shape == z.shape, "residuals", e.shape, f"{z.shape} like z")
+    require(z.shape[0] >= 8, "z", z.shape[0], "at least 8 rows")
+    require(bool(np.all(np.isfinite(z)) and np.all(np.isfinite(e))), "residuals",
+            "non-finite values", "finite numbers")
+    r, b = z[:, 0], z[:, 1]
+    A = np.column_stack([np.ones_like(r), r, b, b * b])
+    c, *_ = np.linalg.lstsq(A, e[:, 0], rcond=None)
+    d, *_ = np.linalg.lstsq(A[:, [0, 2]], e[:, 1], rcond=None)
+    return SensorBiasModel(
+        range_coef=tuple(float(x) for x in c), bearing_coef=tuple(float(x) for x in d),
+        n_rows=int(z.shape[0]),
+    )
+
+
+def correlated_noise_std(residuals, times, groups, window_s: float) -> tuple[float, float]:
+    """Per-measurement (range, bearing) std that a white-noise filter should assume when the
+    errors are correlated in time: the white-noise rule of :func:`estimate_odometry_noise`
+    applied to the sensor.
+
+    The rows of each group (landmark) are cut into consecutive windows of ``window_s``; with
+    ``n`` rows and mean residual ``m`` in a window, ``n m^2`` estimates ``sigma^2`` if the errors
+    were white (the variance of a mean of n white errors is sigma^2 / n), and exceeds it by the
+    correlation of the errors otherwise. Returns the root of the average of ``n m^2`` over all
+    windows: the std whose white-noise average over a window matches the observed one. With
+    ``window_s`` shorter than the gap between rows it is the root mean square of the residuals.
+    """
+    e = np.asarray(residuals, dtype=float)
+    t = np.asarray(times, dtype=float).reshape(-1)
+    g = np.asarray(groups).reshape(-1)
+    require(e.ndim == 2 and e.shape[1] == 2, "residuals", e.shape, "a (K, 2) array")
+    require(len(t) == len(g) == len(e) and len(e) >= 1, "times", t.shape,
+            f"({len(e)},) like groups and residuals")
+    check_range("window_s", window_s, 0.0, 1e6, low_open=True)
+    total, n_windows = np.zeros(2), 0
+    for group in np.unique(g):
+        rows = g == group
+        tg, eg = t[rows], e[rows]
+        window = np.floor((tg - tg.min()) / window_s).astype(np.int64)
+        _, inverse, counts = np.unique(window, return_inverse=True, return_counts=True)
+        sums = np.zeros((len(counts), 2))
+        np.add.at(sums, inverse, eg)
+        total += np.sum(sums**2 / counts[:, None], axis=0)
+        n_windows += len(counts)
+    std = np.sqrt(total / n_windows)
+    return float(std[0]), float(std[1])
+
+
 def estimate_field_of_view(z, *, quantile: float = FIELD_QUANTILE) -> tuple[float, float]:
     """(max range, fov) from observations z (K, 2): the ``quantile`` of the ranges and twice the
     ``quantile`` of |bearing| (the sensor model's field is symmetric about the heading)."""
@@ -407,12 +492,24 @@ class MrclamCalibration:
     detection: DetectionRateEstimate
     max_range_m: float
     fov_rad: float
+    sensor_bias: SensorBiasModel | None = None
+    noise_window_s: float | None = None
+    filter_range_std_m: float | None = None
+    filter_bearing_std_rad: float | None = None
 
     def as_dict(self) -> dict:
         """Flat numbers (no arrays), for ``Stream.metadata`` and reports."""
         noise = {k: v for k, v in asdict(self.sensor_noise).items() if k != "inlier"}
+        bias = {}
+        if self.sensor_bias is not None:
+            bias = {f"range_bias_c{i}": c for i, c in enumerate(self.sensor_bias.range_coef)}
+            bias |= {f"bearing_bias_d{i}": d for i, d in enumerate(self.sensor_bias.bearing_coef)}
         return {
             **noise,
+            **bias,
+            "noise_window_s": self.noise_window_s,
+            "filter_range_std_m": self.filter_range_std_m,
+            "filter_bearing_std_rad": self.filter_bearing_std_rad,
             "max_range_m": self.max_range_m,
             "fov_rad": self.fov_rad,
             **{f"odometry_{k}": v for k, v in asdict(self.odometry).items()},
@@ -432,9 +529,29 @@ class _Layout:
     row_is_robot: np.ndarray  # (M,) sighting of a robot subject
     residuals: np.ndarray  # (M, 2) z - h(x_true(step end), m_true) for landmark rows in the grid
     step_poses: np.ndarray  # (n, 3) true poses at the step ends
+    row_z: np.ndarray  # (M, 2) the (range, bearing) each row hands the filter at its step's end
 
 
-def _layout(rec: MrclamRecording, dt_s: float) -> _Layout:
+def compensate_motion(z, u, tau):
+    """Observations ``z`` (K, 2) taken ``tau`` (K,) seconds before the end of their step, moved
+    into the robot frame at the step's end with the step's odometry ``u`` (K, 2) = (v, omega):
+    the point ``p`` seen at the measurement time is ``inverse(d) (+) p`` at the end, ``d`` the
+    unicycle increment :func:`filters.models.motion` over ``tau``. Uses odometry only (no
+    truth): it is what a filter stepping at ``dt_s`` would do with a time-stamped measurement.
+    """
+    z = np.asarray(z, dtype=float).reshape(-1, 2)
+    u = np.asarray(u, dtype=float).reshape(-1, 2)
+    tau = np.asarray(tau, dtype=float).reshape(-1)
+    require(len(u) == len(tau) == len(z), "u", u.shape, f"({len(z)}, 2) like z, tau ({len(z)},)")
+    d = motion(np.zeros((len(z), 3)), u, tau)
+    px = z[:, 0] * np.cos(z[:, 1]) - d[:, 0]
+    py = z[:, 0] * np.sin(z[:, 1]) - d[:, 1]
+    c, s = np.cos(d[:, 2]), np.sin(d[:, 2])
+    x, y = c * px + s * py, -s * px + c * py
+    return np.column_stack([np.hypot(x, y), wrap_angle(np.arctan2(y, x))])
+
+
+def _layout(rec: MrclamRecording, dt_s: float, motion_compensation: bool = False) -> _Layout:
     odo_t, gt_t = rec.odometry[:, 0], rec.groundtruth[:, 0]
     t0 = float(max(odo_t[0], gt_t[0]))
     t_end = float(min(odo_t[-1], gt_t[-1]))
@@ -451,11 +568,19 @@ def _layout(rec: MrclamRecording, dt_s: float) -> _Layout:
     subjects = rec.measurement_subjects()
     row_is_robot = np.isin(subjects, ROBOT_SUBJECTS) & (row_landmark < 0)
     step_poses = interpolate_poses(gt_t, rec.groundtruth[:, 1:4], boundaries[1:])
+    row_z = rec.measurements[:, 2:4].copy()
+    if motion_compensation:
+        inside = row_step >= 0
+        u = hold_average(odo_t, rec.odometry[:, 1:3], boundaries)[row_step[inside]]
+        tau = boundaries[row_step[inside] + 1] - m_t[inside]
+        row_z[inside] = compensate_motion(row_z[inside], u, tau)
     residuals = np.full((m_t.size, 2), np.nan)
     lm = (row_landmark >= 0) & (row_step >= 0)
     predicted = observe(step_poses[row_step[lm]], rec.landmarks_xy[row_landmark[lm]])
-    residuals[lm] = innovation(rec.measurements[lm, 2:4], predicted)
-    return _Layout(t0, n, rel_t, row_step, row_landmark, row_is_robot, residuals, step_poses)
+    residuals[lm] = innovation(row_z[lm], predicted)
+    return _Layout(
+        t0, n, rel_t, row_step, row_landmark, row_is_robot, residuals, step_poses, row_z
+    )
 
 
 def calibrate_mrclam(
@@ -466,38 +591,67 @@ def calibrate_mrclam(
     outlier_gate_probability: float = DEFAULT_OUTLIER_GATE_PROBABILITY,
     robot_sightings_as_clutter: bool = False,
     sensor: RangeBearingSensor | None = None,
+    motion_compensation: bool = False,
+    sensor_bias_correction: bool = False,
+    noise_window_s: float | None = None,
 ) -> MrclamCalibration:
     """Estimate sensor noise, field of view, odometry noise and clutter rates for one robot.
 
     The whole recording is used (on the ``dt_s`` grid of :func:`load_mrclam`). ``sensor``, when
     given, replaces the estimated sensor for the in-view test of the clutter rates.
+    ``motion_compensation``, ``sensor_bias_correction`` and ``noise_window_s``: as in
+    :func:`load_mrclam`.
     """
     return _calibrate(
         rec,
-        _layout(rec, dt_s),
+        _layout(rec, dt_s, motion_compensation),
         dt_s=dt_s,
         odometry_window_s=odometry_window_s,
         outlier_gate_probability=outlier_gate_probability,
         robot_sightings_as_clutter=robot_sightings_as_clutter,
         sensor=sensor,
+        sensor_bias_correction=sensor_bias_correction,
+        noise_window_s=noise_window_s,
     )[0]
 
 
 def _calibrate(
     rec, lay, *, dt_s, odometry_window_s, outlier_gate_probability, robot_sightings_as_clutter,
     sensor=None, range_std_m=None, bearing_std_rad=None, max_range_m=None, fov_rad=None,
+    sensor_bias_correction=False, noise_window_s=None,
 ):
-    """Calibration plus the outlier mask over all rows and the stream's sensor."""
+    """Calibration plus the outlier mask over all rows, the stream's sensor and the rows'
+    observations (bias-corrected if asked)."""
+    if noise_window_s is not None:
+        check_range("noise_window_s", noise_window_s, 0.0, 1e6, low_open=True)
     usable = np.all(np.isfinite(lay.residuals), axis=1)
-    noise = estimate_sensor_noise(lay.residuals[usable], gate_probability=outlier_gate_probability)
+    residuals, row_z = lay.residuals, lay.row_z
+    noise = estimate_sensor_noise(residuals[usable], gate_probability=outlier_gate_probability)
+    bias = None
+    if sensor_bias_correction:
+        rows = np.flatnonzero(usable)[noise.inlier]
+        bias = estimate_sensor_bias(row_z[rows], residuals[rows])
+        shift = bias.bias(row_z)
+        row_z = bias.correct(row_z)
+        residuals = residuals - shift
+        residuals[:, 1] = wrap_angle(residuals[:, 1])
+        noise = estimate_sensor_noise(
+            residuals[usable], gate_probability=outlier_gate_probability
+        )
+    filter_std = (noise.range_std_m, noise.bearing_std_rad)
+    if noise_window_s is not None:
+        rows = np.flatnonzero(usable)[noise.inlier]
+        filter_std = correlated_noise_std(
+            residuals[rows], rec.measurements[rows, 0], lay.row_landmark[rows], noise_window_s
+        )
     outlier = np.zeros(lay.row_step.size, dtype=bool)
     outlier[np.flatnonzero(usable)[~noise.inlier]] = True
     good_z = rec.measurements[usable, 2:4][noise.inlier]
     est_range, est_fov = estimate_field_of_view(good_z)
     if sensor is None:
         sensor = RangeBearingSensor(
-            range_std_m=noise.range_std_m if range_std_m is None else range_std_m,
-            bearing_std_rad=noise.bearing_std_rad if bearing_std_rad is None else bearing_std_rad,
+            range_std_m=filter_std[0] if range_std_m is None else range_std_m,
+            bearing_std_rad=filter_std[1] if bearing_std_rad is None else bearing_std_rad,
             max_range_m=est_range if max_range_m is None else max_range_m,
             fov_rad=est_fov if fov_rad is None else fov_rad,
         )
@@ -522,8 +676,12 @@ def _calibrate(
         lay.row_landmark[hit],
         int(false_alarm.sum()),
     )
-    calibration = MrclamCalibration(noise, odometry, detection, est_range, est_fov)
-    return calibration, outlier, sensor
+    calibration = MrclamCalibration(
+        noise, odometry, detection, est_range, est_fov, sensor_bias=bias,
+        noise_window_s=noise_window_s, filter_range_std_m=sensor.range_std_m,
+        filter_bearing_std_rad=sensor.bearing_std_rad,
+    )
+    return calibration, outlier, sensor, row_z
 
 
 # --------------------------------------------------------------------------- the stream
@@ -543,6 +701,9 @@ def load_mrclam(
     odometry_noise=None,
     clutter: ClutterModel | None = None,
     max_steps: int | None = None,
+    motion_compensation: bool = False,
+    sensor_bias_correction: bool = False,
+    noise_window_s: float | None = None,
 ) -> Stream:
     """The stream of one robot of an MRCLAM data set (see the module docstring).
 
@@ -552,7 +713,18 @@ def load_mrclam(
     of dropping them. ``range_std_m``, ``bearing_std_rad``, ``max_range_m``, ``fov_rad``,
     ``odometry_noise`` and ``clutter`` override the estimates (None = estimated from the data);
     ``max_steps`` truncates the stream (the estimates always use the whole recording).
+
+    Sensor calibration options (all off by default; module docstring, "Sensor calibration"):
+    ``motion_compensation`` moves each measurement to its step's end with the odometry
+    (:func:`compensate_motion`); ``sensor_bias_correction`` fits the camera's systematic errors
+    against the truth (:func:`estimate_sensor_bias`) and subtracts them from every measurement,
+    the noise std then being that of the corrected residuals; ``noise_window_s`` sets the
+    filters' std by the white-noise rule over windows of that length
+    (:func:`correlated_noise_std`) instead of the root mean square of the residuals.
     """
+    for name, flag in (("motion_compensation", motion_compensation),
+                       ("sensor_bias_correction", sensor_bias_correction)):
+        require(isinstance(flag, bool), name, flag, "a bool")
     check_range("dt_s", dt_s, 0.001, 10.0)
     require(isinstance(known_association, bool), "known_association", known_association, "a bool")
     require(
@@ -570,8 +742,8 @@ def load_mrclam(
             "None or an integer >= 1",
         )
     rec = read_mrclam(directory, robot)
-    lay = _layout(rec, dt_s)
-    calibration, outlier, sensor = _calibrate(
+    lay = _layout(rec, dt_s, motion_compensation)
+    calibration, outlier, sensor, row_z = _calibrate(
         rec,
         lay,
         dt_s=dt_s,
@@ -582,6 +754,8 @@ def load_mrclam(
         bearing_std_rad=bearing_std_rad,
         max_range_m=max_range_m,
         fov_rad=fov_rad,
+        sensor_bias_correction=sensor_bias_correction,
+        noise_window_s=noise_window_s,
     )
     if odometry_noise is None:
         odometry_noise = calibration.odometry.model()
@@ -601,7 +775,7 @@ def load_mrclam(
         keep &= is_landmark
     rows = np.flatnonzero(keep)
     rows = rows[np.argsort(lay.row_step[rows], kind="stable")]
-    z_all = rec.measurements[rows, 2:4].copy()
+    z_all = row_z[rows].copy()
     ids_all = np.where(is_landmark[rows] & ~outlier[rows], lay.row_landmark[rows], -1)
     ids_all = ids_all.astype(np.int64)
     bounds = np.searchsorted(lay.row_step[rows], np.arange(n + 1), side="left")
@@ -627,6 +801,8 @@ def load_mrclam(
         "t0_unix_s": lay.t0,
         "known_association": known_association,
         "robot_sightings": "clutter" if robot_sightings_as_clutter else "dropped",
+        "motion_compensation": motion_compensation,
+        "sensor_bias_correction": sensor_bias_correction,
         "landmark_subjects": tuple(int(s) for s in rec.landmark_subjects),
         "calibration": calibration.as_dict(),
         "counts": counts,

@@ -229,6 +229,7 @@ class HybridSLAMEnv(gym.Env):
             np.random.default_rng(filter_seed),
             n_particles=self.config.n_particles,
             back_end=self.config.back_end,
+            **self._system_options(),
         )
         self.episode = Episode(self.system, self.stream)
         self.world_seed = int(world_seed)
@@ -306,6 +307,11 @@ class HybridSLAMEnv(gym.Env):
         """The episode's stream: the configured scenario's world ``world_seed`` (subclasses
         playing recorded data override this)."""
         return make_stream(self.config.scenario_config(), seed=world_seed)
+
+    def _system_options(self) -> dict:
+        """Extra keyword options of :func:`slam_gym.systems.make_system` (none here; subclasses
+        playing recorded data may tune the front-end to it)."""
+        return {}
 
     def _run_interval(self):
         """Advance one decision interval; the NEES values and position errors it produced."""

@@ -21,6 +21,17 @@ Keyword arguments (besides those of :class:`~slam_gym.envs.hybrid_slam.HybridSLA
     frame to the next (and its range error depends on the bearing), so a filter that takes them
     as white noise with the measured std becomes over-confident; a factor > 1 is the usual
     remedy (see ``slam-gym reproduce mrclam --noise-scale``).
+``sensor_noise_window_s``, ``sensor_bias_correction``, ``motion_compensation``
+    The loader's sensor calibration options (:func:`slam_gym.datasets.load_mrclam`; default
+    None / False / False: the root mean square of the residuals, no correction).
+    ``sensor_noise_window_s`` sets the std by the white-noise rule over windows of that many
+    seconds, which accounts for the time correlation of the camera's errors
+    (:func:`slam_gym.datasets.mrclam.correlated_noise_std`); ``sensor_noise_scale`` multiplies
+    the result.
+``front_end_options``
+    Keyword options of the front-end filter (:class:`filters.fastslam.FastSLAM2` or
+    :class:`filters.ekf_slam.EKFSLAM`), e.g. ``{"new_landmark_density_per_m2": 1e-4,
+    "gate_chi2": 40.0}`` (default: none, the filters' defaults).
 ``terminate_on_failure``
     True (default, as the simulated env): the episode ends at BB's failure criterion. False: the
     episode goes on to the end of the recording after a failure (the failure is still flagged
@@ -102,16 +113,25 @@ def check_mrclam_dir(data_dir, robot: int) -> Path:
     return path
 
 
-def mrclam_stream(data_dir, robot: int, *, max_steps=None, sensor_noise_scale: float = 1.0):
+def mrclam_stream(
+    data_dir, robot: int, *, max_steps=None, sensor_noise_scale: float = 1.0,
+    noise_window_s: float | None = None, sensor_bias_correction: bool = False,
+    motion_compensation: bool = False,
+):
     """The MRCLAM stream of ``robot`` with its range and bearing std scaled by
     ``sensor_noise_scale`` (the outlier labels, field of view and clutter rates stay those of
     the loader's calibration); shared by the env and ``reproduce mrclam`` so both play the same
-    stream."""
+    stream. ``noise_window_s``, ``sensor_bias_correction`` and ``motion_compensation`` go to
+    :func:`slam_gym.datasets.load_mrclam`."""
     from slam_gym.datasets import load_mrclam
 
     robot = check_robot(robot)
     check_range("sensor_noise_scale", sensor_noise_scale, 0.0, 1000.0, low_open=True)
-    stream = load_mrclam(check_mrclam_dir(data_dir, robot), robot, max_steps=max_steps)
+    stream = load_mrclam(
+        check_mrclam_dir(data_dir, robot), robot, max_steps=max_steps,
+        noise_window_s=noise_window_s, sensor_bias_correction=sensor_bias_correction,
+        motion_compensation=motion_compensation,
+    )
     if sensor_noise_scale == 1.0:
         return stream
     s = stream.sensor
@@ -137,6 +157,10 @@ class MRCLAMEnv(HybridSLAMEnv):
         data_dir=None,
         robot: int = 1,
         sensor_noise_scale: float = 1.0,
+        sensor_noise_window_s: float | None = None,
+        sensor_bias_correction: bool = False,
+        motion_compensation: bool = False,
+        front_end_options: dict | None = None,
         terminate_on_failure: bool = True,
         **config,
     ):
@@ -150,6 +174,22 @@ class MRCLAMEnv(HybridSLAMEnv):
         self.data_dir = check_mrclam_dir(data_dir, self.robot)
         check_range("sensor_noise_scale", sensor_noise_scale, 0.0, 1000.0, low_open=True)
         self.sensor_noise_scale = float(sensor_noise_scale)
+        if sensor_noise_window_s is not None:
+            check_range("sensor_noise_window_s", sensor_noise_window_s, 0.0, 1e6, low_open=True)
+        for name, flag in (("sensor_bias_correction", sensor_bias_correction),
+                           ("motion_compensation", motion_compensation)):
+            require(isinstance(flag, bool), name, flag, "a bool")
+        self.stream_options = {
+            "noise_window_s": None if sensor_noise_window_s is None
+            else float(sensor_noise_window_s),
+            "sensor_bias_correction": sensor_bias_correction,
+            "motion_compensation": motion_compensation,
+        }
+        require(
+            front_end_options is None or isinstance(front_end_options, dict),
+            "front_end_options", front_end_options, "a dict of front-end filter options or None",
+        )
+        self.front_end_options = dict(front_end_options or {})
         require(
             isinstance(terminate_on_failure, bool), "terminate_on_failure", terminate_on_failure,
             "a bool",
@@ -171,9 +211,13 @@ class MRCLAMEnv(HybridSLAMEnv):
         if key not in self._streams:
             self._streams[key] = mrclam_stream(
                 self.data_dir, self.robot, max_steps=self.config.n_steps,
-                sensor_noise_scale=self.sensor_noise_scale,
+                sensor_noise_scale=self.sensor_noise_scale, **self.stream_options,
             )
         return self._streams[key]
+
+    def _system_options(self) -> dict:
+        """``front_end_options`` for the sub-map system's front-end (``front_`` prefix)."""
+        return {f"front_{k}": v for k, v in self.front_end_options.items()}
 
     def step(self, action):
         obs, reward, terminated, truncated, info = super().step(action)

@@ -79,12 +79,17 @@ def run_system(
     known_association=False,
     stop_on_failure=True,
     record_trace=False,
+    system_options=None,
 ) -> Episode:
-    """Run system ``name`` over ``stream`` on BB's fixed fusion schedule; the finished episode."""
+    """Run system ``name`` over ``stream`` on BB's fixed fusion schedule; the finished episode.
+
+    ``system_options``: keyword options of the estimator (:func:`slam_gym.systems.make_system`;
+    ``front_``-prefixed for sub-map systems)."""
     from slam_gym.systems import KNOWN_ASSOCIATION_ONLY, SUBMAP_SYSTEMS, make_system
 
     require(optimise in OPTIMISE_MODES, "optimise", optimise, f"one of {OPTIMISE_MODES}")
-    system = make_system(name, stream, _seeds(seed), n_particles=n_particles, back_end=back_end)
+    system = make_system(name, stream, _seeds(seed), n_particles=n_particles, back_end=back_end,
+                         **(system_options or {}))
     known = bool(known_association) or name in KNOWN_ASSOCIATION_ONLY
     episode = Episode(system, stream, known_association=known, record_trace=record_trace)
     submap = name in SUBMAP_SYSTEMS

@@ -10,6 +10,7 @@ from filters.conversion import (
     EIGENVALUE_FLOOR,
     NEW_VOTE,
     CommonFeatures,
+    assign_correspondence_ids,
     common_features,
     correspondence_vote,
     feature_moments,
@@ -68,6 +69,62 @@ def test_vote_ties_are_deterministic():
 def test_vote_rejects_bad_input(weights, votes, field):
     with pytest.raises(ValueError, match=field):
         correspondence_vote(weights, votes)
+
+
+# --------------------------------------------------------------------------- id assignment
+def _duplicates(cids, active):
+    """(particle, id) pairs held by more than one active feature of the particle."""
+    out = []
+    for p in range(cids.shape[0]):
+        ids = cids[p][active[p] & (cids[p] >= 0)]
+        values, counts = np.unique(ids, return_counts=True)
+        out += [(p, int(v)) for v in values[counts > 1]]
+    return out
+
+
+def test_assign_ids_keeps_them_unique_within_a_particle():
+    # Observation 0 is voted id 7. Particle 0 modified its feature in slot 0 (id 3) and holds no
+    # other 7: it takes 7. Particle 1 modified slot 0 (id 4) but already holds 7 in slot 1: it
+    # keeps 4. Particle 2 created slot 2 (id -1) and already holds 7: it stays -1 (BB's rule
+    # would give both particles 1 and 2 two features called 7).
+    # Observation 1 is voted id 3, the id particle 0's slot 0 gave up one observation earlier:
+    # particle 0's new slot 1 may now take it. Observation 2 went to clutter (-1): ids unchanged.
+    cids = np.array([[3, -1, -1], [4, 7, -1], [5, 7, -1]])
+    active = np.array([[True, True, False], [True, True, False], [True, True, True]])
+    kept = assign_correspondence_ids(
+        cids, active,
+        observations=[0, 0, 0, 1, 2], particles=[0, 1, 2, 0, 1], slots=[0, 0, 2, 1, 1],
+        proposed=[7, 7, 7, 3, -1],
+    )
+    np.testing.assert_array_equal(cids, [[7, 3, -1], [4, 7, -1], [5, 7, -1]])
+    assert kept == 2
+    assert _duplicates(cids, active) == []
+
+
+def test_assign_ids_without_conflict_is_bb_rule_and_inactive_slots_do_not_count():
+    cids = np.array([[1, 9], [2, -1]])
+    active = np.array([[True, False], [True, True]])  # particle 0's id 9 sits in an empty slot
+    kept = assign_correspondence_ids(cids, active, [0, 0], [0, 1], [0, 1], [9, 9])
+    np.testing.assert_array_equal(cids, [[9, 9], [2, 9]])
+    assert kept == 0
+
+
+def test_assign_ids_processes_observations_in_order_regardless_of_input_order():
+    # Particle 0: observation 0 moves slot 0 from id 1 to id 2, freeing 1; observation 1 then
+    # gives slot 1 (id 2 before) the id 1. Given in reverse order, the result is the same.
+    for order in ([0, 1], [1, 0]):
+        cids = np.array([[1, 5]])
+        active = np.ones((1, 2), dtype=bool)
+        obs, slots, proposed = np.array([0, 1]), np.array([0, 1]), np.array([2, 1])
+        assign_correspondence_ids(cids, active, obs[order], [0, 0], slots[order],
+                                  proposed[order])
+        np.testing.assert_array_equal(cids, [[2, 1]])
+
+
+def test_assign_ids_rejects_two_features_of_one_particle_for_one_observation():
+    cids = np.full((1, 2), -1)
+    with pytest.raises(ValueError, match="particles"):
+        assign_correspondence_ids(cids, np.ones((1, 2), bool), [0, 0], [0, 0], [0, 1], [4, 4])
 
 
 # --------------------------------------------------------------------------- common set

@@ -258,6 +258,39 @@ def test_ambiguous_unpaired_observation_is_clutter_not_a_new_feature():
     assert np.count_nonzero(f.last_associations >= 0) == 1
 
 
+def test_known_association_follows_the_labels_even_against_the_geometry():
+    f, _ = _static_filter(initial_pose_cov=np.diag([0.01, 0.01, 0.001]))
+    f.update(np.array([[10.0, 0.0], [10.0, 0.5]]), associations=[4, 9])
+    fid4, fid9 = f.feature_ids()
+    np.testing.assert_array_equal(f.last_associations, [fid4, fid9])
+    # label 9 observed where feature 4 is (JCBB would pair it with 4); label -1 is ignored
+    # (no new feature); label 2 is new; label 9 twice in one scan pairs its first only
+    x_before = f.x.copy()
+    f.update(np.array([[10.0, 0.0], [7.0, 1.0], [12.0, -1.0], [10.0, 0.5]]),
+             associations=[9, -1, 2, 9])
+    assert f.n_features == 3
+    fid2 = f.feature_ids()[2]
+    np.testing.assert_array_equal(f.last_associations, [fid9, -1, fid2, -1])
+    assert f.x[6] < x_before[6]  # feature 9 (state 5:7) pulled towards bearing 0
+    # unknown association again pairs by geometry
+    f.update(np.array([[10.0, 0.0]]))
+    assert f.last_associations[0] in (fid4, fid9)
+
+
+def test_known_association_recreates_a_culled_label():
+    f, _ = _static_filter()
+    f.update(np.array([[10.0, 0.0]]), associations=[3])
+    (first,) = f.feature_ids()
+    for _ in range(60):
+        f.update(np.zeros((0, 2)), associations=[])
+    assert f.n_features == 0
+    f.update(np.array([[10.0, 0.0]]), associations=[3])
+    (second,) = f.feature_ids()
+    assert second != first and f.last_associations.tolist() == [second]
+    with pytest.raises(ValueError, match="associations"):
+        f.update(np.array([[10.0, 0.0]]), associations=[3, 4])
+
+
 # --------------------------------------------------------------------------- front-end interface
 def test_to_gaussian_restart_and_local_statistics():
     stream = make_stream("brooks-bailey", seed=2, n_steps=80)

@@ -451,6 +451,49 @@ def test_duplicate_features_are_not_rewarded():
     assert f.existence[1, :2].min() < 0.95  # the undetected duplicate is no longer confirmed
 
 
+def _duplicate_ids(f):
+    """(particle, id) pairs held by more than one active feature of the particle."""
+    cids, active = f.correspondence_ids, f.active
+    out = []
+    for p in range(f.n_particles):
+        values, counts = np.unique(cids[p][active[p] & (cids[p] >= 0)], return_counts=True)
+        out += [(p, int(v)) for v in values[counts > 1]]
+    return out
+
+
+def test_minority_particle_does_not_get_a_second_feature_with_the_winning_id():
+    # Particles 0-2 map the landmark at (10, 0) as id 0. Particle 3 holds id 0 at (10, 4) (its
+    # own, different, hypothesis) and nothing at (10, 0), so it starts a new feature for the
+    # observation. The vote goes to id 0; BB's rule taken literally would give particle 3 two
+    # features called 0 (and the common map would drop one of them).
+    f = make_filter(n_particles=4, resample_threshold=0.0)
+    _place_features(f, [[(10.0, 0.0)]] * 3 + [[(10.0, 4.0)]], [[0]] * 4)
+    f.update([[10.0, 0.0]])
+    assert f.last_associations[0] == 0
+    assert f.correspondence_ids[3, :2].tolist() == [0, -1]
+    assert f.active[3, :2].all()
+    assert _duplicate_ids(f) == []
+
+
+def test_correspondence_ids_stay_unique_within_every_particle_in_dense_clutter():
+    # Dense landmarks, a poor sensor and clutter: many ambiguous associations and split votes.
+    stream = make_stream(
+        "brooks-bailey", seed=4, n_steps=150, clutter_level=2, world_size_m=40.0,
+        path_length_m=100.0, waypoint_spacing_m=8.0, path_perturbation_m=1.0,
+        n_landmarks=200, range_std_m=0.4, bearing_std_rad=np.deg2rad(4.0), max_range_m=8.0,
+    )
+    f = make_filter(stream, seed=4, n_particles=100)
+    split_votes = 0
+
+    def check(step):
+        nonlocal split_votes
+        assert _duplicate_ids(f) == []
+        split_votes += int(sum(len(np.unique(v)) > 1 for v in f.last_votes))
+
+    run(f, stream, every=check)
+    assert split_votes > 50  # the votes really were contested
+
+
 def test_visibility_is_soft_at_the_range_limit():
     f = make_filter(n_particles=1)
     _place_features(f, [[(24.9, 0.0), (25.0, 0.0), (25.1, 0.0), (5.0, 0.0), (40.0, 0.0)]],

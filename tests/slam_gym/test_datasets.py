@@ -24,7 +24,13 @@ from slam_gym.datasets import (
     load_victoria_park,
     path_error_after_alignment,
 )
-from slam_gym.datasets.mrclam import estimate_odometry_noise, estimate_sensor_noise
+from slam_gym.datasets.mrclam import (
+    compensate_motion,
+    correlated_noise_std,
+    estimate_odometry_noise,
+    estimate_sensor_bias,
+    estimate_sensor_noise,
+)
 from slam_gym.datasets.victoria_park import VehicleGeometry, laser_to_vehicle, read_geometry
 
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
@@ -351,6 +357,102 @@ def test_estimate_odometry_noise_recovers_synthetic_noise():
     np.testing.assert_allclose(model.std([0.2, 0.3]), expected, rtol=0.15)
     np.testing.assert_allclose(model.std([0.0, 0.0]), [0.01, 0.05], rtol=0.6)
     assert abs(est.v_bias_mps) < 0.01 and abs(est.omega_bias_radps) < 0.02
+
+
+def test_compensate_motion_hand_computed():
+    # straight at 1 m/s for 0.5 s: a landmark 5 m ahead is 4.5 m ahead at the step's end
+    np.testing.assert_allclose(compensate_motion([[5.0, 0.0]], [[1.0, 0.0]], [0.5]), [[4.5, 0.0]])
+    # turning on the spot at 1 rad/s for 0.1 s: bearings decrease by 0.1 rad, ranges unchanged
+    np.testing.assert_allclose(
+        compensate_motion([[2.0, 0.3], [3.0, -0.2]], [[0.0, 1.0]] * 2, [0.1, 0.1]),
+        [[2.0, 0.2], [3.0, -0.3]],
+    )
+    # no time left to the step's end: unchanged; and the general case against motion()
+    z, u, tau = np.array([[4.0, 0.5]]), np.array([[0.3, -0.6]]), np.array([0.07])
+    np.testing.assert_allclose(compensate_motion(z, u, [0.0]), z)
+    end = motion(np.zeros(3), u[0], tau[0])
+    point = z[0, 0] * np.array([np.cos(z[0, 1]), np.sin(z[0, 1])])
+    rel = point - end[:2]
+    expected = [np.hypot(*rel), wrap(np.arctan2(rel[1], rel[0]) - end[2])]
+    np.testing.assert_allclose(compensate_motion(z, u, tau)[0], expected)
+
+
+def test_estimate_sensor_bias_recovers_synthetic_camera_errors():
+    rng = np.random.default_rng(5)
+    z = np.column_stack([rng.uniform(1.0, 7.0, 4000), rng.uniform(-0.55, 0.55, 4000)])
+    c, d = (0.2, -0.03, 0.05, -1.8), (-0.01, 0.02)
+    e = np.column_stack([
+        c[0] + c[1] * z[:, 0] + c[2] * z[:, 1] + c[3] * z[:, 1] ** 2,
+        d[0] + d[1] * z[:, 1],
+    ]) + rng.normal(size=z.shape) * [0.05, 0.01]
+    model = estimate_sensor_bias(z, e)
+    np.testing.assert_allclose(model.range_coef, c, atol=0.02)
+    np.testing.assert_allclose(model.bearing_coef, d, atol=0.002)
+    corrected = model.correct(z) - (z - e)  # the residuals after the correction
+    np.testing.assert_allclose(np.sqrt(np.mean(corrected**2, axis=0)), [0.05, 0.01], rtol=0.05)
+    with pytest.raises(ValueError, match="residuals"):
+        estimate_sensor_bias(z, e[:10])
+
+
+def test_correlated_noise_std_white_and_correlated_errors():
+    rng = np.random.default_rng(6)
+    t = np.tile(np.arange(0.0, 600.0, 0.25), 3)  # 3 landmarks, a sighting every 0.25 s
+    groups = np.repeat([0, 1, 2], len(t) // 3)
+    white = rng.normal(size=(len(t), 2)) * [0.1, 0.01]
+    for window in (0.1, 2.0, 10.0):  # white errors: the std itself, whatever the window
+        np.testing.assert_allclose(
+            correlated_noise_std(white, t, groups, window), [0.1, 0.01], rtol=0.1
+        )
+    # an error constant over each 2 s (8 sightings): its window means are not averaged down,
+    # so the white-noise equivalent std is sqrt(8) times the std of one sighting
+    blocks = np.floor(t / 2.0).astype(int) + 1000 * groups
+    _, inverse = np.unique(blocks, return_inverse=True)
+    held = (rng.normal(size=(inverse.max() + 1, 2)) * [0.1, 0.01])[inverse]
+    np.testing.assert_allclose(
+        correlated_noise_std(held, t, groups, 2.0), np.sqrt(8) * np.array([0.1, 0.01]),
+        rtol=0.1,
+    )
+    np.testing.assert_allclose(correlated_noise_std(held, t, groups, 0.1), [0.1, 0.01], rtol=0.1)
+
+
+def test_mrclam_sensor_calibration_options(raw, stream):
+    """Bias-corrected, motion-compensated stream: the noise is re-estimated on the corrected
+    residuals (smaller), the observations are the raw rows moved and corrected, the truth ids
+    and steps are those of the plain stream."""
+    cal = load_mrclam(MRCLAM_DIR, ROBOT, dt_s=DT, motion_compensation=True,
+                      sensor_bias_correction=True, noise_window_s=2.0, max_steps=3000)
+    meta = cal.metadata["calibration"]
+    plain = stream.metadata["calibration"]
+    assert cal.metadata["motion_compensation"] and cal.metadata["sensor_bias_correction"]
+    assert meta["range_std_m"] < 0.5 * plain["range_std_m"]  # the b^2 term dominates
+    assert meta["bearing_std_rad"] < plain["bearing_std_rad"]
+    assert meta["range_bias_c3"] < -1.0  # ranges read long at the image centre
+    # the filters' std by the white-noise rule over 2 s is larger than the white root mean
+    # square (the errors of successive sightings are correlated)
+    assert cal.sensor.range_std_m == meta["filter_range_std_m"] > meta["range_std_m"]
+    assert cal.sensor.bearing_std_rad == meta["filter_bearing_std_rad"] > meta["bearing_std_rad"]
+    c = [meta[f"range_bias_c{i}"] for i in range(4)]
+    d = [meta[f"bearing_bias_d{i}"] for i in range(2)]
+    # every observation: the raw row moved to its step's end with the step's odometry, then
+    # corrected by the fitted bias
+    t0 = t0_of(raw)
+    by_value = raw_rows_by_value(raw)
+    plain_steps = list(load_mrclam(MRCLAM_DIR, ROBOT, dt_s=DT, max_steps=3000))
+    checked = 0
+    for step, ref in zip(cal, plain_steps, strict=True):
+        assert len(step.z) == len(ref.z)
+        for z_cal, z_raw in zip(step.z, ref.z, strict=True):
+            times = [t - t0 for t, _, _ in by_value[(z_raw[0], z_raw[1])]
+                     if step.t_s - DT < t - t0 <= step.t_s + 1e-9]
+            tau = step.t_s - times[0]
+            moved = compensate_motion([z_raw], [step.odometry], [tau])[0]
+            r, b = moved
+            expected = [r - (c[0] + c[1] * r + c[2] * b + c[3] * b * b), b - (d[0] + d[1] * b)]
+            np.testing.assert_allclose(z_cal, expected, rtol=0, atol=1e-6)  # Unix-time round-off
+            checked += 1
+        if checked > 200:
+            break
+    assert checked > 200
 
 
 # --------------------------------------------------------------------------- Victoria Park

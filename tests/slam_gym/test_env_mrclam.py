@@ -117,6 +117,20 @@ def test_sensor_noise_scale_scales_only_the_noise():
         np.testing.assert_array_equal(s.z, t.z)
 
 
+def test_sensor_calibration_and_front_end_options_reach_stream_and_filter():
+    env = make(sensor_noise_window_s=30.0, sensor_noise_scale=2.0,
+               front_end_options={"new_landmark_density_per_m2": 1e-4, "gate_chi2": 40.0})
+    env.reset(seed=0)
+    ref = load_mrclam(MRCLAM_DIR, 2, max_steps=80, noise_window_s=30.0)
+    assert env.stream.sensor.range_std_m == pytest.approx(2.0 * ref.sensor.range_std_m)
+    assert env.stream.sensor.bearing_std_rad == pytest.approx(2.0 * ref.sensor.bearing_std_rad)
+    front = env.system.front_end
+    assert front.new_landmark_density == 1e-4 and front.gate_chi2 == 40.0
+    env.close()
+    with pytest.raises(ValueError, match="gate_chi2"):
+        make(front_end_options={"gate_chi2": -1.0}).reset(seed=0)
+
+
 def test_episode_runs_on_after_failure_when_asked():
     # a tiny sensor noise makes the filter over-confident: BB's failure criterion triggers early
     kwargs = {"n_steps": 600, "sensor_noise_scale": 0.02, "n_particles": 5}
@@ -170,6 +184,9 @@ def test_truncation_by_decision_limit():
         ({"clutter_level": 1}, "clutter_level"),
         ({"alpha": 0.5}, "alpha"),
         ({"sensor_noise_scale": 0.0}, "sensor_noise_scale"),
+        ({"sensor_noise_window_s": 0.0}, "sensor_noise_window_s"),
+        ({"sensor_bias_correction": 1}, "sensor_bias_correction"),
+        ({"front_end_options": [("gate_chi2", 40.0)]}, "front_end_options"),
         ({"terminate_on_failure": "no"}, "terminate_on_failure"),
         ({"n_particles": 0}, "n_particles"),
         ({"render_mode": "ascii"}, "render_mode"),

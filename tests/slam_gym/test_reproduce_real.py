@@ -74,9 +74,44 @@ def test_policy_job_drives_hybrid_in_the_mrclam_env():
 def test_known_association_only_where_the_system_has_it():
     stream = load_mrclam(MRCLAM_DIR, 1, max_steps=5)
     assert rr.supports_known_association("fastslam", stream)
-    assert not rr.supports_known_association("ekf-slam", stream)
+    assert rr.supports_known_association("ekf-slam", stream)
+    assert not rr.supports_known_association("hybrid", stream)
     with pytest.raises(ValueError, match="known_association"):
-        rr.run_real_job(mrclam_job("ekf-slam", known_association=True, max_steps=20))
+        rr.run_real_job(mrclam_job("ekf-submap", known_association=True, max_steps=20))
+    row = rr.run_real_job(mrclam_job("ekf-slam", known_association=True, max_steps=300))
+    assert row["association"] == "known" and row["n_spurious"] == 0
+
+
+def test_mrclam_calibration_and_fastslam_options_reach_stream_and_filters(monkeypatch):
+    row = rr.run_real_job(mrclam_job("ekf-slam", noise_window_s=30.0, max_steps=50))
+    stream = load_mrclam(MRCLAM_DIR, 1, max_steps=50, noise_window_s=30.0)
+    assert row["range_std_m"] == stream.sensor.range_std_m
+    assert row["bearing_std_rad"] == stream.sensor.bearing_std_rad
+    assert row["noise_window_s"] == 30.0 and row["landmark_density_per_m2"] is None
+    # the FastSLAM options go to FASTSLAM and to HYBRID's front-end, not to the EKF filters
+    fs = rr.fastslam_options(1e-4, 40.0)
+    assert fs == {"new_landmark_density_per_m2": 1e-4, "gate_chi2": 40.0}
+    assert rr._system_options("hybrid", fs) == {"front_new_landmark_density_per_m2": 1e-4,
+                                                "front_gate_chi2": 40.0}
+    assert rr._system_options("ekf-slam", fs) == {} == rr._system_options("ekf-submap", fs)
+    built = {}
+    from slam_gym import systems
+
+    real = systems.make_system
+
+    def spy(name, stream, rng, **kwargs):
+        system = real(name, stream, rng, **kwargs)
+        built[name] = system
+        return system
+
+    monkeypatch.setattr(systems, "make_system", spy)
+    for name in ("fastslam", "hybrid"):
+        rr.run_real_job(mrclam_job(name, landmark_density_per_m2=1e-4, gate_chi2=40.0,
+                                   max_steps=20))
+    f = built["fastslam"].estimator
+    h = built["hybrid"].estimator.front_end
+    assert f.new_landmark_density == h.new_landmark_density == 1e-4
+    assert f.gate_chi2 == h.gate_chi2 == 40.0
 
 
 def test_learned_without_a_model_is_skipped_with_the_reason(tmp_path):
@@ -100,19 +135,19 @@ def test_mrclam_command_end_to_end_and_resume(tmp_path, capsys):
         check_row(row)
         assert row["status"] == "ok", row.get("error")
     labels = sorted((r.get("system") or r.get("policy"), r["association"]) for r in rows)
-    assert labels == [("ekf-slam", "unknown"), ("fastslam", "known"),
+    assert labels == [("ekf-slam", "known"), ("ekf-slam", "unknown"), ("fastslam", "known"),
                       ("fastslam", "unknown"), ("fixed-10s", "unknown")]
-    assert "learned" in doc["skipped_policies"] and doc["no_known_association_mode"] == [
-        "ekf-slam"]
+    assert "learned" in doc["skipped_policies"] and doc["no_known_association_mode"] == []
     table = (out / "real_table.md").read_text()
     assert "| fastslam | 1 | known |" in table and "| hybrid + fixed-10s | 1 | unknown |" in table
+    assert "| ekf-slam | 1 | known |" in table
     assert "Policy learned skipped" in table
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["n_runs"] == 4 and summary["n_errors"] == 0
+    assert summary["n_runs"] == 5 and summary["n_errors"] == 0
     assert any(Path(p).is_file() for p in doc["figures"].values())
     # a rerun into the same directory runs nothing again
     assert run_command(*argv) == 0
-    assert len((out / "results.jsonl").read_text().splitlines()) == 4
+    assert len((out / "results.jsonl").read_text().splitlines()) == 5
 
 
 def test_victoria_park_end_to_end_writes_the_map_png(tmp_path, capsys):
@@ -169,6 +204,9 @@ def test_victoria_park_aligned_path_is_in_the_gps_frame_and_matches_the_rmse():
         (["mrclam", "--data", "/no/such/dir"], "--data"),
         (["mrclam", "--data", MRCLAM_DIR, "--particles", "0"], "--particles"),
         (["mrclam", "--data", MRCLAM_DIR, "--noise-scale", "-1"], "--noise-scale"),
+        (["mrclam", "--data", MRCLAM_DIR, "--noise-window", "0"], "--noise-window"),
+        (["mrclam", "--data", MRCLAM_DIR, "--landmark-density", "-1"], "--landmark-density"),
+        (["mrclam", "--data", MRCLAM_DIR, "--gate-chi2", "nan"], "--gate-chi2"),
         (["victoria-park", "--data", VP_DIR, "--max-steps", "0"], "--max-steps"),
         (["victoria-park", "--data", VP_DIR, "--systems", "esdf"], "--systems"),
     ],
