@@ -197,7 +197,9 @@ def assign_correspondence_ids(cids, active, observations, particles, slots, prop
     scan, each with the index of its observation and ``proposed`` (n,), the winning id of that
     observation (< 0: clutter won, the feature keeps its id). ``active`` (P, C) must already
     include created features, whose ``cids`` entry must be -1. A particle has at most one
-    feature per observation. Observations are processed in increasing index, so later ones see
+    feature per observation and a feature belongs to at most one observation (as in
+    :class:`filters.fastslam.FastSLAM2`, where a feature taken by an observation of the scan is
+    excluded for the others). Observations are processed in increasing index, so later ones see
     the ids written by earlier ones. A feature takes its proposed id unless its particle holds
     another active feature with that id; then it keeps its id (module docstring). Returns the
     number of features that kept their id for that reason.
@@ -214,22 +216,41 @@ def assign_correspondence_ids(cids, active, observations, particles, slots, prop
         "particles", particles.shape, f"({n},) like observations, slots and proposed",
     )
     require(cids.shape == active.shape, "cids", cids.shape, f"{active.shape} like active")
+    # Only features whose id would change can clash (ids are unique before the scan); in a
+    # unanimous vote that is none of them. The changes are applied in rounds: round r holds
+    # each particle's r-th change in observation order, so a particle's changes are sequential
+    # and each round is one vectorised check (one round unless a particle changes twice).
     take = proposed >= 0
+    take[take] = cids[particles[take], slots[take]] != proposed[take]
     observations, particles, slots, proposed = (
         observations[take], particles[take], slots[take], proposed[take]
     )
+    if len(particles) == 0:
+        return 0
+    order = np.lexsort((observations, particles))
+    p_sorted, o_sorted = particles[order], observations[order]
+    twice = (p_sorted[1:] == p_sorted[:-1]) & (o_sorted[1:] == o_sorted[:-1])
+    require(not twice.any(), "particles", p_sorted[1:][twice][:3],
+            "one feature per particle and observation")
+    starts = np.flatnonzero(np.concatenate([[True], p_sorted[1:] != p_sorted[:-1]]))
+    rank = np.arange(len(order)) - np.repeat(starts, np.diff(np.append(starts, len(order))))
     kept = 0
-    for k in np.unique(observations):
-        sel = observations == k
-        p, s, w = particles[sel], slots[sel], proposed[sel]
-        require(len(np.unique(p)) == len(p), "particles", p,
-                "one feature per particle and observation")
-        others = active[p] & (cids[p] == w[:, None])
-        others[np.arange(len(p)), s] = False
-        clash = others.any(axis=1)
-        cids[p[~clash], s[~clash]] = w[~clash]
-        kept += int(clash.sum())
+    for r in range(int(rank.max()) + 1):
+        sel = order[rank == r]
+        kept += _assign_if_free(cids, active, particles[sel], slots[sel], proposed[sel])
     return kept
+
+
+def _assign_if_free(cids, active, p, s, w) -> int:
+    """``cids[p, s] = w`` where particle ``p`` (distinct) holds ``w`` in no other active slot;
+    returns the number of clashes (left unchanged)."""
+    if len(p) == 0:
+        return 0
+    others = active[p] & (cids[p] == w[:, None])
+    others[np.arange(len(p)), s] = False
+    clash = others.any(axis=1)
+    cids[p[~clash], s[~clash]] = w[~clash]
+    return int(clash.sum())
 
 
 # --------------------------------------------------------------------------- common set (BB 3.2)

@@ -373,3 +373,39 @@ def test_vote_all_equals_one_vote_per_observation():
         assert clutter[k] == pytest.approx(one.share_of(CLUTTER_VOTE), abs=1e-12)
     assert winners[2] == 8 and margins[2] == 1.0
     assert winners[4] == 3 and margins[4] == pytest.approx(0.0, abs=1e-12)
+
+
+def _assign_reference(cids, active, observations, particles, slots, proposed):
+    """The rule entry by entry, in observation order (a plain loop)."""
+    for i in np.argsort(observations, kind="stable"):
+        p, s, w = particles[i], slots[i], proposed[i]
+        if w < 0:
+            continue
+        held = [j for j in range(cids.shape[1]) if j != s and active[p, j] and cids[p, j] == w]
+        if not held:
+            cids[p, s] = w
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_assign_ids_equals_the_entry_by_entry_rule_and_leaves_ids_unique(seed):
+    rng = np.random.default_rng(seed)
+    P, C, K = 12, 8, 4
+    active = rng.random((P, C)) < 0.8
+    cids = np.full((P, C), -1)
+    for p in range(P):  # unique ids per particle before the scan
+        cids[p] = np.where(rng.random(C) < 0.7, rng.permutation(10)[:C], -1)
+    # as in the filter: a particle has at most one feature per observation and a feature is
+    # modified or created by at most one observation of the scan
+    obs, parts, slots = [], [], []
+    free = [list(rng.permutation(C)) for _ in range(P)]
+    for k in range(K):
+        for p in rng.choice(P, size=rng.integers(1, P + 1), replace=False):
+            obs.append(k), parts.append(p), slots.append(free[p].pop())
+    obs, parts, slots = np.array(obs), np.array(parts), np.array(slots)
+    proposed = rng.integers(-1, 10, len(obs))
+    active[parts, slots] = True
+    expected = cids.copy()
+    _assign_reference(expected, active, obs, parts, slots, proposed)
+    assign_correspondence_ids(cids, active, obs, parts, slots, proposed)
+    np.testing.assert_array_equal(cids, expected)
+    assert _duplicates(cids, active) == []
