@@ -308,6 +308,9 @@ class HybridSLAMEnv(gym.Env):
         playing recorded data override this)."""
         return make_stream(self.config.scenario_config(), seed=world_seed)
 
+    terminate_on_failure = True
+    """End the episode at BB's failure criterion (a subclass replaying recorded data may go on)."""
+
     def _system_options(self) -> dict:
         """Extra keyword options of :func:`slam_gym.systems.make_system` (none here; subclasses
         playing recorded data may tune the front-end to it)."""
@@ -322,7 +325,7 @@ class HybridSLAMEnv(gym.Env):
                 break
             nees_values.append(ep.last_nees)
             errors.append(ep.last_position_error_m)
-            if ep.failure.failed:
+            if ep.failure.failed and self.terminate_on_failure:
                 break
         return nees_values, errors
 

@@ -227,15 +227,3 @@ class MRCLAMEnv(HybridSLAMEnv):
             c = self.config
             truncated = c.max_decisions is not None and self.n_decisions >= c.max_decisions
         return obs, reward, terminated, bool(truncated), info
-
-    def _run_interval(self):
-        if self.terminate_on_failure:
-            return super()._run_interval()
-        ep = self.episode
-        nees_values, errors = [], []
-        for _ in range(self.config.decision_interval):
-            if ep.advance(1) == 0:
-                break
-            nees_values.append(ep.last_nees)
-            errors.append(ep.last_position_error_m)
-        return nees_values, errors
