@@ -176,6 +176,7 @@ class Episode:
             "n_matched_landmarks": score.n_matched,
             "n_spurious": score.n_spurious,
             "n_missed": score.n_missed,
+            "map_completeness": score.completeness,
             "n_fusions": self.n_fusions,
             "n_optimisations": self.n_optimisations,
             "filter_time_s": self.compute_time_s,

@@ -123,6 +123,15 @@ class MapScore:
     n_matched: int
     n_spurious: int
     n_missed: int
+    n_detected: int = 0
+
+    @property
+    def completeness(self) -> float:
+        """The fraction of the landmarks the sensor detected that the map holds (NaN if none
+        was detected): a map that is accurate because it is empty scores 0 here."""
+        if self.n_detected == 0:
+            return float("nan")
+        return (self.n_detected - self.n_missed) / self.n_detected
 
 
 def score_map(
@@ -150,4 +159,5 @@ def score_map(
         n_matched=len(matched),
         n_spurious=n_spurious,
         n_missed=len(detected - matched),
+        n_detected=len(detected),
     )

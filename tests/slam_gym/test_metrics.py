@@ -1,0 +1,38 @@
+"""Map scoring: error over matched features, spurious and missed landmarks, completeness."""
+
+import math
+
+import numpy as np
+
+from slam_gym.metrics import FeatureTruth, score_map
+
+LANDMARKS = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 10.0]])
+
+
+def _truth(pairs):
+    truth = FeatureTruth()
+    ids = np.array([f for f, _ in pairs])
+    lms = np.array([t for _, t in pairs])
+    truth.record(ids, lms)
+    return truth
+
+
+def test_completeness_counts_detected_landmarks_the_map_holds():
+    truth = _truth([(7, 0), (8, 1), (9, -1)])
+    means = np.array([[0.1, 0.0], [10.0, 0.3], [5.0, 5.0]])
+    score = score_map(np.array([7, 8, 9]), means, truth, LANDMARKS, {0, 1, 2})
+    assert score.n_matched == 2 and score.n_spurious == 1 and score.n_missed == 1
+    assert score.n_detected == 3
+    assert math.isclose(score.completeness, 2 / 3)
+    assert math.isclose(score.map_error_m, (0.1 + 0.3) / 2)
+
+
+def test_an_empty_map_is_accurate_by_default_but_has_completeness_zero():
+    score = score_map(np.zeros(0, int), np.zeros((0, 2)), FeatureTruth(), LANDMARKS, {0, 3})
+    assert math.isnan(score.map_error_m)
+    assert score.completeness == 0.0 and score.n_missed == 2
+
+
+def test_completeness_is_undefined_when_nothing_was_detected():
+    score = score_map(np.zeros(0, int), np.zeros((0, 2)), FeatureTruth(), LANDMARKS, set())
+    assert math.isnan(score.completeness)
