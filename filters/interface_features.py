@@ -24,5 +24,7 @@ INTERFACE_FEATURE_NAMES: tuple[str, ...] = (
     "clutter_rate",
     "loop_closure_flag",
     "local_map_budget_ratio",
+    "loop_closures_since_optimise",
+    "stored_submaps",
 )
 """The interface features, in table order (the env's observation order)."""

@@ -73,6 +73,9 @@ class FusionReport:
     n_matched: int = 0
     n_new: int = 0
     n_dropped: int = 0
+    loop_closures: list = field(default_factory=list)
+    """The loop closures the back-end detected in this fusion (CM Definition 1;
+    :class:`filters.back_ends.SubmapLoopClosure`)."""
 
 
 class SlamFilter(Protocol):

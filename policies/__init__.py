@@ -14,7 +14,9 @@ env's ``MultiDiscrete([2, 2])`` action) plus ``reset()``; see :mod:`policies.bas
 Names (``policies.available()``):
 
 * ``fixed-interval`` (``interval_s``, ``optimise``), ``fixed-10s`` = BB's rule (interval 10 s);
-* ``esdf-innovation`` -- CM's innovation test (CM III.B) as the fusion rule;
+* ``esdf-innovation`` -- CM's rule: fuse on BB's interval (or the budget), optimise once per loop
+  closure found by CM's test (CM III.B-C); ``innovation-fusion`` -- CM's test used as a fusion
+  trigger instead;
 * ``never`` (pure FastSLAM), ``always`` (fuse at every decision, EKF-like);
 * ``adaptive-diversity`` and ``imminent-closure`` -- adaptive rules of BB sections 6 and 5.4;
 * ``learned`` -- a stable-baselines3 model zip (``path``, ``algo``).

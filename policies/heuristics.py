@@ -9,10 +9,13 @@ Rules (registry names in brackets):
 
 * :class:`FixedInterval` (``fixed-interval``; ``fixed-10s`` is BB's setting) -- BB section 6:
   "a very simple criterion for map fusion (local-map age equal to 10 seconds)".
-* :class:`EsdfInnovation` (``esdf-innovation``) -- CM section III.B's loop-closure test moved to
-  the interface: fuse when an observation of a global feature has ``||nu|| > 2 sigma``, or when the
-  local map outgrows its compute budget (CM's first loop-closure condition), or at a maximum age;
-  optimise (CM section III.C) once per detected loop closure.
+* :class:`EsdfInnovation` (``esdf-innovation``) -- CM's rule where CM put it: filter while the
+  non-linearities are negligible (the local map is handed over on BB's 10 s interval, or earlier
+  when it outgrows its budget) and run the nonlinear optimiser (CM III.C) once per loop closure
+  detected by CM's test (CM Definition 1, III.B: ``||nu|| > 2 sigma``).
+* :class:`InnovationFusion` (``innovation-fusion``) -- CM's innovation test used instead as a
+  *fusion* trigger: fuse when an observation of a global feature has ``||nu|| > 2 sigma``, or when
+  the local map outgrows its budget, or at a maximum age (this was ``esdf-innovation`` before).
 * :class:`Never` (``never``) -- pure FastSLAM (BB section 6: "if map fusion never occurs,
   HybridSLAM is identical to FastSLAM"). :class:`Always` (``always``) -- fuse at every decision,
   which approaches EKF-SLAM (BB section 6).
@@ -30,17 +33,15 @@ The optimisation decision is shared by all rules through the ``optimise`` option
 
 * ``"never"``: never optimise (BB's HYBRID has no optimiser);
 * ``"every-fusion"``: optimise together with every fusion (the env fuses first, then optimises);
-* ``"on-loop-closure"``: CM's use of the optimiser -- at a detected loop closure. A closure is the
-  rising edge of ``loop_closure_flag`` (0 -> 1 between consecutive decisions). A closure whose edge
-  comes less than ``min_optimise_interval_s`` after the last optimisation
-  (``time_since_optimise_s``) is taken for the same closure and ignored: a loop closure is not one
-  update but a passage through the old region that lasts about sensor range / speed (25 s in BB's
-  world, 12 s in CM's), during which the flag flickers as old landmarks come into view one by one;
-  the default 20 s merges those flickers into one optimisation (CM III.B: "this optimization can
-  be computed only once, even if more than one loop closure event occurs"). An accepted closure is
-  *pending* until the next fusion and the optimisation runs at that fusion, because the back-end
-  only holds the closure's information once the local map that saw it is fused (for
-  ``esdf-innovation`` this is the same decision: the flag implies ``innovation_ratio > 1``).
+* ``"on-loop-closure"``: CM's use of the optimiser -- at a detected loop closure.
+  ``loop_closure_flag`` is set when the back-end's CM test (Definition 1) found a closure in a
+  fusion of the last decision interval, so the closure's information is in the back-end and the
+  optimiser runs at once. A closure less than ``min_optimise_interval_s`` after the last
+  optimisation (``time_since_optimise_s``) is taken for the same closure and ignored: a loop
+  closure is not one fusion but a passage through the old region that lasts about sensor range /
+  speed (25 s in BB's world, 12 s in CM's), during which closures come as old landmarks come into
+  view one by one; the default 20 s merges them into one optimisation (CM III.B: "this
+  optimization can be computed only once, even if more than one loop closure event occurs").
 """
 
 from __future__ import annotations
@@ -78,8 +79,7 @@ class OptimiseTrigger:
     """The optimisation half of the action, shared by the heuristics (module docstring).
 
     ``decide(f, fuse)`` returns whether to optimise at this decision given the features and the
-    fusion decision already taken. State (``on-loop-closure`` only): the flag at the previous
-    decision and whether an accepted closure awaits its fusion; ``reset()`` clears both.
+    fusion decision already taken. It keeps no state.
     """
 
     def __init__(self, mode: str, min_optimise_interval_s: float) -> None:
@@ -87,8 +87,6 @@ class OptimiseTrigger:
         self.min_optimise_interval_s = check_range(
             "min_optimise_interval_s", min_optimise_interval_s, 0.0, _INF
         )
-        self._previous_flag = False
-        self._pending = False
 
     @property
     def required_features(self) -> tuple[str, ...]:
@@ -96,29 +94,17 @@ class OptimiseTrigger:
             return ("loop_closure_flag", "time_since_optimise_s")
         return ()
 
-    @property
-    def pending(self) -> bool:
-        """Whether a detected closure waits for the next fusion to be optimised."""
-        return self._pending
-
     def reset(self) -> None:
-        self._previous_flag = False
-        self._pending = False
+        """Nothing to clear (kept for the policies' reset())."""
 
     def decide(self, f: Mapping[str, float], fuse: bool) -> bool:
         if self.mode == "never":
             return False
         if self.mode == "every-fusion":
             return fuse
-        flag = f["loop_closure_flag"] >= FLAG_ON
-        rising = flag and not self._previous_flag
-        self._previous_flag = flag
-        if rising and _reached(f["time_since_optimise_s"], self.min_optimise_interval_s):
-            self._pending = True
-        if self._pending and fuse:
-            self._pending = False
-            return True
-        return False
+        return f["loop_closure_flag"] >= FLAG_ON and _reached(
+            f["time_since_optimise_s"], self.min_optimise_interval_s
+        )
 
 
 class _TriggeredHeuristic(HeuristicPolicy):
@@ -208,8 +194,44 @@ class Never(HeuristicPolicy):
 
 
 # ----------------------------------------------------------------------------------------------
-class EsdfInnovation(_TriggeredHeuristic):
-    """CM's loop-closure test (CM section III.B) as the interface rule.
+class EsdfInnovation(FixedInterval):
+    """CM's rule where CM put it (CM III.B-C), on the hybrid system's interface.
+
+    CM filter while the non-linearities are negligible and, when a loop-closure innovation exceeds
+    the 2-sigma bound (CM Definition 1), run the nonlinear optimiser once. Here: the local map is
+    handed over on BB's interval (``interval_s``, default 10 s, BB section 6) or as soon as it
+    outgrows its budget (``local_map_budget_ratio >= budget_ratio``, default 1: CM's first
+    loop-closure condition, an update too large for real time, transposed to the sub-map);
+    the optimiser runs at the decision after a fusion in which the back-end's CM test found a loop
+    closure (``optimise="on-loop-closure"``, debounced by ``min_optimise_interval_s``).
+    """
+
+    name = "esdf-innovation"
+
+    def __init__(
+        self,
+        *,
+        interval_s: float = 10.0,
+        budget_ratio: float = 1.0,
+        optimise: str = "on-loop-closure",
+        min_optimise_interval_s: float = DEFAULT_MIN_OPTIMISE_INTERVAL_S,
+    ) -> None:
+        self.budget_ratio = check_range("budget_ratio", budget_ratio, 0.0, _INF, low_open=True)
+        super().__init__(
+            interval_s=interval_s,
+            optimise=optimise,
+            min_optimise_interval_s=min_optimise_interval_s,
+        )
+        self.required_features = (*self.required_features, "local_map_budget_ratio")
+        self.options = {**self.options, "budget_ratio": self.budget_ratio}
+
+    def fuse_now(self, f: Mapping[str, float]) -> bool:
+        return super().fuse_now(f) or f["local_map_budget_ratio"] >= self.budget_ratio
+
+
+# ----------------------------------------------------------------------------------------------
+class InnovationFusion(_TriggeredHeuristic):
+    """CM's innovation test (CM section III.B) used as a *fusion* trigger (not CM's use of it).
 
     Fuse when any of:
 
@@ -230,7 +252,7 @@ class EsdfInnovation(_TriggeredHeuristic):
     ``min_optimise_interval_s`` (module docstring).
     """
 
-    name = "esdf-innovation"
+    name = "innovation-fusion"
 
     def __init__(
         self,
@@ -493,6 +515,7 @@ HEURISTICS: Mapping[str, type[HeuristicPolicy]] = MappingProxyType(
         for cls in (
             FixedInterval,
             EsdfInnovation,
+            InnovationFusion,
             Never,
             Always,
             AdaptiveDiversity,
@@ -510,6 +533,7 @@ __all__ = [
     "EsdfInnovation",
     "FixedInterval",
     "ImminentClosure",
+    "InnovationFusion",
     "Never",
     "HEURISTICS",
     "OptimiseTrigger",

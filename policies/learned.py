@@ -95,16 +95,15 @@ OBSERVATION_TRANSFORMS: tuple[str, ...] = ("none", "log1p")
 """Transforms of the observation a model may have been trained behind."""
 
 
-def _configured_transform(model_path: Path) -> str:
-    """The ``observation_transform`` of the config JSON beside the model, else ``"none"``."""
+def _configured(model_path: Path, key: str, default: Any) -> Any:
+    """The ``key`` of the config JSON beside the model, else ``default``."""
     config = model_path.with_suffix(".json")
     if not config.is_file():
-        return "none"
+        return default
     try:
-        value = json.loads(config.read_text()).get("observation_transform", "none")
+        return json.loads(config.read_text()).get(key, default)
     except (json.JSONDecodeError, AttributeError) as exc:
         raise ValueError(f"config {config} is invalid: must be a JSON object ({exc})") from exc
-    return value
 
 
 def _algorithm_class(algo: str):
@@ -121,6 +120,10 @@ def _algorithm_class(algo: str):
 
 class LearnedPolicy(Policy):
     """A stable-baselines3 model as an interface policy: ``act(obs, info)`` reads only ``obs``.
+
+    A config JSON beside the zip may list ``feature_names``: the interface features the model was
+    trained on, in order; the policy then builds its input from ``info["features"]`` by name, so
+    a model keeps working when the env's observation gains features.
 
     Options: ``path`` (model zip; default :data:`DEFAULT_MODEL_PATH`), ``algo`` (one of
     :data:`ALGORITHMS`; default: detected from the zip), ``deterministic`` (default True: the
@@ -165,7 +168,16 @@ class LearnedPolicy(Policy):
                 f"{detected!r}, the algorithm that saved {model_path}",
             )
         if observation_transform is None:
-            observation_transform = _configured_transform(model_path)
+            observation_transform = _configured(model_path, "observation_transform", "none")
+        feature_names = _configured(model_path, "feature_names", None)
+        require(
+            feature_names is None
+            or (isinstance(feature_names, list) and all(isinstance(n, str) for n in feature_names)),
+            "feature_names",
+            feature_names,
+            "a list of interface feature names (in the model's config JSON)",
+        )
+        self.feature_names = None if feature_names is None else tuple(feature_names)
         require(
             observation_transform in OBSERVATION_TRANSFORMS,
             "observation_transform",
@@ -185,6 +197,13 @@ class LearnedPolicy(Policy):
             "device": device,
             "observation_transform": observation_transform,
         }
+        if self.feature_names is not None:
+            require(
+                len(self.feature_names) == self.observation_shape[0],
+                "feature_names",
+                len(self.feature_names),
+                f"{self.observation_shape[0]} names, the model's observation size",
+            )
         logger.info("loaded %s model from %s", algo.upper(), model_path)
 
     def _check_spaces(self) -> None:
@@ -210,6 +229,18 @@ class LearnedPolicy(Policy):
         self.discrete = flat
 
     def act(self, obs: Any, info: Mapping[str, Any] | None = None) -> np.ndarray:
+        if self.feature_names is not None:
+            # a model trained on another feature set: its features, by name, from the info
+            require(
+                info is not None and "features" in info,
+                "info",
+                None if info is None else sorted(info),
+                "a dict with 'features' (the model reads its features by name)",
+            )
+            missing = [n for n in self.feature_names if n not in info["features"]]
+            require(not missing, "info['features']", sorted(info["features"]),
+                    f"to include the model's features {missing}")
+            obs = [info["features"][n] for n in self.feature_names]
         x = np.asarray(obs, dtype=np.float32)
         require(
             x.shape == self.observation_shape,

@@ -51,7 +51,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from filters.submap import INTERFACE_FEATURE_NAMES
+from filters.interface_features import INTERFACE_FEATURE_NAMES
 from filters.validation import check_range, require
 from slam_gym.episode import Episode
 from slam_gym.metrics import nees_band
@@ -249,6 +249,7 @@ class HybridSLAMEnv(gym.Env):
             raise ValueError(f"action={action!r} is invalid: must be in MultiDiscrete([2, 2])")
         fuse, optimise = bool(action[0]), bool(action[1])
         failed_before = self.episode.failure.failed
+        self.system.start_interval()  # the next observation's events: this decision's and after
         if fuse:
             self.episode.fuse()
         if optimise:

@@ -353,11 +353,11 @@ def test_interface_features_complete_and_meaningful():
     assert 0.0 < feats["clutter_rate"] < 1.0
 
 
-def _one_feature_system(unseen_s):
+def _one_feature_system(unseen_s, pose_var=(0.5, 0.5, 0.02)):
     front = EKFSLAM(SENSOR, ClutterModel(), NOISE)
     g = GlobalMap(initial_pose=[0.0, 0.0, 0.0])
     g.x = np.array([0.0, 0.0, 0.0, 10.0, 0.0])
-    g.P = np.diag([0.5, 0.5, 0.02, 0.01, 0.01])
+    g.P = np.diag([*pose_var, 0.01, 0.01])
     g.ids, g.existence = np.array([0]), np.array([0.99])
     return SubmapSLAM(front, g, loop_closure_unseen_s=unseen_s)
 
@@ -380,27 +380,107 @@ def _dense_global_prediction(f):
     return np.array(zhat), np.array(S), np.array(S_up)
 
 
-@pytest.mark.parametrize("unseen_s, expected_flag", [(5.0, 1.0), (100.0, 0.0)])
-def test_loop_closure_flag_and_innovation_ratio(unseen_s, expected_flag):
-    """A global feature not seen for longer than loop_closure_unseen_s, re-observed with an
-    innovation beyond 2 sigma (sigma^2 the largest eigenvalue of the upper bound of S) but inside
-    the gate, raises the flag."""
-    f = _one_feature_system(unseen_s)
+def test_observation_innovation_ratio_is_cm_test_in_metres_and_is_aggregated_over_the_interval():
+    """Per observation, CM's ||nu|| / (2 sigma) with range and bearing in one unit (metres at the
+    predicted range), with no chi-square gate; the feature keeps the largest value of the
+    interval until start_interval()."""
+    f = _one_feature_system(60.0, pose_var=(0.01, 0.01, 0.0004))
     f.predict(np.array([0.0, 0.0]), 10.0)
-    zhat, S, S_up = _dense_global_prediction(f)
-    w, V = np.linalg.eigh(S[0])
-    nu = 3.5 * np.sqrt(w[-1]) * V[:, -1]  # d2 = 12.25 < chi2(0.999, 2) = 13.8
+    zhat, S, _ = _dense_global_prediction(f)
+    T = np.diag([1.0, zhat[0, 0]])
+    w, V = np.linalg.eigh(T @ S[0] @ T)
+    nu_m = 6.0 * np.sqrt(w[-1]) * V[:, -1]  # 3 sigma in metres: far outside the 99.9 % gate
+    nu = np.linalg.solve(T, nu_m)
+    assert nu @ np.linalg.solve(S[0], nu) > chi2.ppf(0.999, 2)
     f.update(zhat[:1] + nu)
-    ratio = np.linalg.norm(nu) / (2 * np.sqrt(np.linalg.eigvalsh(S_up[0])[-1]))
-    feats = f.interface_features()
-    assert ratio > 1.0
-    assert feats["innovation_ratio"] == pytest.approx(ratio)
-    assert feats["loop_closure_flag"] == expected_flag
-    assert feats["global_features_in_view"] == 1.0
-    assert np.all(np.linalg.eigvalsh(S_up[0] - S[0]) >= -1e-12)  # an upper bound of S
-    # far outside the gate: not an observation of the global feature
-    f.update(zhat[:1] + 10 * nu)
+    assert f.interface_features()["innovation_ratio"] == pytest.approx(3.0, rel=1e-9)
+    f.update(zhat[:1])  # a perfect observation later in the interval does not hide it
+    assert f.interface_features()["innovation_ratio"] == pytest.approx(3.0, rel=1e-9)
+    f.start_interval()
     assert f.interface_features()["innovation_ratio"] == 0.0
+    # an observation further than closure_radius_m from every global feature tests nothing
+    f.update(np.array([[zhat[0, 0] + 8.0, zhat[0, 1]]]))
+    assert f.interface_features()["innovation_ratio"] == 0.0
+
+
+def _loop_with_heading_error(heading_error_rad, seed=0):
+    """An EKF back-end that mapped six landmarks 100 s ago, then a local map re-observing them
+    (noise as a 10 s local map would have it), its origin's heading off by ``heading_error_rad``.
+    Returns the back-end's fusion report."""
+    rng = np.random.default_rng(seed)
+    landmarks = rng.uniform(-12.0, 12.0, size=(6, 2))
+    g = GlobalMap(initial_pose=[0.0, 0.0, 0.0])
+    first = GaussianMap(
+        x=np.concatenate([[0.0, 0.0, 0.0], landmarks.ravel()]),
+        P=np.diag([1e-6] * 3 + [0.02] * 12),
+        ids=np.arange(6),
+        existence=np.full(6, 0.99),
+    )
+    g.fuse(first, time_s=0.0)
+    # the local map of a vehicle back at the origin 100 s later, whose global pose estimate
+    # v- = origin says heading 0 while the truth is heading_error_rad
+    c, s = np.cos(-heading_error_rad), np.sin(-heading_error_rad)
+    seen = landmarks @ np.array([[c, -s], [s, c]]).T + rng.normal(size=(6, 2)) * 0.05
+    local = GaussianMap(
+        x=np.concatenate([[0.0, 0.0, 0.0], seen.ravel()]),
+        P=np.diag([1e-4] * 3 + [0.0025] * 12),
+        ids=np.arange(100, 106),
+        existence=np.full(6, 0.99),
+    )
+    return g.fuse(local, time_s=100.0)
+
+
+def test_a_consistent_loop_closure_does_not_fire():
+    report = _loop_with_heading_error(0.0)
+    assert report.n_matched == 6
+    assert report.loop_closures == []
+
+
+@pytest.mark.parametrize("heading_error_deg", [5.0, 20.0])
+def test_a_loop_closure_with_a_heading_error_fires(heading_error_deg):
+    """5 deg: JCBB still matches the pairs but CM's 2-sigma test fires; 20 deg: JCBB rejects the
+    pairs (outside the gate) and the radius search still finds the re-observations."""
+    report = _loop_with_heading_error(np.radians(heading_error_deg))
+    assert report.loop_closures
+    assert all(lc.innovation_ratio > 1.0 for lc in report.loop_closures)
+    assert all(lc.unseen_s == pytest.approx(100.0) for lc in report.loop_closures)
+    if heading_error_deg == 20.0:
+        assert any(lc.outside_gate for lc in report.loop_closures)
+
+
+def test_recently_fused_features_are_not_loop_closures():
+    """The same inconsistent re-observation 30 s after the features were fused is no closure
+    (DEFAULT_LOOP_CLOSURE_UNSEEN_S = 60 s)."""
+    g = GlobalMap(initial_pose=[0.0, 0.0, 0.0])
+    lm = np.array([[5.0, 0.0], [0.0, 7.0]])
+    g.fuse(GaussianMap(np.concatenate([[0, 0, 0], lm.ravel()]), np.diag([1e-6] * 3 + [0.02] * 4),
+                       np.arange(2), np.full(2, 0.99)), time_s=0.0)
+    shifted = lm + [1.0, 0.0]
+    report = g.fuse(GaussianMap(np.concatenate([[0, 0, 0], shifted.ravel()]),
+                                np.diag([1e-4] * 3 + [0.0025] * 4), np.arange(10, 12),
+                                np.full(2, 0.99)), time_s=30.0)
+    assert report.loop_closures == []
+
+
+def test_loop_closures_reach_the_interface_features_for_the_interval():
+    f = _one_feature_system(60.0, pose_var=(0.01, 0.01, 0.0004))
+    f.back_end.last_fused_s = np.array([-100.0])  # fused 100 s before this local map started
+    f.predict(np.array([0.0, 0.0]), 0.1)
+    # the local map re-observes the feature 1.5 m off: far beyond 2 sigma of the global copy
+    for _ in range(10):
+        f.update(np.array([[11.5, 0.0]]))
+    assert f.front_end.landmarks().existence.max() > 0.95
+    f.start_interval()
+    report = f.fuse()
+    assert len(report.loop_closures) == 1
+    feats = f.interface_features()
+    assert feats["loop_closure_flag"] == 1.0
+    assert feats["loop_closures_since_optimise"] == 1.0
+    assert feats["stored_submaps"] == 1.0
+    assert feats["innovation_ratio"] == pytest.approx(report.loop_closures[0].innovation_ratio)
+    f.start_interval()
+    assert f.interface_features()["loop_closure_flag"] == 0.0
+    assert f.interface_features()["loop_closures_since_optimise"] == 1.0
 
 
 def test_compass_goes_to_the_front_end_relative_to_the_origin():
@@ -473,9 +553,9 @@ def test_global_innovations_match_the_dense_computation():
     R = SENSOR.R
     z = observe(pose, m[[4, 1, 6]]) + rng.normal(size=(3, 2)) * [0.05, 0.01]
     z = np.vstack([z, [[40.0, 3.0]]])
-    gate = chi2.ppf(0.999, 2)
+    radius_m = 5.0
     nearest, ratio = _nearest_global_innovations(
-        z, pose, sigma, J_a, x, P, cols, R[0, 0], R[1, 1], gate
+        z, pose, sigma, J_a, x, P, cols, R[0, 0], R[1, 1], radius_m
     )
     Hp, Hm = observe_jacobians(pose, m)
     for k in range(len(z)):
@@ -488,12 +568,14 @@ def test_global_innovations_match_the_dense_computation():
             S = H @ joint @ H.T + R
             nu = innovation(z[k], observe(pose, m[n]))
             d2 = nu @ np.linalg.solve(S, nu)
-            if d2 <= gate and d2 < best_d2:
+            point = pose[:2] + z[k, 0] * np.array(
+                [np.cos(z[k, 1] + pose[2]), np.sin(z[k, 1] + pose[2])]
+            )
+            if np.linalg.norm(m[n] - point) <= radius_m and d2 < best_d2:
                 best, best_d2 = n, d2
-                upper = 2.0 * H @ np.block(
-                    [[sigma, np.zeros((3, 2))], [np.zeros((2, 3)), joint[3:, 3:]]]
-                ) @ H.T + R
-                expected_ratio = np.linalg.norm(nu) / (2.0 * np.sqrt(np.linalg.eigvalsh(upper)[-1]))
+                T = np.diag([1.0, observe(pose, m[n])[0]])  # bearing -> metres at the range
+                top = np.linalg.eigvalsh(T @ S @ T)[-1]
+                expected_ratio = np.linalg.norm(T @ nu) / (2.0 * np.sqrt(top))
         assert nearest[k] == best
         if best >= 0:
             assert ratio[k] == pytest.approx(expected_ratio, rel=1e-9)

@@ -1,4 +1,5 @@
-"""Sub-map optimisation (DESIGN 3.10) and the relative back-end (filters/submap_optimise.py)."""
+"""Sub-map optimisation (filters/submap_optimise.py, DESIGN 3.10) and the relative back-end
+(filters/back_ends.py)."""
 
 from __future__ import annotations
 
@@ -7,16 +8,15 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
+from filters.back_ends import GlobalMap, RelativeBackEnd, make_back_end
 from filters.ekf_slam import EKFSLAM
 from filters.geometry import compose, wrap_angle
 from filters.optimiser import POINT, POSE
-from filters.submap import GlobalMap, SubmapSLAM
+from filters.submap import SubmapSLAM
 from filters.submap_optimise import (
-    RelativeBackEnd,
     build_submap_problem,
     gaussian_information,
     joint_covariance,
-    make_back_end,
     optimise_submaps,
 )
 from filters.types import GaussianMap

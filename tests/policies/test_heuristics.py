@@ -36,6 +36,8 @@ def features(**overrides: float) -> dict[str, float]:
         "clutter_rate": 0.0,
         "loop_closure_flag": 0.0,
         "local_map_budget_ratio": 0.1,
+        "loop_closures_since_optimise": 0.0,
+        "stored_submaps": 0.0,
     }
     assert set(f) == set(INTERFACE_FEATURES)
     f.update(overrides)
@@ -132,7 +134,7 @@ def test_fixed_interval_every_fusion_optimises_with_each_fusion():
     assert optimise_times(history) == fusion_times(history)
 
 
-def test_fixed_interval_on_loop_closure_optimises_at_the_fusion_after_the_closure_once():
+def test_fixed_interval_on_loop_closure_optimises_once_per_closure_passage():
     def schedule(t):
         on = 13 <= t <= 16 or t == 18  # one closure passage with a flicker
         return {"loop_closure_flag": 1.0 if on else 0.0}
@@ -145,104 +147,89 @@ def test_fixed_interval_on_loop_closure_optimises_at_the_fusion_after_the_closur
     }
     history = FakeInterface(schedule).run(policy, 45)
     assert fusion_times(history) == [10.0, 20.0, 30.0, 40.0]
-    assert optimise_times(history) == [20.0]
+    assert optimise_times(history) == [13.0]  # at once; 14..18 are the same passage (< 20 s)
 
 
 # ------------------------------------------------------------------------------------------------
-# esdf-innovation (CM section III.B)
+# esdf-innovation (CM III.B-C: BB's interval, the optimiser once per loop closure)
 # ------------------------------------------------------------------------------------------------
-def test_esdf_innovation_fuses_when_the_ratio_crosses_one_and_not_before():
-    policy = policies.make("esdf-innovation")
-    ratios = [0.0, 0.3, 0.7, 0.95, 0.999, 1.0, 1.001, 1.7]
-    fused = [policy.act(None, info(local_map_age_s=5.0, innovation_ratio=r))[0] for r in ratios]
-    assert fused == [0, 0, 0, 0, 0, 0, 1, 1]
-
-
-def test_esdf_innovation_in_a_sequence_fuses_at_the_crossing():
-    ratios = {1: 0.2, 2: 0.4, 3: 0.8, 4: 0.99, 5: 1.3, 6: 0.1, 7: 0.2, 8: 1.2, 9: 0.3}
-    history = FakeInterface(lambda t: {"innovation_ratio": ratios.get(int(t), 0.0)}).run(
-        policies.make("esdf-innovation"), 12
+def test_esdf_innovation_fuses_on_bbs_interval_whatever_the_innovation():
+    history = FakeInterface(lambda t: {"innovation_ratio": 5.0 if t == 3.0 else 0.1}).run(
+        policies.make("esdf-innovation"), 35
     )
-    assert fusion_times(history) == [5.0, 8.0]
+    assert fusion_times(history) == [10.0, 20.0, 30.0]
 
 
 def test_esdf_innovation_fuses_when_the_local_map_outgrows_its_budget():
     policy = policies.make("esdf-innovation")
     assert policy.act(None, info(local_map_age_s=4.0, local_map_budget_ratio=0.99))[0] == 0
     assert policy.act(None, info(local_map_age_s=4.0, local_map_budget_ratio=1.0))[0] == 1
-    assert policy.act(None, info(local_map_age_s=4.0, local_map_budget_ratio=1.4))[0] == 1
-
-
-def test_esdf_innovation_caps_the_local_map_age():
-    history = FakeInterface().run(policies.make("esdf-innovation"), 65)
-    assert fusion_times(history) == [30.0, 60.0]
-    history = FakeInterface().run(policies.make("esdf-innovation", max_age_s=12.0), 30)
-    assert fusion_times(history) == [12.0, 24.0]
-
-
-def test_esdf_innovation_min_age_holds_a_young_local_map():
-    policy = policies.make("esdf-innovation", min_age_s=3.0)
-    assert policy.act(None, info(local_map_age_s=2.0, innovation_ratio=5.0))[0] == 0
-    assert policy.act(None, info(local_map_age_s=3.0, innovation_ratio=5.0))[0] == 1
 
 
 def test_esdf_innovation_optimises_once_per_detected_loop_closure():
     def schedule(t):
-        # closure 1: flag at 40..45, a flicker off at 46, on again 47..50; closure 2: 80..82
-        on = 40 <= t <= 45 or 47 <= t <= 50 or 80 <= t <= 82
-        return {"loop_closure_flag": 1.0 if on else 0.0, "innovation_ratio": 1.5 if on else 0.2}
+        # closure 1: closures reported after the fusions at 40 and 50 s (one passage), closure 2
+        # after the fusion at 90 s
+        return {"loop_closure_flag": 1.0 if t in (41.0, 51.0, 91.0) else 0.0}
 
-    history = FakeInterface(schedule).run(policies.make("esdf-innovation"), 90)
-    assert optimise_times(history) == [40.0, 80.0]
-    # every flagged decision has innovation > 2 sigma, hence a fusion, plus the 30 s age cap
-    flagged = [t for t, f, _ in history if f["loop_closure_flag"]]
-    assert set(flagged) <= set(fusion_times(history))
-    assert 30.0 in fusion_times(history)
+    history = FakeInterface(schedule).run(policies.make("esdf-innovation"), 100)
+    assert optimise_times(history) == [41.0, 91.0]
+    assert fusion_times(history) == [float(t) for t in range(10, 101, 10)]
 
 
 def test_esdf_innovation_debounce_interval_is_configurable():
     def schedule(t):
-        on = t in (40.0, 45.0)  # two separate edges 5 s apart
-        return {"loop_closure_flag": 1.0 if on else 0.0, "innovation_ratio": 1.5 if on else 0.2}
+        return {"loop_closure_flag": 1.0 if t in (41.0, 51.0) else 0.0}
 
-    default = FakeInterface(schedule).run(policies.make("esdf-innovation"), 50)
-    assert optimise_times(default) == [40.0]
     short = FakeInterface(schedule).run(
-        policies.make("esdf-innovation", min_optimise_interval_s=3.0), 50
+        policies.make("esdf-innovation", min_optimise_interval_s=5.0), 60
     )
-    assert optimise_times(short) == [40.0, 45.0]
+    assert optimise_times(short) == [41.0, 51.0]
 
 
 def test_esdf_innovation_no_optimisation_with_optimise_never():
-    def schedule(t):
-        on = 40 <= t <= 45
-        return {"loop_closure_flag": 1.0 if on else 0.0, "innovation_ratio": 1.5 if on else 0.2}
-
-    history = FakeInterface(schedule).run(policies.make("esdf-innovation", optimise="never"), 50)
+    history = FakeInterface(lambda t: {"loop_closure_flag": 1.0}).run(
+        policies.make("esdf-innovation", optimise="never"), 30
+    )
     assert optimise_times(history) == []
-    assert 40.0 in fusion_times(history)
 
 
-def test_esdf_innovation_reset_clears_the_pending_closure_and_the_edge_detector():
-    # threshold 3: the flagged re-observation (ratio 1.5) does not force a fusion, so the closure
-    # stays pending until the next fusion
-    policy = policies.make("esdf-innovation", threshold=3.0)
-    closure = info(local_map_age_s=5.0, loop_closure_flag=1.0, innovation_ratio=1.5)
-    budget_fusion = info(local_map_age_s=6.0, local_map_budget_ratio=1.0)
-    assert policy.act(None, closure).tolist() == [0, 0]
-    assert policy.act(None, budget_fusion).tolist() == [1, 1]  # the pending closure runs here
+# ------------------------------------------------------------------------------------------------
+# innovation-fusion (CM III.B's test as a fusion trigger)
+# ------------------------------------------------------------------------------------------------
+def test_innovation_fusion_fuses_when_the_ratio_crosses_one_and_not_before():
+    policy = policies.make("innovation-fusion")
+    ratios = [0.0, 0.3, 0.7, 0.95, 0.999, 1.0, 1.001, 1.7]
+    fused = [policy.act(None, info(local_map_age_s=5.0, innovation_ratio=r))[0] for r in ratios]
+    assert fused == [0, 0, 0, 0, 0, 0, 1, 1]
 
-    assert policy.act(None, closure).tolist() == [0, 0]  # pending again
-    policy.reset()
-    assert policy.act(None, budget_fusion).tolist() == [1, 0]  # forgotten
 
-    # edge detector: a flag still high is not a new closure ... unless the episode was reset
-    held = info(local_map_age_s=5.0, loop_closure_flag=1.0, innovation_ratio=4.0)
-    policy.reset()
-    assert policy.act(None, held).tolist() == [1, 1]
-    assert policy.act(None, held).tolist() == [1, 0]
-    policy.reset()
-    assert policy.act(None, held).tolist() == [1, 1]
+def test_innovation_fusion_in_a_sequence_fuses_at_the_crossing():
+    ratios = {1: 0.2, 2: 0.4, 3: 0.8, 4: 0.99, 5: 1.3, 6: 0.1, 7: 0.2, 8: 1.2, 9: 0.3}
+    history = FakeInterface(lambda t: {"innovation_ratio": ratios.get(int(t), 0.0)}).run(
+        policies.make("innovation-fusion"), 12
+    )
+    assert fusion_times(history) == [5.0, 8.0]
+
+
+def test_innovation_fusion_fuses_when_the_local_map_outgrows_its_budget():
+    policy = policies.make("innovation-fusion")
+    assert policy.act(None, info(local_map_age_s=4.0, local_map_budget_ratio=0.99))[0] == 0
+    assert policy.act(None, info(local_map_age_s=4.0, local_map_budget_ratio=1.0))[0] == 1
+    assert policy.act(None, info(local_map_age_s=4.0, local_map_budget_ratio=1.4))[0] == 1
+
+
+def test_innovation_fusion_caps_the_local_map_age():
+    history = FakeInterface().run(policies.make("innovation-fusion"), 65)
+    assert fusion_times(history) == [30.0, 60.0]
+    history = FakeInterface().run(policies.make("innovation-fusion", max_age_s=12.0), 30)
+    assert fusion_times(history) == [12.0, 24.0]
+
+
+def test_innovation_fusion_min_age_holds_a_young_local_map():
+    policy = policies.make("innovation-fusion", min_age_s=3.0)
+    assert policy.act(None, info(local_map_age_s=2.0, innovation_ratio=5.0))[0] == 0
+    assert policy.act(None, info(local_map_age_s=3.0, innovation_ratio=5.0))[0] == 1
 
 
 # ------------------------------------------------------------------------------------------------
@@ -394,10 +381,12 @@ def test_imminent_closure_reset_clears_the_latch():
         ("fixed-10s", {"optimise": "always"}, "optimise"),
         ("fixed-interval", {"min_optimise_interval_s": -1.0}, "min_optimise_interval_s"),
         ("always", {"optimise": None}, "optimise"),
-        ("esdf-innovation", {"threshold": 0.0}, "threshold"),
-        ("esdf-innovation", {"budget_ratio": -1.0}, "budget_ratio"),
-        ("esdf-innovation", {"max_age_s": 0.0}, "max_age_s"),
-        ("esdf-innovation", {"min_age_s": 30.0}, "min_age_s"),
+        ("innovation-fusion", {"threshold": 0.0}, "threshold"),
+        ("innovation-fusion", {"budget_ratio": -1.0}, "budget_ratio"),
+        ("innovation-fusion", {"max_age_s": 0.0}, "max_age_s"),
+        ("innovation-fusion", {"min_age_s": 30.0}, "min_age_s"),
+        ("esdf-innovation", {"budget_ratio": 0.0}, "budget_ratio"),
+        ("esdf-innovation", {"interval_s": -1.0}, "interval_s"),
         ("adaptive-diversity", {"nominal_interval_s": 0.0}, "nominal_interval_s"),
         ("adaptive-diversity", {"min_age_s": 11.0}, "min_age_s"),
         ("adaptive-diversity", {"max_age_s": 9.0}, "max_age_s"),
@@ -505,7 +494,7 @@ def test_info_without_features_raises_key_error(name):
 
 def test_nan_feature_raises_value_error_naming_it():
     with pytest.raises(ValueError, match="innovation_ratio"):
-        policies.make("esdf-innovation").act(None, info(innovation_ratio=float("nan")))
+        policies.make("innovation-fusion").act(None, info(innovation_ratio=float("nan")))
 
 
 @pytest.mark.parametrize("name", HEURISTIC_NAMES)

@@ -290,5 +290,14 @@ def test_the_shipped_model_loads_acts_and_says_how_it_was_made():
     assert policy.observation_transform == "log1p"  # from learned-default.json
     config = json.loads(learned.DEFAULT_MODEL_PATH.with_suffix(".json").read_text())
     assert config["command"].startswith("slam-gym train")
-    action = policy.act(np.zeros(len(INTERFACE_FEATURES), dtype=np.float32), {})
+    features = dict.fromkeys(INTERFACE_FEATURES, 0.0)
+    action = policy.act(np.zeros(len(INTERFACE_FEATURES), dtype=np.float32), {"features": features})
     assert action.shape == (2,) and action.dtype == np.int64
+    # it reads the features it was trained on, by name, whatever the env's observation holds
+    assert set(policy.feature_names) <= set(INTERFACE_FEATURES)
+    assert len(policy.feature_names) == policy.observation_shape[0]
+    others = [n for n in INTERFACE_FEATURES if n not in policy.feature_names]
+    shifted = dict(features, **dict.fromkeys(others, 5.0))
+    assert policy.act(None, {"features": shifted}).tolist() == action.tolist()
+    with pytest.raises(ValueError, match="info"):
+        policy.act(None, {"features": {}})

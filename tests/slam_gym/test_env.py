@@ -95,7 +95,7 @@ def test_make_in_a_fresh_interpreter_without_importing_slam_gym():
     code = (
         "import gymnasium as gym, sys; "
         "env = gym.make('slam_gym:SlamGym/HybridSLAM-v0', n_particles=5, n_steps=30); "
-        "obs, info = env.reset(seed=0); assert obs.shape == (17,); "
+        "obs, info = env.reset(seed=0); assert obs.shape == (19,); "
         "assert 'slam_gym' in sys.modules"
     )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=300)
