@@ -13,7 +13,8 @@ env's ``MultiDiscrete([2, 2])`` action) plus ``reset()``; see :mod:`policies.bas
 
 Names (``policies.available()``):
 
-* ``fixed-interval`` (``interval_s``, ``optimise``), ``fixed-10s`` = BB's rule (interval 10 s);
+* ``fixed-interval`` (``interval_s``, ``optimise``), ``fixed-10s`` = BB's rule (interval 10 s),
+  ``fixed-10s-optimise`` = the same with the optimiser after every fusion;
 * ``esdf-innovation`` -- CM's rule: fuse on BB's interval (or the budget), optimise once per loop
   closure found by CM's test (CM III.B-C); ``innovation-fusion`` -- CM's test used as a fusion
   trigger instead;
@@ -42,9 +43,16 @@ from policies.learned import LearnedPolicy
 _CLASSES: Mapping[str, type[Policy]] = MappingProxyType({**HEURISTICS, "learned": LearnedPolicy})
 
 _ALIASES: Mapping[str, tuple[str, Mapping[str, Any]]] = MappingProxyType(
-    {"fixed-10s": ("fixed-interval", MappingProxyType({"interval_s": 10.0}))}
+    {
+        "fixed-10s": ("fixed-interval", MappingProxyType({"interval_s": 10.0})),
+        "fixed-10s-optimise": (
+            "fixed-interval",
+            MappingProxyType({"interval_s": 10.0, "optimise": "every-fusion"}),
+        ),
+    }
 )
-"""Alias -> (policy name, options it fixes). ``fixed-10s`` is BB's rule (BB section 6)."""
+"""Alias -> (policy name, options it fixes). ``fixed-10s`` is BB's rule (BB section 6);
+``fixed-10s-optimise`` runs CM's optimiser after every one of its fusions."""
 
 
 def available() -> list[str]:

@@ -124,6 +124,8 @@ class MapScore:
     n_spurious: int
     n_missed: int
     n_detected: int = 0
+    best_errors_m: tuple = ()
+    """Per matched landmark, the error of the nearest feature standing for it."""
 
     @property
     def completeness(self) -> float:
@@ -132,6 +134,17 @@ class MapScore:
         if self.n_detected == 0:
             return float("nan")
         return (self.n_detected - self.n_missed) / self.n_detected
+
+    def ospa_m(self, cutoff_m: float) -> float:
+        """OSPA distance (order 1, cut-off ``cutoff_m``; Schuhmacher et al. 2008) between the map
+        and the detected landmarks: matched landmarks cost their error (at most the cut-off),
+        every missed landmark and every spurious or duplicate feature costs the cut-off, averaged
+        over ``max(features, detected)``. An empty map scores the cut-off, a perfect one 0."""
+        n = max(self.n_features, self.n_detected)
+        if n == 0:
+            return 0.0
+        errors = np.minimum(np.asarray(self.best_errors_m, dtype=float), cutoff_m)
+        return float((errors.sum() + cutoff_m * (n - len(errors))) / n)
 
 
 def score_map(
@@ -143,15 +156,17 @@ def score_map(
 ) -> MapScore:
     """CM's map error over the features that stand for a true landmark; spurious and missed."""
     errors = []
-    matched = set()
+    best: dict[int, float] = {}
     n_spurious = 0
     for fid, mean in zip(np.asarray(feature_ids), np.asarray(feature_means), strict=True):
         lm = truth.landmark_of(int(fid))
         if lm < 0 or lm >= len(landmarks_true):
             n_spurious += 1
             continue
-        errors.append(float(np.linalg.norm(mean - landmarks_true[lm])))
-        matched.add(lm)
+        err = float(np.linalg.norm(mean - landmarks_true[lm]))
+        errors.append(err)
+        best[lm] = min(err, best.get(lm, np.inf))
+    matched = set(best)
     detected = {int(i) for i in detected_landmarks}
     return MapScore(
         map_error_m=float(np.mean(errors)) if errors else float("nan"),
@@ -160,4 +175,5 @@ def score_map(
         n_spurious=n_spurious,
         n_missed=len(detected - matched),
         n_detected=len(detected),
+        best_errors_m=tuple(best.values()),
     )

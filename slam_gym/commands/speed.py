@@ -39,6 +39,11 @@ def add_parser(subparsers) -> None:
     p.add_argument("--skip-paper-episode", action="store_true",
                    help="skip timing one whole env episode at the paper's 500 particles")
     p.add_argument("--skip-esdf", action="store_true")
+    p.add_argument("--calibrate-compute", action="store_true",
+                   help="only fit the env's compute-cost model (slam_gym.compute_cost) to "
+                   "measured CPU time and print its coefficients and correlation")
+    p.add_argument("--calibration-seeds", default="0,1",
+                   help="worlds of the compute calibration (default 0,1)")
     add_common_options(p, default_out="out/speed")
     p.set_defaults(run=run)
 
@@ -143,8 +148,46 @@ def measure_esdf(seed):
     return table
 
 
+def calibrate_compute(args) -> int:
+    """Fit the compute-cost model; write ``compute_calibration.json`` and print the fit."""
+    from tqdm import tqdm
+
+    from slam_gym.compute_cost import CALIBRATION_RUNS, calibrate, collect_records
+
+    seeds = int_list(args.calibration_seeds)
+    bar = tqdm(total=len(CALIBRATION_RUNS) * len(seeds), desc="calibration episodes",
+               disable=args.quiet or args.json)
+    records = collect_records(seeds, progress=bar.update)
+    bar.close()
+    fit = calibrate(records)
+    result = {
+        "machine": {"platform": platform.platform(), "python": platform.python_version()},
+        "seeds": seeds,
+        "costs": {k: {"intercept_s": c.intercept_s, "seconds_per_op": c.seconds_per_op}
+                  for k, c in fit.costs.items()},
+        "n_samples": fit.n_samples,
+        "correlation": fit.correlation,
+        "overall_correlation": fit.overall_correlation,
+        "measured_total_s": {k: float(sum(r[2] for r in records if r[0] == k))
+                             for k in fit.costs},
+    }
+    out = out_dir(args)
+    (out / "compute_calibration.json").write_text(json.dumps(to_jsonable(result), indent=2) + "\n")
+    lines = [f"{'kind':<17}{'n':>6}{'intercept (s)':>15}{'s per op':>12}{'r':>7}"]
+    for k, c in fit.costs.items():
+        lines.append(f"{k:<17}{fit.n_samples[k]:>6}{c.intercept_s:>15.2e}{c.seconds_per_op:>12.2e}"
+                     f"{fit.correlation[k]:>7.3f}")
+    lines.append(f"correlation of modelled and measured CPU time over all records: "
+                 f"{fit.overall_correlation:.3f}")
+    emit(args, result, lines)
+    return 0
+
+
 def run(args) -> int:
     from tqdm import tqdm
+
+    if args.calibrate_compute:
+        return calibrate_compute(args)
 
     systems = name_list(args.systems)
     particles = int_list(args.particles)

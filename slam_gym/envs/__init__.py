@@ -13,6 +13,7 @@ ENTRY_POINT = "slam_gym.envs.hybrid_slam:HybridSLAMEnv"
 #: id -> default keyword arguments (each overridable in gym.make)
 ENV_VARIANTS: dict[str, dict] = {
     "SlamGym/HybridSLAM-v0": {},
+    "SlamGym/HybridSLAM-Light-v0": {"n_particles": 100},
     "SlamGym/HybridSLAM-Clutter0-v0": {"clutter_level": 0},
     "SlamGym/HybridSLAM-Clutter1-v0": {"clutter_level": 1},
     "SlamGym/HybridSLAM-Clutter2-v0": {"clutter_level": 2},

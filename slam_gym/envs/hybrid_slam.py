@@ -11,28 +11,63 @@ Action space
     ``Discrete(4)`` with ``a = 2 * fuse + optimise`` for DQN.
 
 Observation space
-    ``Box(0, 1e6, (17,), float32)``: the interface features of :data:`FEATURE_NAMES`, none of
-    which uses ground truth (local-map age and distance, effective sample size ratio, particle
-    spread, local feature counts, vote margin, innovation ratio, global features in view, global
-    pose uncertainty, time and fusions since the last optimisation, clutter rate, loop-closure
-    flag, local-map budget ratio). ``info["features"]`` holds the same values by name.
+    ``Box(0, 1e6, (F,), float32)``: the interface features named by the ``features`` option
+    (default all ``F = 19`` of :data:`FEATURE_NAMES`), none of which uses ground truth:
+    local-map age and distance, effective sample size ratio, particle spread, local feature
+    counts, vote margin, innovation ratio (the largest CM ratio ``||nu|| / (2 sigma)`` of the
+    interval, metres), global features in view, global pose uncertainty, time and fusions since
+    the last optimisation, clutter rate, loop-closure flag (the back-end's CM Definition 1 test
+    found a closure in a fusion of the interval), local-map budget ratio, loop closures since the
+    last optimisation and stored sub-maps. ``info["features"]`` holds all of them by name.
 
-Reward
-    ``-(w_nees * nees_excess + w_pose * pose_error_m + w_map * map_error_m + fusion_cost * fused
-    + optimise_cost * optimised + failure_penalty * failed)``, where over the decision interval
-    ``nees_excess`` is the mean of ``max(0, NEES / chi2_0.975(3) - 1)`` (clipped at
-    ``nees_excess_clip``), ``pose_error_m`` the mean position error, and ``map_error_m`` the map
-    error (CM's definition) of the confirmed global map at the end of the interval. Every term is
-    in ``info["reward_components"]``; the weights are :class:`HybridSLAMConfig` fields.
+Reward (per decision; every term is in ``info["reward_components"]``)
+    ``-(w_nees (nees_over + nees_under) + w_pose pose_error_m + w_map map_ospa_m
+    + w_compute compute_s + failure_charge)``, where over the decision interval
+
+    * ``nees_over`` / ``nees_under``: the mean over its iterations of
+      ``max(0, NEES / chi2_0.975(3) - 1)`` (over-confidence) and of
+      ``max(0, chi2_0.025(3) / NEES - 1)`` (under-confidence), each clipped at
+      ``nees_excess_clip``: zero inside the 95 % band, growing either side of it;
+    * ``pose_error_m``: the mean position error, clipped at ``pose_error_clip_m``;
+    * ``map_ospa_m``: the OSPA distance (order 1, cut-off ``map_cutoff_m``) between the confirmed
+      map and the landmarks detected so far: each missed landmark and each spurious or duplicate
+      feature costs the cut-off, so an empty map costs the most, not nothing
+      (:meth:`slam_gym.metrics.MapScore.ospa_m`);
+    * ``compute_s``: the *modelled* CPU seconds of the interval's filtering and of this
+      decision's fusion and optimisation (:mod:`slam_gym.compute_cost`: an operation count
+      calibrated against measured CPU time), clipped at ``compute_clip_s``; deterministic, so
+      the same seed gives the same reward;
+    * ``failure_charge``: 0, or at the decision where BB's failure criterion fires (and ends the
+      episode) ``failure_penalty`` plus the worst case of the remaining path,
+      ``remaining decisions x (w_nees nees_excess_clip + w_pose pose_error_clip_m + w_map
+      map_cutoff_m + w_compute compute_clip_s)``. Every per-decision cost is bounded by that
+      bracket, so no continuation of an episode can cost more than failing now: ending early
+      never pays.
+
+    Defaults and why: ``w_nees = 1`` per decision (a filter 10x over-confident for the whole
+    interval costs 9), ``w_pose = 0.1 /m`` (pose error is also in the NEES; this only breaks
+    ties), ``w_map = 1 /m`` (a metre of map error per decision weighs as much as a NEES at twice
+    the band), ``w_compute = 1 /s`` (an optimisation of 0.1-0.4 s costs as much as 0.1-0.4 m of
+    map error for one decision: worth it when it repairs the map for the rest of the path),
+    ``failure_penalty = 100``, cut-offs ``nees_excess_clip = 10``, ``pose_error_clip_m = 20``,
+    ``map_cutoff_m = 5`` (a quarter of the landmark spacing of BB's world: a feature further
+    than that from its landmark is as useless as none), ``compute_clip_s = 2``.
 
 Episode end
     Terminated at the end of the path, or on failure by BB's criterion (true pose more than 10
     standard deviations from the estimate for more than 20 consecutive iterations); truncated
     after ``max_decisions`` decisions.
 
-``info`` also carries ``nees``, ``pose_error_m``, ``map_error_m``, ``failed``, ``n_fusions``,
-``n_optimisations`` and ``iteration``; with ``info_compute_time=True`` also ``filter_time_s``, the
-filter's wall-clock time so far. It is off by default because a wall-clock time can never repeat,
+Which id to use
+    ``SlamGym/HybridSLAM-v0`` is the paper's configuration (BB: 500 particles): the one to report.
+    ``SlamGym/HybridSLAM-Light-v0`` runs 100 particles for quick training and smoke tests; at 100
+    particles FastSLAM's local maps become over-confident within 10 s, so the task there mostly
+    rewards fusing often.
+
+``info`` also carries ``nees``, ``pose_error_m``, ``map_error_m`` (CM's map error of the matched
+features), ``map_completeness``, ``failed``, ``n_fusions``, ``n_optimisations`` and
+``iteration``; with ``info_compute_time=True`` also ``filter_time_s``, the filter's wall-clock
+time so far. It is off by default because a wall-clock time can never repeat,
 and the same seed must give the same infos (Gymnasium's checker compares them); the time is always
 in ``env.unwrapped.episode.compute_time_s`` and in every evaluation result.
 
@@ -45,6 +80,8 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
+import time
 from dataclasses import dataclass
 
 import gymnasium as gym
@@ -53,6 +90,7 @@ from gymnasium import spaces
 
 from filters.interface_features import INTERFACE_FEATURE_NAMES
 from filters.validation import check_range, require
+from slam_gym.compute_cost import ComputeModel, filter_ops, fusion_ops, optimise_ops
 from slam_gym.episode import Episode
 from slam_gym.metrics import nees_band
 from slam_gym.scenarios import CLUTTER_LEVELS, get_scenario, make_stream, scenario_names
@@ -68,6 +106,11 @@ OBSERVATION_MAX = 1e6
 FRONT_ENDS = ("fastslam", "ekf")
 BACK_ENDS = ("ekf", "relative")
 
+REWARD_COMPONENTS: tuple[str, ...] = (
+    "nees_over", "nees_under", "pose_error_m", "map_ospa_m", "compute_s", "failure_charge",
+)
+"""The terms of the reward, in ``info["reward_components"]`` (module docstring)."""
+
 
 @dataclass(frozen=True)
 class HybridSLAMConfig:
@@ -76,10 +119,12 @@ class HybridSLAMConfig:
     ``scenario``/``clutter_level``/``alpha``/``beta``/``scenario_overrides``: the simulated world
     (``clutter_level=None`` with ``alpha`` and ``beta`` for a custom sensor). ``front_end``:
     ``"fastslam"`` (HYBRID) or ``"ekf"`` (EKF sub-mapping); ``back_end``: ``"ekf"`` or
-    ``"relative"``; ``n_particles``: FastSLAM particles (BB: 500; 100 by default for training
-    speed). ``decision_interval``: filter iterations per decision (10 = 1 s). ``max_decisions``:
+    ``"relative"``; ``n_particles``: FastSLAM particles (BB: 500, the default).
+    ``decision_interval``: filter iterations per decision (10 = 1 s). ``max_decisions``:
     truncation (None: until the end of the path). ``n_steps``: cut the path to this many
-    iterations (None: the whole path). Reward weights: see the module docstring.
+    iterations (None: the whole path). ``features``: the observation's interface features, in
+    order (None: all of :data:`FEATURE_NAMES`). Reward weights and cut-offs: see the module
+    docstring.
     """
 
     scenario: str = "brooks-bailey"
@@ -89,17 +134,20 @@ class HybridSLAMConfig:
     scenario_overrides: tuple = ()
     front_end: str = "fastslam"
     back_end: str = "ekf"
-    n_particles: int = 100
+    n_particles: int = 500
     decision_interval: int = 10
     max_decisions: int | None = None
     n_steps: int | None = None
+    features: tuple | None = None
     w_nees: float = 1.0
     w_pose: float = 0.1
-    w_map: float = 0.1
-    fusion_cost: float = 0.02
-    optimise_cost: float = 0.5
+    w_map: float = 1.0
+    w_compute: float = 1.0
     failure_penalty: float = 100.0
     nees_excess_clip: float = 10.0
+    pose_error_clip_m: float = 20.0
+    map_cutoff_m: float = 5.0
+    compute_clip_s: float = 2.0
     info_compute_time: bool = False
 
     def __post_init__(self):
@@ -139,17 +187,44 @@ class HybridSLAMConfig:
                 ),
                 name, value, "a positive integer or None",
             )
-        for name in (
-            "w_nees", "w_pose", "w_map", "fusion_cost", "optimise_cost", "failure_penalty",
-        ):
+        for name in ("w_nees", "w_pose", "w_map", "w_compute", "failure_penalty"):
             check_range(name, getattr(self, name), 0.0, 1e6)
-        check_range("nees_excess_clip", self.nees_excess_clip, 0.0, 1e6, low_open=True)
+        for name in ("nees_excess_clip", "pose_error_clip_m", "map_cutoff_m", "compute_clip_s"):
+            check_range(name, getattr(self, name), 0.0, 1e6, low_open=True)
+        if self.features is not None:
+            names = tuple(self.features)
+            unknown = [n for n in names if n not in FEATURE_NAMES]
+            require(
+                len(names) > 0 and not unknown and len(set(names)) == len(names),
+                "features", self.features,
+                f"None or distinct names among {list(FEATURE_NAMES)}"
+                + (f" (unknown: {unknown})" if unknown else ""),
+            )
         require(
             isinstance(self.info_compute_time, bool), "info_compute_time",
             self.info_compute_time, "True or False",
         )
         # the scenario itself validates alpha/beta/overrides
         self.scenario_config()
+
+    @property
+    def observation_features(self) -> tuple[str, ...]:
+        return FEATURE_NAMES if self.features is None else tuple(self.features)
+
+    @property
+    def max_decision_cost(self) -> float:
+        """The largest cost one decision can have without failing (module docstring)."""
+        return (
+            self.w_nees * self.nees_excess_clip + self.w_pose * self.pose_error_clip_m
+            + self.w_map * self.map_cutoff_m + self.w_compute * self.compute_clip_s
+        )
+
+    def reward_weights(self) -> dict[str, float]:
+        """Component -> weight: ``reward = -sum(weight * component)``."""
+        return {
+            "nees_over": self.w_nees, "nees_under": self.w_nees, "pose_error_m": self.w_pose,
+            "map_ospa_m": self.w_map, "compute_s": self.w_compute, "failure_charge": 1.0,
+        }
 
     def scenario_config(self):
         overrides = dict(self.scenario_overrides)
@@ -169,6 +244,8 @@ class HybridSLAMConfig:
             raise ValueError(f"unknown option(s) {unknown}: must be among {sorted(known)}")
         if isinstance(kwargs.get("scenario_overrides"), dict):
             kwargs["scenario_overrides"] = tuple(sorted(kwargs["scenario_overrides"].items()))
+        if isinstance(kwargs.get("features"), (list, tuple)):
+            kwargs["features"] = tuple(kwargs["features"])
         given_rates = kwargs.get("alpha") is not None or kwargs.get("beta") is not None
         if given_rates and "clutter_level" not in kwargs:
             kwargs["clutter_level"] = None
@@ -193,12 +270,16 @@ class HybridSLAMEnv(gym.Env):
         self.render_mode = render_mode
         self.action_space = spaces.MultiDiscrete([2, 2])
         self.observation_space = spaces.Box(
-            low=0.0, high=OBSERVATION_MAX, shape=(len(FEATURE_NAMES),), dtype=np.float32
+            low=0.0, high=OBSERVATION_MAX, shape=(len(self.config.observation_features),),
+            dtype=np.float32,
         )
+        self.compute_model = ComputeModel()
+        self.compute_records: list[tuple[str, float, float]] = []
         self.episode: Episode | None = None
+        self.episode_return = 0.0
         self.stream = None
         self.n_decisions = 0
-        self._nees_hi = nees_band(1)[1]
+        self._nees_band = nees_band(1)
         self._figure = None
 
     # ------------------------------------------------------------------ gym API
@@ -235,10 +316,12 @@ class HybridSLAMEnv(gym.Env):
         self.world_seed = int(world_seed)
         self.filter_seed = filter_seed
         self.n_decisions = 0
+        self.episode_return = 0.0
+        self.compute_records = []
         # run the first interval so the observation describes a local map
         self._reset_nees, _ = self._run_interval()
         features = self._features()
-        info = self._info(features, self._zero_components(), nees_values=self._reset_nees)
+        info = self._info(features, dict.fromkeys(REWARD_COMPONENTS, 0.0), self._reset_nees)
         return self._observation(features), info
 
     def step(self, action):
@@ -248,44 +331,69 @@ class HybridSLAMEnv(gym.Env):
         if action.shape != (2,) or not self.action_space.contains(action.astype(np.int64)):
             raise ValueError(f"action={action!r} is invalid: must be in MultiDiscrete([2, 2])")
         fuse, optimise = bool(action[0]), bool(action[1])
-        failed_before = self.episode.failure.failed
+        ep, c = self.episode, self.config
+        failed_before = ep.failure.failed
         self.system.start_interval()  # the next observation's events: this decision's and after
+        modelled_s = 0.0
         if fuse:
-            self.episode.fuse()
+            cpu0 = time.process_time()
+            report = ep.fuse()
+            modelled_s += self._record(fusion_ops(self.system, report), cpu0)
         if optimise:
-            self.episode.optimise()
+            cpu0 = time.process_time()
+            result = ep.optimise()
+            modelled_s += self._record(optimise_ops(self.system, result), cpu0)
+        cpu0 = time.process_time()
         nees_values, errors = self._run_interval()
+        features = self._features()
+        kind, ops = filter_ops(c.front_end, c.n_particles, features["local_feature_count"])
+        modelled_s += self._record((kind, ops * len(nees_values)), cpu0)
         self.n_decisions += 1
-        ep = self.episode
         failed = ep.failure.failed
-        map_error = ep.map_score().map_error_m
-        c = self.config
-        excess = np.clip(np.asarray(nees_values) / self._nees_hi - 1.0, 0.0, c.nees_excess_clip)
+        score = ep.map_score()
+        nees = np.asarray(nees_values, dtype=float)
+        lo, hi = self._nees_band
+        with np.errstate(divide="ignore"):
+            over = np.clip(nees / hi - 1.0, 0.0, c.nees_excess_clip)
+            under = np.clip(lo / nees - 1.0, 0.0, c.nees_excess_clip)
+        new_failure = failed and not failed_before
+        ends_here = new_failure and self.terminate_on_failure
         components = {
-            "nees_excess": float(np.mean(excess)) if len(excess) else 0.0,
-            "pose_error_m": float(np.mean(errors)) if len(errors) else 0.0,
-            "map_error_m": 0.0 if not np.isfinite(map_error) else float(map_error),
-            "fused": float(fuse),
-            "optimised": float(optimise),
-            "failed": float(failed and not failed_before),
+            "nees_over": float(np.mean(over)) if len(over) else 0.0,
+            "nees_under": float(np.mean(under)) if len(under) else 0.0,
+            "pose_error_m": float(np.mean(np.minimum(errors, c.pose_error_clip_m)))
+            if len(errors) else 0.0,
+            "map_ospa_m": score.ospa_m(c.map_cutoff_m),
+            "compute_s": min(modelled_s, c.compute_clip_s),
+            "failure_charge": (
+                c.failure_penalty
+                + (self._remaining_decisions() * c.max_decision_cost if ends_here else 0.0)
+            ) if new_failure else 0.0,
         }
-        reward = -(
-            c.w_nees * components["nees_excess"]
-            + c.w_pose * components["pose_error_m"]
-            + c.w_map * components["map_error_m"]
-            + c.fusion_cost * components["fused"]
-            + c.optimise_cost * components["optimised"]
-            + c.failure_penalty * components["failed"]
-        )
-        terminated = bool(ep.done or failed)
+        reward = -sum(w * components[k] for k, w in c.reward_weights().items())
+        self.episode_return += reward
+        terminated = bool(ep.done or (failed and self.terminate_on_failure))
         truncated = bool(
             not terminated and c.max_decisions is not None and self.n_decisions >= c.max_decisions
         )
-        features = self._features()
-        info = self._info(features, components, nees_values)
+        info = self._info(features, components, nees_values, score)
         if self.render_mode == "human":
             self.render()
         return self._observation(features), float(reward), terminated, truncated, info
+
+    def _record(self, kind_ops, cpu_start_s: float) -> float:
+        """Keep ``(kind, ops, measured CPU s)`` for calibration; return the modelled seconds."""
+        kind, ops = kind_ops
+        self.compute_records.append((kind, float(ops), time.process_time() - cpu_start_s))
+        return self.compute_model.seconds(kind, ops)
+
+    def _remaining_decisions(self) -> int:
+        """Decisions left on the path (and before truncation) after the current one."""
+        left = math.ceil(max(len(self.stream) - self.episode.iteration, 0)
+                         / self.config.decision_interval)
+        if self.config.max_decisions is not None:
+            left = min(left, self.config.max_decisions - self.n_decisions)
+        return max(left, 0)
 
     def render(self):
         if self.render_mode is None:
@@ -338,25 +446,21 @@ class HybridSLAMEnv(gym.Env):
         return {name: float(raw[name]) for name in FEATURE_NAMES}
 
     def _observation(self, features) -> np.ndarray:
-        obs = np.array([features[n] for n in FEATURE_NAMES], dtype=np.float64)
+        obs = np.array([features[n] for n in self.config.observation_features], dtype=np.float64)
         obs = np.nan_to_num(obs, nan=0.0, posinf=OBSERVATION_MAX, neginf=0.0)
         return np.clip(obs, 0.0, OBSERVATION_MAX).astype(np.float32)
 
-    @staticmethod
-    def _zero_components():
-        return dict.fromkeys(
-            ("nees_excess", "pose_error_m", "map_error_m", "fused", "optimised", "failed"), 0.0
-        )
-
-    def _info(self, features, components, nees_values) -> dict:
+    def _info(self, features, components, nees_values, score=None) -> dict:
         ep = self.episode
+        score = ep.map_score() if score is None else score
         info = {
             "features": features,
             "reward_components": components,
             "nees": float(ep.last_nees),
             "nees_interval_mean": float(np.mean(nees_values)) if len(nees_values) else ep.last_nees,
             "pose_error_m": float(ep.last_position_error_m),
-            "map_error_m": float(components["map_error_m"]),
+            "map_error_m": float(score.map_error_m),
+            "map_completeness": float(score.completeness),
             "failed": bool(ep.failure.failed),
             "n_fusions": ep.n_fusions,
             "n_optimisations": ep.n_optimisations,

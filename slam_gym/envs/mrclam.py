@@ -218,12 +218,3 @@ class MRCLAMEnv(HybridSLAMEnv):
     def _system_options(self) -> dict:
         """``front_end_options`` for the sub-map system's front-end (``front_`` prefix)."""
         return {f"front_{k}": v for k, v in self.front_end_options.items()}
-
-    def step(self, action):
-        obs, reward, terminated, truncated, info = super().step(action)
-        if terminated and not self.terminate_on_failure and not self.episode.done:
-            # failed but data remain: go on (the base class penalised the failure once)
-            terminated = False
-            c = self.config
-            truncated = c.max_decisions is not None and self.n_decisions >= c.max_decisions
-        return obs, reward, terminated, bool(truncated), info

@@ -190,7 +190,12 @@ def run_job(job) -> dict:
         return episode_result(episode, stream)
     opts = _options(job.options_dict(), POLICY_OPTIONS, "policy")
     episode, env = run_policy(job.name, job.scenario, job.clutter_level, job.seed, **opts)
-    return episode_result(episode, env.stream)
+    from slam_gym.compute_cost import summarise_records
+
+    row = episode_result(episode, env.stream)
+    row["return"] = env.episode_return
+    row.update(summarise_records(env.compute_records, env.compute_model))
+    return row
 
 
 def evaluate_policy(policy, scenario, clutter_levels, seeds, **env_options) -> list[dict]:

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from slam_gym.cli import main
+from slam_gym.envs.hybrid_slam import FEATURE_NAMES
 from slam_gym.evaluation import read_results
 
 
@@ -92,5 +93,5 @@ def test_train_smoke_and_the_model_loads_and_acts(tmp_path, capsys):
     assert (tmp_path / "model.zip").exists() and (tmp_path / "eval_log.jsonl").exists()
     policy = policies.make("learned", path=str(tmp_path / "model.zip"))
     assert policy.observation_transform == "log1p"
-    action = policy.act(np.ones(17, dtype=np.float32), {})
+    action = policy.act(np.ones(len(FEATURE_NAMES), dtype=np.float32), {})
     assert action.shape == (2,) and action.dtype == np.int64 and set(action) <= {0, 1}

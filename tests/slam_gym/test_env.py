@@ -144,9 +144,9 @@ def test_observation_matches_features_by_name_and_info_keys():
     assert info["n_fusions"] == 1 and info["n_optimisations"] == 1
     c = info["reward_components"]
     w = env.unwrapped.config
-    expected = -(w.w_nees * c["nees_excess"] + w.w_pose * c["pose_error_m"]
-                 + w.w_map * c["map_error_m"] + w.fusion_cost * c["fused"]
-                 + w.optimise_cost * c["optimised"] + w.failure_penalty * c["failed"])
+    expected = -(w.w_nees * (c["nees_over"] + c["nees_under"]) + w.w_pose * c["pose_error_m"]
+                 + w.w_map * c["map_ospa_m"] + w.w_compute * c["compute_s"]
+                 + c["failure_charge"])
     assert reward == pytest.approx(expected)
 
 
@@ -232,19 +232,128 @@ def test_reset_options_override_and_are_validated():
         env.reset(seed=0, options={"clutter_level": 9})
 
 
-def test_failure_terminates_and_is_penalised():
-    env = make("SlamGym/HybridSLAM-v0", n_steps=None, clutter_level=3, n_particles=5,
-               max_decisions=400)
-    env.reset(seed=2)
-    for _ in range(400):
-        _, reward, terminated, truncated, info = env.step(np.array([0, 0]))
+def _returns_with_failure_at(env_id, fail_at, n_decisions=14):
+    """The return of a fixed action sequence on world 0, with BB's failure criterion forced to
+    fire at decision ``fail_at`` (None: never)."""
+    env = make(env_id)
+    env.reset(seed=0)
+    total, components = 0.0, []
+    run_interval = env.unwrapped._run_interval
+
+    def failing_interval():
+        out = run_interval()
+        det = env.unwrapped.episode.failure
+        det.failed, det.failure_iteration = True, env.unwrapped.episode.iteration
+        return out
+
+    for k in range(n_decisions):
+        if k == fail_at:
+            env.unwrapped._run_interval = failing_interval
+        _, reward, terminated, truncated, info = env.step(ACTIONS[k % len(ACTIONS)])
+        total += reward
+        components.append(info["reward_components"])
         if terminated or truncated:
             break
-    assert terminated
-    if info["failed"]:
-        assert info["reward_components"]["failed"] == 1.0 and reward <= -100
-    else:  # reached the end of the path
-        assert env.unwrapped.episode.done
+    return total, components, env.unwrapped
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_failing_never_pays(env_id):
+    """Every decision without failure costs at most the config's bound, and a failure charges
+    the penalty plus that bound for every remaining decision: so a rollout that fails at any
+    decision returns less than the same rollout surviving on the same world."""
+    surviving, components, env = _returns_with_failure_at(env_id, None)
+    bound = env.config.max_decision_cost
+    weights = env.config.reward_weights()
+    for c in components:
+        assert sum(w * c[k] for k, w in weights.items()) <= bound + 1e-9
+        assert c["failure_charge"] == 0.0
+    for fail_at in (0, 6, 13):
+        failing, comps, _ = _returns_with_failure_at(env_id, fail_at)
+        assert len(comps) == fail_at + 1  # the episode ended at the failure
+        assert comps[-1]["failure_charge"] >= env.config.failure_penalty
+        assert failing < surviving, (fail_at, failing, surviving)
+
+
+def test_a_real_failure_returns_less_than_surviving_on_the_same_world():
+    """Pure FastSLAM with 5 particles in heavy clutter fails early on world 0; fusing at every
+    decision survives it; the failing rollout's return is the lower one."""
+    import policies
+
+    returns = {}
+    for name in ("never", "always"):
+        env = make("SlamGym/HybridSLAM-v0", n_steps=None, clutter_level=3, n_particles=5)
+        policy = policies.make(name)
+        obs, info = env.reset(seed=0)
+        total, terminated, truncated = 0.0, False, False
+        while not (terminated or truncated):
+            obs, reward, terminated, truncated, info = env.step(policy.act(obs, info))
+            total += reward
+        returns[name] = (total, info["failed"])
+    assert returns["never"][1] and not returns["always"][1]
+    assert returns["never"][0] < returns["always"][0]
+
+
+def test_the_map_term_charges_an_empty_map_the_cutoff():
+    env = make("SlamGym/HybridSLAM-v0", clutter_level=0)
+    env.reset(seed=0)
+    _, _, _, _, info = env.step(np.array([0, 0]))
+    score = env.unwrapped.episode.map_score()
+    assert info["reward_components"]["map_ospa_m"] == pytest.approx(score.ospa_m(5.0))
+    assert score.ospa_m(5.0) <= 5.0
+
+
+def test_under_confidence_is_penalised():
+    """A NEES far below the 95 % band (an estimate claiming far more uncertainty than its error)
+    costs nees_under; inside the band costs nothing."""
+    env = make("SlamGym/HybridSLAM-v0", clutter_level=0)
+    env.reset(seed=0)
+    lo, hi = env.unwrapped._nees_band
+    ep = env.unwrapped.episode
+    env.unwrapped._run_interval = lambda: ([lo / 5.0] * 10, [0.1] * 10)
+    _, _, _, _, info = env.step(np.array([0, 0]))
+    assert info["reward_components"]["nees_under"] == pytest.approx(4.0)
+    assert info["reward_components"]["nees_over"] == 0.0
+    env.unwrapped._run_interval = lambda: ([0.5 * (lo + hi)] * 10, [0.1] * 10)
+    _, _, _, _, info = env.step(np.array([0, 0]))
+    assert info["reward_components"]["nees_under"] == 0.0 == info["reward_components"]["nees_over"]
+    assert ep is env.unwrapped.episode
+
+
+@pytest.mark.parametrize(
+    "option, value",
+    [("w_compute", -1.0), ("w_map", float("nan")), ("map_cutoff_m", 0.0),
+     ("compute_clip_s", -2.0), ("features", ("bogus_feature",)), ("features", ()),
+     ("fusion_cost", 0.02)],
+)
+def test_bad_reward_weights_features_and_options_raise_value_error_naming_the_field(option, value):
+    with pytest.raises(ValueError, match=option):
+        make("SlamGym/HybridSLAM-v0", **{option: value})
+
+
+def test_the_features_option_selects_the_observation():
+    names = ("loop_closure_flag", "local_map_age_s", "stored_submaps")
+    env = make("SlamGym/HybridSLAM-v0", features=list(names))
+    obs, info = env.reset(seed=0)
+    assert env.observation_space.shape == (3,)
+    np.testing.assert_allclose(obs, [info["features"][n] for n in names])
+
+
+def test_the_registered_default_is_the_papers_configuration():
+    assert gym.make("slam_gym:SlamGym/HybridSLAM-v0").unwrapped.config.n_particles == 500
+    assert gym.make("slam_gym:SlamGym/HybridSLAM-Light-v0").unwrapped.config.n_particles == 100
+
+
+def test_compute_cost_is_modelled_deterministically_and_recorded_for_calibration():
+    a = rollout(make("SlamGym/HybridSLAM-Relative-v0"), 3, [np.array([1, 1])] * 4)
+    b = rollout(make("SlamGym/HybridSLAM-Relative-v0"), 3, [np.array([1, 1])] * 4)
+    assert [r for _, r, _, _ in a] == [r for _, r, _, _ in b]
+    env = make("SlamGym/HybridSLAM-Relative-v0")
+    env.reset(seed=3)
+    _, _, _, _, info = env.step(np.array([1, 1]))
+    kinds = [k for k, _, _ in env.unwrapped.compute_records]
+    assert {"fusion-relative", "optimise", "filter-fastslam"} <= set(kinds)
+    assert info["reward_components"]["compute_s"] > 0.0
 
 
 def test_truncation_by_decision_limit():

@@ -96,9 +96,9 @@ def test_stream_is_the_recording_cached_and_scored_against_motion_capture():
     assert info["pose_error_m"] == pytest.approx(np.hypot(*(truth[:2] - est[:2])))
     assert np.all(np.isfinite(truth)) and info["nees"] == nees(truth, est, cov)
     c, w = info["reward_components"], env.config
-    expected = -(w.w_nees * c["nees_excess"] + w.w_pose * c["pose_error_m"]
-                 + w.w_map * c["map_error_m"] + w.fusion_cost * c["fused"]
-                 + w.optimise_cost * c["optimised"] + w.failure_penalty * c["failed"])
+    expected = -(w.w_nees * (c["nees_over"] + c["nees_under"]) + w.w_pose * c["pose_error_m"]
+                 + w.w_map * c["map_ospa_m"] + w.w_compute * c["compute_s"]
+                 + c["failure_charge"])
     assert reward == pytest.approx(expected)
     assert obs.shape == (len(FEATURE_NAMES),) and obs.dtype == np.float32
     env.reset(seed=1)

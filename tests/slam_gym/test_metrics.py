@@ -36,3 +36,16 @@ def test_an_empty_map_is_accurate_by_default_but_has_completeness_zero():
 def test_completeness_is_undefined_when_nothing_was_detected():
     score = score_map(np.zeros(0, int), np.zeros((0, 2)), FeatureTruth(), LANDMARKS, set())
     assert math.isnan(score.completeness)
+
+
+def test_ospa_charges_the_cutoff_for_missed_spurious_and_duplicate_features():
+    truth = _truth([(7, 0), (8, 1), (9, -1), (10, 1)])
+    means = np.array([[0.1, 0.0], [10.0, 0.3], [5.0, 5.0], [10.0, 9.0]])
+    score = score_map(np.array([7, 8, 9, 10]), means, truth, LANDMARKS, {0, 1, 2})
+    # 4 features, 3 detected: landmarks 0 and 1 matched (0.1, 0.3); the rest cost the cut-off
+    assert math.isclose(score.ospa_m(5.0), (0.1 + 0.3 + 2 * 5.0) / 4)
+    assert math.isclose(score.ospa_m(0.2), (0.1 + 0.2 + 2 * 0.2) / 4)  # errors capped too
+    empty = score_map(np.zeros(0, int), np.zeros((0, 2)), FeatureTruth(), LANDMARKS, {0, 3})
+    assert empty.ospa_m(5.0) == 5.0
+    perfect = score_map(np.array([7]), LANDMARKS[:1], _truth([(7, 0)]), LANDMARKS, {0})
+    assert perfect.ospa_m(5.0) == 0.0
