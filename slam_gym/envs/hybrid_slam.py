@@ -65,7 +65,8 @@ Which id to use
     rewards fusing often.
 
 ``info`` also carries ``nees``, ``pose_error_m``, ``map_error_m`` (CM's map error of the matched
-features), ``map_completeness``, ``failed``, ``n_fusions``, ``n_optimisations`` and
+features; None while no feature stands for a landmark), ``map_completeness`` (None while no
+landmark was detected), ``failed``, ``n_fusions``, ``n_optimisations`` and
 ``iteration``; with ``info_compute_time=True`` also ``filter_time_s``, the filter's wall-clock
 time so far. It is off by default because a wall-clock time can never repeat,
 and the same seed must give the same infos (Gymnasium's checker compares them); the time is always
@@ -459,8 +460,8 @@ class HybridSLAMEnv(gym.Env):
             "nees": float(ep.last_nees),
             "nees_interval_mean": float(np.mean(nees_values)) if len(nees_values) else ep.last_nees,
             "pose_error_m": float(ep.last_position_error_m),
-            "map_error_m": float(score.map_error_m),
-            "map_completeness": float(score.completeness),
+            "map_error_m": _defined(score.map_error_m),
+            "map_completeness": _defined(score.completeness),
             "failed": bool(ep.failure.failed),
             "n_fusions": ep.n_fusions,
             "n_optimisations": ep.n_optimisations,
@@ -470,3 +471,9 @@ class HybridSLAMEnv(gym.Env):
         if self.config.info_compute_time:
             info["filter_time_s"] = float(ep.compute_time_s)
         return info
+
+
+def _defined(value: float) -> float | None:
+    """``value``, or None where it is undefined (NaN): infos of one seed must compare equal."""
+    value = float(value)
+    return None if math.isnan(value) else value
