@@ -83,10 +83,11 @@ class Episode:
         system.predict(step.odometry, step.dt_s)
         if step.compass_rad is not None and self.stream.compass_std_rad is not None:
             system.update_heading(step.compass_rad, self.stream.compass_std_rad)
-        if self.known_association:
-            system.update(step.z, known_ids=step.truth.landmark_ids)
-        else:
-            system.update(step.z)
+        if step.scanned:  # a step without a scan is no evidence, not a scan that saw nothing
+            if self.known_association:
+                system.update(step.z, known_ids=step.truth.landmark_ids)
+            else:
+                system.update(step.z)
         self.compute_time_s += time.perf_counter() - start
         truth_ids = step.truth.landmark_ids
         associations = np.asarray(system.last_associations)

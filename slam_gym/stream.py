@@ -35,7 +35,13 @@ class StepTruth:
 
 @dataclass(frozen=True)
 class Step:
-    """One filter iteration: odometry over ``dt_s`` then the observations at ``t_s``."""
+    """One filter iteration: odometry over ``dt_s`` then the observations at ``t_s``.
+
+    ``scanned``: whether the step carries a sensor scan. A scan that detected nothing (``z``
+    empty, ``scanned`` True) is evidence against the features in view (BB (11), FastSLAM's
+    missed-detection weight); a step without a scan (``scanned`` False) is no evidence at all,
+    and filters must not be updated with it.
+    """
 
     index: int
     t_s: float
@@ -44,6 +50,7 @@ class Step:
     compass_rad: float | None
     z: np.ndarray
     truth: StepTruth
+    scanned: bool = True
 
 
 @dataclass
@@ -95,7 +102,8 @@ class ArraySteps:
     Step ``k`` covers ``(t_s[k], t_s[k + 1]]`` with odometry ``odometry[k]`` and the observation
     rows ``bounds[k]:bounds[k + 1]`` of ``z`` / ``landmark_ids``; ``poses[k]`` is its true pose
     (NaN where unknown) and ``visible[k]`` (optional, boolean over the true landmarks) marks the
-    landmarks in view.
+    landmarks in view. Every step counts as a scan (``Step.scanned``): a recording's sensor runs
+    continuously, so a step with no detection is a frame in which nothing was seen.
     """
 
     def __init__(self, t_s, dt_s, odometry, z, landmark_ids, bounds, poses, visible=None):

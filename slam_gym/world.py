@@ -246,7 +246,8 @@ def simulate(scenario: Scenario, seed: int) -> Stream:
         )
     for k in range(n_moving):
         pose = poses[k + 1]
-        if (k + 1) % every == 0:
+        scanned = (k + 1) % every == 0
+        if scanned:
             z, ids, visible = scan(pose, landmarks, sensor, clutter, sensor_rng)
         else:
             z, ids, visible = empty_z, empty_ids, None
@@ -259,6 +260,7 @@ def simulate(scenario: Scenario, seed: int) -> Stream:
                 compass_rad=compass_at(pose),
                 z=z,
                 truth=StepTruth(pose=pose, landmark_ids=ids, visible_ids=visible),
+                scanned=scanned,
             )
         )
     return Stream(

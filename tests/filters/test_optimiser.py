@@ -300,3 +300,15 @@ def test_bad_gauge_and_options_raise_value_error():
         RelativeProblem.from_constraints(
             kinds, [GaussianConstraint(tuple(qs), np.zeros(5), np.eye(4))]
         )
+
+
+def test_no_descent_step_tells_a_minimum_to_working_precision_from_a_slope():
+    from filters.optimiser import _no_descent_step
+
+    def fun(x):
+        return float(x @ x), 2.0 * x
+
+    at_minimum = np.array([1e-9, -1e-9])
+    assert _no_descent_step(fun, at_minimum, *fun(at_minimum))
+    away = np.array([0.3, -0.2])
+    assert not _no_descent_step(fun, away, *fun(away))

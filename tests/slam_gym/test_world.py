@@ -269,3 +269,30 @@ def test_every_system_runs_the_motionless_start_step(name):
     episode.advance(len(stream))
     mean, cov = system.pose()
     assert np.all(np.isfinite(mean)) and np.all(np.isfinite(cov))
+
+
+def test_steps_say_whether_they_carry_a_scan():
+    stream = make_stream("conte-martinelli-1", seed=0, n_steps=201)
+    steps = list(stream)
+    scanned = [s.index for s in steps if s.scanned]
+    every = get_scenario("conte-martinelli-1").steps_per_scan
+    assert scanned == [0] + [k for k in range(1, 201) if k % every == 0]
+    assert all(len(s.z) == 0 for s in steps if not s.scanned)
+    assert all(s.scanned for s in make_stream("brooks-bailey", seed=0, n_steps=50))
+
+
+@pytest.mark.parametrize("system", ["ekf-slam", "fastslam"])
+def test_unknown_association_confirms_the_landmarks_between_sparse_scans(system):
+    """CM's scenario scans every 50 steps: the 49 steps between are no evidence that the
+    features in view are missing. (Treated as empty scans, they drove every feature's existence
+    to 0 and EKF-SLAM and FastSLAM held no feature after 300 steps.)"""
+    from slam_gym.episode import Episode
+    from slam_gym.systems import make_system
+
+    stream = make_stream("conte-martinelli-1", seed=3, n_steps=800)
+    options = {"n_particles": 50} if system == "fastslam" else {}
+    episode = Episode(make_system(system, stream, np.random.default_rng(3), **options), stream)
+    episode.advance(len(stream))
+    metrics = episode.metrics()
+    assert len(episode.detected_landmarks) >= 10
+    assert metrics["map_completeness"] >= 0.8, metrics
