@@ -18,8 +18,17 @@ QUICK = {
     "policies": "fixed-10s,esdf-innovation,learned",
     "clutter_levels": "0,1,2,3",
     "seeds": 3,
-    "particles": 100,
+    "particles": 500,
 }
+
+DEFAULT_POLICIES = (
+    "never,always,fixed-10s,fixed-10s-optimise,esdf-innovation,innovation-fusion,"
+    "adaptive-diversity,imminent-closure"
+)
+"""The rules of the literature and the adaptive ones (issue 13): every default a reviewer asks."""
+
+BASELINE_SYSTEMS = ("dead-reckoning",)
+"""Systems that can run beside the policies on the same worlds (``--baselines``)."""
 
 
 def add_parser(subparsers) -> None:
@@ -30,7 +39,14 @@ def add_parser(subparsers) -> None:
         "process pool or Ray), write results.jsonl (resumable), summary.json, table.md and "
         "plots. --quick is the README's main job.",
     )
-    p.add_argument("--policies", default="fixed-10s,esdf-innovation,learned")
+    p.add_argument("--policies", default=DEFAULT_POLICIES)
+    p.add_argument("--env", default=None, metavar="ID",
+                   help="a registered simulated env id whose front-end and back-end to use "
+                   "(e.g. SlamGym/HybridSLAM-Relative-v0); --front-end/--back-end otherwise")
+    p.add_argument("--baselines", default="dead-reckoning",
+                   help="systems run on the same worlds beside the policies, comma-separated "
+                   f"from {','.join(BASELINE_SYSTEMS)} ('' for none): dead reckoning meets BB's "
+                   "success criterion without a map, which map completeness shows")
     p.add_argument("--clutter-levels", default="0,1,2,3")
     p.add_argument("--scenario", default="brooks-bailey")
     p.add_argument("--particles", type=int, default=500)
@@ -48,11 +64,17 @@ def add_parser(subparsers) -> None:
 
 def run(args) -> int:
     import policies
-    from slam_gym.evaluation import Job, plot_success_rates, write_summary
+    from slam_gym.evaluation import Job, plot_pareto, plot_success_rates, write_summary
 
     if args.quick:
         args.policies, args.clutter_levels = QUICK["policies"], QUICK["clutter_levels"]
         args.trials, args.particles = QUICK["seeds"], QUICK["particles"]
+    if args.env is not None:
+        apply_env_id(args)
+    baselines = name_list(args.baselines) if args.baselines else []
+    bad = [b for b in baselines if b not in BASELINE_SYSTEMS]
+    if bad:
+        raise ValueError(f"baselines={bad} is invalid: must be among {list(BASELINE_SYSTEMS)}")
     names = name_list(args.policies)
     unknown = [n for n in names if n not in policies.available()]
     if unknown:
@@ -73,17 +95,37 @@ def run(args) -> int:
         seeds = range(args.seed_start, args.seed_start + args.trials)
         jobs += [Job("policy", name, args.scenario, level, seed, opts)
                  for level in levels for seed in seeds]
+    seeds = range(args.seed_start, args.seed_start + args.trials)
+    jobs += [Job("system", name, args.scenario, level, seed, {})
+             for name in baselines for level in levels for seed in seeds]
     rows = execute(args, jobs, out)
     doc = write_summary(out, rows)
     figures = {}
     if not args.no_figures:
         figures["success"] = str(plot_success_rates(doc, out / "success_rates.png",
                                                     title="Success rate per clutter level"))
+        env_name = args.env or f"{args.front_end} front-end, {args.back_end} back-end"
+        figures["pareto"] = str(plot_pareto(
+            doc, out / "pareto.png",
+            title=f"Map error against compute ({env_name}, {args.particles} particles)",
+        ))
         figures.update(episode_figures(names, args, levels[-1], out))
     print_table(args, doc, title=f"Policies on {args.scenario} ({args.particles} particles)")
     emit(args, {"summary": doc, "figures": figures, "out": str(out)},
          [f"wrote {out / 'results.jsonl'}, summary.json, table.md and {len(figures)} figures"])
     return 0
+
+
+def apply_env_id(args) -> None:
+    """Take the front-end and back-end of a registered simulated env id (``--env``)."""
+    import slam_gym
+
+    variants = slam_gym.ENV_VARIANTS
+    if args.env not in variants:
+        raise ValueError(f"env={args.env!r} is invalid: must be one of {sorted(variants)}")
+    kwargs = variants[args.env]
+    args.front_end = kwargs.get("front_end", "fastslam")
+    args.back_end = kwargs.get("back_end", "ekf")
 
 
 def episode_figures(names, args, level, out) -> dict:

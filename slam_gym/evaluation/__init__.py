@@ -56,7 +56,9 @@ __all__ = [
     "format_table",
     "markdown_table",
     "nees_band",
+    "pareto_front",
     "plot_nees",
+    "plot_pareto",
     "plot_run_map",
     "plot_success_rates",
     "plot_uncertainty_traces",
@@ -69,7 +71,15 @@ __all__ = [
     "write_summary",
 ]
 
-_PLOTS = ("nees_band", "plot_nees", "plot_run_map", "plot_success_rates", "plot_uncertainty_traces")
+_PLOTS = (
+    "nees_band",
+    "pareto_front",
+    "plot_nees",
+    "plot_pareto",
+    "plot_run_map",
+    "plot_success_rates",
+    "plot_uncertainty_traces",
+)
 
 
 def __getattr__(name: str) -> Any:

@@ -18,9 +18,12 @@ Policy jobs take ``n_particles`` (500), ``decision_interval`` (10), ``front_end`
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from filters.validation import require
+from slam_gym.compute_cost import summarise_records
 from slam_gym.episode import Episode
 
 SYSTEM_OPTIONS = {
@@ -186,12 +189,13 @@ def run_job(job) -> dict:
     if job.kind == "system":
         opts = _options(job.options_dict(), SYSTEM_OPTIONS, "system")
         stream = make_job_stream(job.scenario, job.clutter_level, job.seed, opts.pop("n_steps"))
+        cpu_start = time.process_time()
         episode = run_system(job.name, stream, job.seed, **opts)
-        return episode_result(episode, stream)
+        row = episode_result(episode, stream)
+        row["total_cpu_s"] = time.process_time() - cpu_start
+        return row
     opts = _options(job.options_dict(), POLICY_OPTIONS, "policy")
     episode, env = run_policy(job.name, job.scenario, job.clutter_level, job.seed, **opts)
-    from slam_gym.compute_cost import summarise_records
-
     row = episode_result(episode, env.stream)
     row["return"] = env.episode_return
     row.update(summarise_records(env.compute_records, env.compute_model))

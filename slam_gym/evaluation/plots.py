@@ -5,6 +5,9 @@
 - :func:`plot_uncertainty_traces`: vehicle uncertainty over time, the trace of the pose covariance
   per iteration (BB Figs. 3 and 4);
 - :func:`plot_nees`: vehicle NEES over time with the two-sided chi-square 95 % band for 3 dof;
+- :func:`plot_pareto`: accuracy against compute, one point per policy with 95 % intervals, one
+  panel per clutter level, the non-dominated front drawn and dominated policies hollow
+  (:func:`pareto_front`);
 - :func:`plot_run_map`: one run's map: true landmarks, estimated landmarks with 2-sigma ellipses,
   true and estimated paths (BB Figs. 2 and 6).
 
@@ -380,3 +383,100 @@ def plot_run_map(
         ax.set_title(title)
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=2, fontsize=8, frameon=False)
     return _save(fig, path, dpi)
+
+
+def pareto_front(points: Sequence[tuple[float, float]]) -> list[int]:
+    """Indices of the points no other point dominates, both coordinates to be minimised.
+
+    ``a`` dominates ``b`` when it is no worse in both coordinates and better in one. Points with
+    a non-finite coordinate are never on the front.
+    """
+    pts = [(float(x), float(y)) for x, y in points]
+    front = []
+    for i, (x, y) in enumerate(pts):
+        if not (math.isfinite(x) and math.isfinite(y)):
+            continue
+        dominated = any(
+            math.isfinite(a) and math.isfinite(b) and a <= x and b <= y and (a < x or b < y)
+            for j, (a, b) in enumerate(pts)
+            if j != i
+        )
+        if not dominated:
+            front.append(i)
+    return front
+
+
+def plot_pareto(
+    summary: Mapping[str, Any] | Sequence[Mapping[str, Any]],
+    path: str | os.PathLike,
+    *,
+    x: str = "total_cpu_s",
+    y: str = "map_error_m",
+    title: str | None = "Map error against compute",
+    dpi: int = DPI,
+) -> Path:
+    """Mean ``y`` against mean ``x`` per policy (or system), one panel per clutter level.
+
+    Error bars are the groups' 95 % intervals (``ci95``); the non-dominated points of a panel are
+    filled and joined by the front, dominated ones are hollow. Groups without both values are
+    left out (e.g. a system row without compute).
+    """
+    groups = list(summary["groups"] if isinstance(summary, Mapping) else summary)
+
+    def value(g, key):
+        v = g.get(key)
+        return v.get("mean") if isinstance(v, Mapping) else v
+
+    groups = [g for g in groups if value(g, x) is not None and value(g, y) is not None]
+    require(len(groups) > 0, "summary", "no group", f"groups with {x} and {y}")
+    levels = sorted({g.get("clutter_level") for g in groups}, key=lambda v: (v is None, v))
+    names = list(dict.fromkeys(next(g[k] for k in JOB_KINDS if g.get(k)) for g in groups))
+    colors = {n: _COLORS[i % len(_COLORS)] for i, n in enumerate(names)}
+    width = max(3.6 * len(levels) + 2.2, 7.5)
+    fig = Figure(figsize=(width, 4.2), dpi=dpi)
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(1, len(levels), squeeze=False, sharey=True)[0]
+    for ax, level in zip(axes, levels, strict=True):
+        members = [g for g in groups if g.get("clutter_level") == level]
+        pts = [(value(g, x), value(g, y)) for g in members]
+        front = set(pareto_front(pts))
+        for i, g in enumerate(members):
+            name = next(g[k] for k in JOB_KINDS if g.get(k))
+            ci = g.get("ci95") or {}
+            xerr = _half_widths(pts[i][0], ci.get(x))
+            yerr = _half_widths(pts[i][1], ci.get(y))
+            ax.errorbar(
+                [pts[i][0]], [pts[i][1]], xerr=xerr, yerr=yerr, fmt="o", ms=7,
+                color=colors[name], mfc=colors[name] if i in front else "white",
+                capsize=2, lw=0.8,
+            )
+        ordered = sorted(front, key=lambda i: pts[i][0])
+        ax.plot([pts[i][0] for i in ordered], [pts[i][1] for i in ordered], "k--", lw=0.8)
+        xs = [p[0] for p in pts if p[0] > 0]
+        log_x = len(xs) > 1 and max(xs) / min(xs) > 10.0
+        if log_x:
+            ax.set_xscale("log")
+        ax.grid(True, alpha=0.3, linewidth=0.6)
+        ax.set_title(f"clutter level {level}" if level is not None else "", fontsize=10)
+        ax.set_xlabel(f"{x} (mean{', log scale' if log_x else ''})")
+    axes[0].set_ylabel(f"{y} (mean)")
+    handles = [Line2D([], [], marker="o", ls="", color=colors[n], label=n) for n in names]
+    handles += [
+        Line2D([], [], marker="o", ls="", color="k", mfc="white", label="dominated"),
+        Line2D([], [], ls="--", color="k", label="non-dominated front"),
+    ]
+    fig.legend(handles=handles, loc="center right", fontsize=8, frameon=False)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout(rect=(0, 0, 1 - 2.0 / width, 1))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi, format="png")
+    return path
+
+
+def _half_widths(centre: float, ci) -> list[list[float]] | None:
+    """Asymmetric error-bar half-widths from an interval (None: no bar)."""
+    if ci is None:
+        return None
+    return [[max(centre - ci[0], 0.0)], [max(ci[1] - centre, 0.0)]]

@@ -6,9 +6,14 @@ fixed options this is DESIGN section 7's "per (system or policy, clutter level)"
 ``n_success``, ``success_rate`` = successes / ``n_ok`` with its Wilson 95 % score interval
 ``success_ci95`` = [lo, hi], and means over the ok runs of ``anees``, ``nees_in_band_fraction``,
 ``n_fusions``, ``n_optimisations``, ``wall_time_s``, plus mean and median of ``map_error_m`` and
-``final_pose_error_m``. Errored runs never count as failures: they are excluded from every rate
-and mean and reported in ``n_errors`` (per group and in total), so a crash cannot pass for a
-SLAM failure. A null metric (e.g. not computable for that run) is left out of its mean.
+``final_pose_error_m``. Where the rows carry them (benchmark rows), also the means with a 95 %
+interval (``ci95``: mean +- t_{0.975, n-1} s / sqrt(n)) of ``map_error_m``, ``anees``,
+``map_completeness``, ``return`` and the CPU seconds ``filter_cpu_s``, ``fusion_cpu_s``,
+``optimise_cpu_s``, ``total_cpu_s``, and the mean return of the failed and of the successful
+runs (``return_failed``, ``return_succeeded``). Errored runs never count as failures: they are
+excluded from every rate and mean and reported in ``n_errors`` (per group and in total), so a
+crash cannot pass for a SLAM failure. A null metric (e.g. not computable for that run) is left
+out of its mean.
 """
 
 from __future__ import annotations
@@ -33,6 +38,11 @@ TABLE_FILENAME = "table.md"
 
 _MEAN_KEYS = ("anees", "nees_in_band_fraction", "n_fusions", "n_optimisations", "wall_time_s")
 _MEAN_MEDIAN_KEYS = ("map_error_m", "final_pose_error_m")
+CI_KEYS = (
+    "map_error_m", "anees", "map_completeness", "return",
+    "filter_cpu_s", "fusion_cpu_s", "optimise_cpu_s", "total_cpu_s",
+)
+"""Metrics whose mean is reported with a 95 % interval (``ci95``) where rows carry them."""
 
 PaperValues = Mapping[str, Mapping[Any, float]]
 
@@ -56,6 +66,19 @@ def wilson_interval(successes: int, n: int, z: float = Z95) -> tuple[float, floa
     lo = 0.0 if successes == 0 else max(0.0, centre - half)
     hi = 1.0 if successes == n else min(1.0, centre + half)
     return lo, hi
+
+
+def mean_interval(values: Sequence[float], confidence: float = 0.95) -> tuple[float, float] | None:
+    """Student-t interval of the mean: ``mean +- t_{(1+c)/2, n-1} s / sqrt(n)`` (None if n < 2)."""
+    from scipy.stats import t
+
+    require(0.0 < confidence < 1.0, "confidence", confidence, "in (0, 1)")
+    n = len(values)
+    if n < 2:
+        return None
+    mean = statistics.fmean(values)
+    half = float(t.ppf(0.5 + confidence / 2.0, n - 1)) * statistics.stdev(values) / math.sqrt(n)
+    return mean - half, mean + half
 
 
 def _kind_name(row: Mapping[str, Any]) -> tuple[str, str]:
@@ -148,6 +171,20 @@ def summarise(
         for key in _MEAN_MEDIAN_KEYS:
             values = _numbers(ok, key)
             group[key] = {"mean": _mean(values), "median": _median(values)}
+        intervals = {}
+        for key in CI_KEYS:
+            values = _numbers(ok, key)
+            if values:
+                group.setdefault(key, _mean(values))
+                ci = mean_interval(values)
+                intervals[key] = None if ci is None else list(ci)
+        if intervals:
+            group["ci95"] = intervals
+        if any(r.get("return") is not None for r in ok):
+            group["return_failed"] = _mean(_numbers([r for r in judged if not r["success"]],
+                                                    "return"))
+            group["return_succeeded"] = _mean(_numbers([r for r in judged if r["success"]],
+                                                       "return"))
         if paper is not None:
             group["paper_success_rate"] = paper_rate(paper, name, level)
         summary.append(group)
@@ -232,6 +269,8 @@ def table_cells(
         return g.get("paper_success_rate")
 
     show_paper = any(ref(g) is not None for g in groups)
+    show_compute = any("total_cpu_s" in g for g in groups)
+    show_return = any("return" in g for g in groups)
     header = [name_header]
     header += ["scenario"] if show_scenario else []
     header += ["options"] if show_options else []
@@ -245,6 +284,8 @@ def table_cells(
         "optimisations",
         "time (s)",
     ]
+    header += ["completeness", "CPU fusion / optimise / total (s)"] if show_compute else []
+    header += ["return (failed / succeeded)"] if show_return else []
     body = []
     for g in groups:
         level = g.get("clutter_level")
@@ -264,6 +305,15 @@ def table_cells(
             _num(g.get("n_optimisations"), 1),
             _num(g.get("wall_time_s"), 1),
         ]
+        if show_compute:
+            cells += [
+                _pct(g.get("map_completeness")),
+                " / ".join(_num(g.get(k)) for k in ("fusion_cpu_s", "optimise_cpu_s",
+                                                       "total_cpu_s")),
+            ]
+        if show_return:
+            cells.append(f"{_num(g.get('return'), 0)} ({_num(g.get('return_failed'), 0)} / "
+                         f"{_num(g.get('return_succeeded'), 0)})")
         body.append(cells)
     return header, body
 

@@ -53,10 +53,40 @@ def test_benchmark_tiny(tmp_path, capsys):
                             "0", "--seeds", "1", "--particles", "10", "--no-figures",
                             "--workers", "1", "--executor", "serial", "--out", str(tmp_path)])
     rows = read_results(tmp_path / "results.jsonl")
-    assert {r["policy"] for r in rows} == {"fixed-10s", "always"}
-    fused = {r["policy"]: r["n_fusions"] for r in rows}
+    policy_rows = [r for r in rows if r.get("policy")]
+    assert {r["policy"] for r in policy_rows} == {"fixed-10s", "always"}
+    fused = {r["policy"]: r["n_fusions"] for r in policy_rows}
     assert fused["always"] >= fused["fixed-10s"]
-    assert doc["summary"]["n_runs"] == 2
+    assert doc["summary"]["n_runs"] == 3  # and the dead-reckoning baseline on the same world
+
+
+def test_benchmark_reports_accuracy_against_compute_with_a_pareto_figure(tmp_path, capsys):
+    doc = run_json(capsys, ["benchmark", "--env", "SlamGym/HybridSLAM-Relative-v0", "--policies",
+                            "fixed-10s,fixed-10s-optimise", "--clutter-levels", "0", "--seeds",
+                            "2", "--particles", "100", "--workers", "1", "--executor", "serial",
+                            "--out", str(tmp_path)])
+    groups = {g.get("policy") or g.get("system"): g for g in doc["summary"]["groups"]}
+    assert set(groups) == {"fixed-10s", "fixed-10s-optimise", "dead-reckoning"}
+    opt, plain = groups["fixed-10s-optimise"], groups["fixed-10s"]
+    assert opt["optimise_cpu_s"] > 0.0 == plain["optimise_cpu_s"]
+    assert opt["total_cpu_s"] > opt["fusion_cpu_s"] > 0.0
+    for g in (opt, plain):
+        lo, hi = g["ci95"]["map_error_m"]
+        assert lo <= g["map_error_m"]["mean"] <= hi
+        assert "return" in g and g["map_completeness"] > 0.5
+    assert groups["dead-reckoning"]["map_completeness"] == 0.0  # succeeds, maps nothing
+    rows = read_results(tmp_path / "results.jsonl")
+    assert {r["options"].get("back_end") for r in rows if r.get("policy")} == {"relative"}
+    assert doc["figures"]["pareto"].endswith("pareto.png")
+    assert (tmp_path / "pareto.png").stat().st_size > 10_000
+    table = (tmp_path / "table.md").read_text()
+    assert "CPU fusion / optimise / total (s)" in table and "completeness" in table
+
+
+def test_benchmark_rejects_unknown_envs_and_baselines(tmp_path):
+    base = ["benchmark", "--policies", "always", "--seeds", "1", "--out", str(tmp_path)]
+    assert main([*base, "--env", "SlamGym/Nope-v0"]) == 2
+    assert main([*base, "--baselines", "teleport"]) == 2
 
 
 def test_speed_tiny(tmp_path, capsys):

@@ -478,3 +478,26 @@ def test_plots_write_pngs_of_the_expected_size(tmp_path):
         figsize=(6.5, 6.0),
     )
     _check_png(p, 720, 780)
+
+
+def test_pareto_front_keeps_exactly_the_non_dominated_points():
+    from slam_gym.evaluation import pareto_front
+
+    points = [(1.0, 5.0), (2.0, 2.0), (3.0, 3.0), (4.0, 1.0), (2.0, 2.0), (5.0, float("nan"))]
+    # (3, 3) is dominated by (2, 2); the two (2, 2) do not dominate each other; NaN never counts
+    assert pareto_front(points) == [0, 1, 3, 4]
+    assert pareto_front([(1.0, 1.0), (1.0, 2.0)]) == [0]
+
+
+def test_mean_interval_is_students_t():
+    import statistics
+
+    from scipy.stats import t
+
+    from slam_gym.evaluation.summary import mean_interval
+
+    values = [1.0, 2.0, 4.0, 7.0]
+    lo, hi = mean_interval(values)
+    half = t.ppf(0.975, 3) * statistics.stdev(values) / 2.0
+    assert (lo, hi) == pytest.approx((3.5 - half, 3.5 + half))
+    assert mean_interval([1.0]) is None
