@@ -72,6 +72,7 @@ from filters.existence import CONFIRMED_PROBABILITY
 from filters.validation import require
 from slam_gym.commands.common import emit, out_dir
 from slam_gym.commands.runs import add_run_options, int_list, name_list
+from slam_gym.datasets.location import default_data_dir
 
 logger = logging.getLogger(__name__)
 
@@ -117,16 +118,6 @@ VP_OPTIONS = {
 
 
 # --------------------------------------------------------------------------- command line
-def repository_root() -> Path:
-    return Path(__file__).resolve().parents[2]
-
-
-def default_data_dir(*parts: str) -> Path | None:
-    """``../shared/data/<parts>`` beside the repository root, if it exists."""
-    path = repository_root().parent.joinpath("shared", "data", *parts)
-    return path if path.is_dir() else None
-
-
 def _add_shared_options(parser, default_out: str) -> None:
     parser.add_argument(
         "--particles", type=int, default=DEFAULT_PARTICLES,
@@ -151,7 +142,8 @@ def add_parser(targets) -> None:
     )
     mr.add_argument(
         "--data", default=None,
-        help="MRCLAM data set directory (default ../shared/data/mrclam/MRCLAM_Dataset7 beside "
+        help="MRCLAM data set directory (default $SLAM_GYM_DATA/mrclam/MRCLAM_Dataset7, else "
+        "../shared/data/mrclam/MRCLAM_Dataset7 beside "
         "the repository, if it exists)",
     )
     mr.add_argument("--robots", default="1,2,3,4,5", help="comma-separated among 1-5")
@@ -205,7 +197,8 @@ def add_parser(targets) -> None:
         "error against GPS after a rigid SE(2) alignment, trees mapped, run time, a map PNG.",
     )
     vp.add_argument("--data", default=None,
-                    help="Victoria Park directory (default ../shared/data/victoria_park)")
+                    help="Victoria Park directory (default $SLAM_GYM_DATA/victoria_park, else "
+                    "../shared/data/victoria_park)")
     vp.add_argument("--systems", default=",".join(REAL_SYSTEMS),
                     help=f"comma-separated among {', '.join(REAL_SYSTEMS)}")
     _add_shared_options(vp, "out/reproduce-victoria-park")
@@ -216,7 +209,8 @@ def _data_dir(given, *default_parts: str) -> Path:
     if given is None:
         found = default_data_dir(*default_parts)
         require(found is not None, "--data", None,
-                f"a directory (no default copy at ../shared/data/{'/'.join(default_parts)})")
+                f"a directory (no default copy: set SLAM_GYM_DATA or put "
+                f"shared/data/{'/'.join(default_parts)} beside the repository)")
         return found.resolve()
     path = Path(given).expanduser().resolve()
     require(path.is_dir(), "--data", given, "an existing directory")

@@ -12,7 +12,8 @@ Keyword arguments (besides those of :class:`~slam_gym.envs.hybrid_slam.HybridSLA
 ``data_dir``
     An MRCLAM data set directory (``Barcodes.dat``, ``Landmark_Groundtruth.dat``,
     ``RobotN_{Odometry,Measurement,Groundtruth}.dat``). Default: the copy of Dataset 7 in
-    ``../shared/data/mrclam/MRCLAM_Dataset7`` beside the repository, when it exists.
+    ``$SLAM_GYM_DATA/mrclam/MRCLAM_Dataset7``, or ``../shared/data/...`` beside the repository,
+    when it exists.
 ``robot``
     1-5 (default 1).
 ``sensor_noise_scale``
@@ -62,6 +63,7 @@ import numpy as np
 
 from filters.models import RangeBearingSensor
 from filters.validation import check_range, require
+from slam_gym.datasets.location import default_data_dir
 from slam_gym.envs.hybrid_slam import HybridSLAMEnv
 
 MRCLAM_ROBOTS = (1, 2, 3, 4, 5)
@@ -72,10 +74,9 @@ ROBOT_FILES = ("Odometry", "Measurement", "Groundtruth")
 
 
 def default_mrclam_dir() -> Path | None:
-    """``../shared/data/mrclam/MRCLAM_Dataset7`` beside the repository, if it exists."""
-    repo_root = Path(__file__).resolve().parents[2]
-    path = repo_root.parent / "shared" / "data" / "mrclam" / "MRCLAM_Dataset7"
-    return path if path.is_dir() else None
+    """``mrclam/MRCLAM_Dataset7`` of the data root (``$SLAM_GYM_DATA``, else ``../shared/data``
+    beside the repository), if it exists."""
+    return default_data_dir("mrclam", "MRCLAM_Dataset7")
 
 
 def check_robot(robot) -> int:
@@ -94,8 +95,8 @@ def check_mrclam_dir(data_dir, robot: int) -> Path:
         found = default_mrclam_dir()
         require(
             found is not None, "data_dir", None,
-            "an MRCLAM data set directory (no default copy at "
-            "../shared/data/mrclam/MRCLAM_Dataset7 beside the repository)",
+            "an MRCLAM data set directory (no default copy: set SLAM_GYM_DATA, or put "
+            "shared/data/mrclam/MRCLAM_Dataset7 beside the repository)",
         )
         data_dir = found
     require(

@@ -2,16 +2,16 @@
 
 The loaders are checked against the raw files, parsed here with numpy and with expected values
 computed by explicit loops over the rows (not through the loaders' helpers). The data are the
-copies at ``../shared/data`` beside the repository (see its README).
+excerpts in tests/data, or the whole recordings in ``$SLAM_GYM_DATA`` (tests/slam_gym/realdata.py).
 """
 
 from __future__ import annotations
 
 from collections import defaultdict
-from pathlib import Path
 
 import numpy as np
 import pytest
+from realdata import MRCLAM_DIR, VP_DIR, needs_full_data
 from scipy.spatial import cKDTree
 
 from filters.models import motion
@@ -33,9 +33,6 @@ from slam_gym.datasets.mrclam import (
 )
 from slam_gym.datasets.victoria_park import VehicleGeometry, laser_to_vehicle, read_geometry
 
-DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
-MRCLAM_DIR = DATA / "mrclam" / "MRCLAM_Dataset7"
-VP_DIR = DATA / "victoria_park"
 ROBOT = 3  # has robot sightings and unknown barcodes (34, 52)
 DT = 0.1
 VP_DT = 0.025
@@ -60,7 +57,7 @@ def zoh_mean_loop(row_t, row_u, a, b):
 def gt_pose_loop(gt, tau):
     """Ground truth at time tau: bracketing rows found by search, heading on the short arc."""
     i = int(np.nonzero(gt[:, 0] <= tau)[0][-1])
-    if gt[i, 0] == tau:
+    if gt[i, 0] == tau or i == len(gt) - 1:
         return gt[i, 1:4].copy()
     f = (tau - gt[i, 0]) / (gt[i + 1, 0] - gt[i, 0])
     x = gt[i, 1] + f * (gt[i + 1, 1] - gt[i, 1])
@@ -149,11 +146,13 @@ def test_mrclam_observations_are_exactly_the_landmark_rows(raw, stream, steps):
     is_landmark = np.isin(subjects, list(landmark_subjects))
     n_used = sum(row[2] for rows in table.values() for row in rows)
     assert n_used == sum(len(s.z) for s in steps) == int((in_span & is_landmark).sum())
-    assert int((in_span & np.isin(subjects, [1, 2, 3, 4, 5])).sum()) > 500  # the test has teeth
+    # the test has teeth: other robots are a good share of the rows (21 % in Dataset 7)
+    assert int((in_span & np.isin(subjects, [1, 2, 3, 4, 5])).sum()) > 0.1 * int(in_span.sum())
     assert int((in_span & (subjects < 0)).sum()) > 0
     assert stream.metadata["counts"]["unknown_barcode_rows"] == int((subjects < 0).sum())
 
 
+@needs_full_data  # gated outliers are rare: the excerpt's minute holds none
 def test_mrclam_truth_ids_name_the_barcode_landmark_or_a_gated_outlier(raw, stream, steps):
     """truth id >= 0: landmarks_true[id] is the landmark of the row's barcode and the residual
     is inside the 0.9999 chi-square gate; id -1: the residual is outside the gate."""
@@ -197,7 +196,7 @@ def test_mrclam_robot_sightings_as_clutter_have_truth_minus_one(raw, stream):
             if all(row[1] not in landmark_subjects for row in rows):
                 n_robot += 1
                 assert lid == -1
-    assert n_robot > 100
+    assert n_robot > 0.1 * sum(len(step.z) for step in s)
     assert s.metadata["robot_sightings"] == "clutter"
     assert s.clutter.beta > stream.clutter.beta
 
@@ -231,7 +230,7 @@ def test_mrclam_truth_pose_interpolates_ground_truth(raw, stream, steps):
     gt = raw["groundtruth"]
     t0 = t0_of(raw)
     np.testing.assert_allclose(stream.initial_pose, gt_pose_loop(gt, t0), atol=1e-12)
-    for k in (0, 17, 999, 5000, len(steps) - 1):
+    for k in (0, 17, len(steps) // 3, len(steps) // 2, len(steps) - 1):
         expected = gt_pose_loop(gt, t0 + (k + 1) * DT)
         got = steps[k].truth.pose
         np.testing.assert_allclose(got[:2], expected[:2], atol=1e-9)
@@ -263,7 +262,7 @@ def test_mrclam_landmarks_and_visibility(raw, stream, steps):
     np.testing.assert_array_equal(stream.landmarks_true, raw["landmarks"][:, 1:3])
     assert stream.metadata["landmark_subjects"] == tuple(range(6, 21))
     sensor = stream.sensor
-    for k in (10, 2000, 6000):
+    for k in (10, len(steps) // 3, len(steps) - 1):
         pose = steps[k].truth.pose
         d = stream.landmarks_true - pose[:2]
         rng = np.hypot(d[:, 0], d[:, 1])
@@ -494,7 +493,8 @@ def test_vp_step_odometry_is_the_ackermann_rear_axle_velocity(vp_steps, vp_raw):
     t0 = inp[0, 0]
     turning = np.nonzero((np.abs(inp[:, 2]) > 0.2) & (inp[:, 1] > 2.0))[0]
     assert turning.size
-    for k in (0, 5000, int(turning[0]), int(turning[len(turning) // 2]), len(vp_steps) - 1):
+    for k in (0, len(vp_steps) // 2, int(turning[0]), int(turning[len(turning) // 2]),
+              len(vp_steps) - 1):
         a, b = t0 + k * VP_DT, t0 + (k + 1) * VP_DT
         near = np.nonzero((inp[:, 0] > a - 1.0) & (inp[:, 0] < b + 1.0))[0]
         u = []
@@ -509,7 +509,8 @@ def test_vp_has_no_truth_but_gps_in_metadata(vp, vp_steps, vp_raw):
     assert vp.landmarks_true.shape == (0, 2)
     assert all(np.all(np.isnan(s.truth.pose)) for s in vp_steps[::97])
     ids = np.concatenate([s.truth.landmark_ids for s in vp_steps])
-    assert ids.size > 10000 and np.all(ids == UNKNOWN_LANDMARK_ID)
+    # most detections are kept (the loader drops those beyond the laser's 30 m)
+    assert ids.size > 0.5 * len(vp_raw["measurements"]) and np.all(ids == UNKNOWN_LANDMARK_ID)
     gps = vp.metadata["gps"]
     np.testing.assert_allclose(gps[:, 1:], vp_raw["gps"][:, 1:])
     np.testing.assert_allclose(gps[:, 0], vp_raw["gps"][:, 0] - vp_raw["inputs"][0, 0])

@@ -1,22 +1,21 @@
 """The MRCLAM env (slam_gym.envs.mrclam): the interface env of HybridSLAMEnv on recorded data.
 
-Uses the copy of MRCLAM Dataset 7 at ``../shared/data`` beside the repository (see its README).
+Uses MRCLAM Dataset 7 from tests/slam_gym/realdata.py (excerpts, or the whole recordings in
+``$SLAM_GYM_DATA``).
 """
 
 import warnings
-from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
 import pytest
+from realdata import MRCLAM_DIR
 
 from slam_gym.datasets import load_mrclam
 from slam_gym.envs.hybrid_slam import FEATURE_NAMES
 from slam_gym.envs.mrclam import MRCLAMEnv, default_mrclam_dir, mrclam_stream
 from slam_gym.metrics import nees
 
-DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
-MRCLAM_DIR = DATA / "mrclam" / "MRCLAM_Dataset7"
 SMALL = {"data_dir": MRCLAM_DIR, "robot": 2, "n_particles": 10, "n_steps": 80}
 ACTIONS = [np.array([i % 3 == 2, 0], dtype=np.int64) for i in range(10)]
 
@@ -43,10 +42,16 @@ def same(a, b) -> bool:
     )
 
 
-def test_default_data_dir_is_the_shared_copy():
+def test_default_data_dir_comes_from_the_one_setting(monkeypatch, tmp_path):
+    root = MRCLAM_DIR.parents[1]
+    monkeypatch.setenv("SLAM_GYM_DATA", str(root))
     assert default_mrclam_dir().resolve() == MRCLAM_DIR.resolve()
     env = MRCLAMEnv(robot=3, n_particles=5, n_steps=20)
     assert env.data_dir.resolve() == MRCLAM_DIR.resolve() and env.robot == 3
+    monkeypatch.setenv("SLAM_GYM_DATA", str(tmp_path))  # a root without the data set
+    assert default_mrclam_dir() is None
+    with pytest.raises(ValueError, match="SLAM_GYM_DATA"):
+        MRCLAMEnv(robot=3)
 
 
 def test_gymnasium_env_checker_without_warnings():
@@ -151,7 +156,7 @@ def test_episode_runs_on_after_failure_when_asked():
             break
     assert terminated and info["failed"] and go_on.episode.done
     # charged the one-off penalty once, without the remaining path's worst case: it goes on
-    assert go_on.episode.iteration == 600
+    assert go_on.episode.iteration == len(go_on.stream)  # the whole (cut) recording
     assert sum(penalties) == go_on.config.failure_penalty
 
 
