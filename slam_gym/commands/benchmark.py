@@ -107,7 +107,12 @@ def run(args) -> int:
         env_name = args.env or f"{args.front_end} front-end, {args.back_end} back-end"
         figures["pareto"] = str(plot_pareto(
             doc, out / "pareto.png",
-            title=f"Map error against compute ({env_name}, {args.particles} particles)",
+            title=f"Map error against all compute ({env_name}, {args.particles} particles)",
+        ))
+        figures["pareto_interface"] = str(plot_pareto(
+            doc, out / "pareto_interface.png", x="interface_cpu_s",
+            title=f"Map error against the compute of fusions and optimisations ({env_name}, "
+            f"{args.particles} particles)",
         ))
         figures.update(episode_figures(names, args, levels[-1], out))
     print_table(args, doc, title=f"Policies on {args.scenario} ({args.particles} particles)")

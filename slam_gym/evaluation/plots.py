@@ -452,8 +452,8 @@ def plot_pareto(
             )
         ordered = sorted(front, key=lambda i: pts[i][0])
         ax.plot([pts[i][0] for i in ordered], [pts[i][1] for i in ordered], "k--", lw=0.8)
-        xs = [p[0] for p in pts if p[0] > 0]
-        log_x = len(xs) > 1 and max(xs) / min(xs) > 10.0
+        xs = [p[0] for p in pts]
+        log_x = len(xs) > 1 and min(xs) > 0 and max(xs) / min(xs) > 10.0
         if log_x:
             ax.set_xscale("log")
         ax.grid(True, alpha=0.3, linewidth=0.6)
