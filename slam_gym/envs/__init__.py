@@ -30,12 +30,32 @@ RECORDED_ENV_VARIANTS: dict[str, tuple[str, dict]] = {
 }
 
 
+RECORDED_MAX_EPISODE_STEPS = 2000
+"""Decisions (1 s each at the defaults) of a recorded env's episode before Gymnasium's time limit:
+above the length of every MRCLAM recording (Dataset 7: ~890 s)."""
+
+
+def max_episode_steps(kwargs: dict) -> int:
+    """1.5 times the decisions of the scenario's nominal path (length / speed) at the default
+    decision interval: a margin for the path's random detours, never a cut of a normal run."""
+    import math
+
+    from slam_gym.envs.hybrid_slam import HybridSLAMConfig
+
+    config = HybridSLAMConfig.from_kwargs(**kwargs)
+    scenario = config.scenario_config()
+    steps = scenario.path_length_m / scenario.speed_mps * scenario.filter_rate_hz
+    return math.ceil(1.5 * steps / config.decision_interval)
+
+
 def register_envs() -> list[str]:
     """Register every variant that is not registered yet; returns the simulated ids."""
     for env_id, kwargs in ENV_VARIANTS.items():
         if env_id not in gym.registry:
-            gym.register(id=env_id, entry_point=ENTRY_POINT, kwargs=dict(kwargs))
+            gym.register(id=env_id, entry_point=ENTRY_POINT, kwargs=dict(kwargs),
+                         max_episode_steps=max_episode_steps(kwargs))
     for env_id, (entry_point, kwargs) in RECORDED_ENV_VARIANTS.items():
         if env_id not in gym.registry:
-            gym.register(id=env_id, entry_point=entry_point, kwargs=dict(kwargs))
+            gym.register(id=env_id, entry_point=entry_point, kwargs=dict(kwargs),
+                         max_episode_steps=RECORDED_MAX_EPISODE_STEPS)
     return list(ENV_VARIANTS)

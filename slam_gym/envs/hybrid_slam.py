@@ -56,7 +56,16 @@ Reward (per decision; every term is in ``info["reward_components"]``)
 Episode end
     Terminated at the end of the path, or on failure by BB's criterion (true pose more than 10
     standard deviations from the estimate for more than 20 consecutive iterations); truncated
-    after ``max_decisions`` decisions.
+    after ``max_decisions`` decisions. The registered ids also set ``max_episode_steps`` (1.5
+    times the decisions of the scenario's nominal path at the default ``decision_interval``), so
+    a ``gym.make`` with a shorter ``decision_interval`` should pass its own ``max_episode_steps``.
+
+Rendering
+    ``"rgb_array"`` returns the frame (truth, global and local map, particles); ``"human"`` draws
+    it in a matplotlib window (an interactive backend is needed; on a headless machine it warns
+    once and draws nothing) and returns None. ``metadata["render_fps"]`` is one frame per
+    decision played in real time: ``1 / (decision_interval x the filter period)`` (1 fps at the
+    defaults: one decision is 1 s of simulated time).
 
 Which id to use
     ``SlamGym/HybridSLAM-v0`` is the paper's configuration (BB: 500 particles): the one to report.
@@ -256,7 +265,7 @@ class HybridSLAMConfig:
 class HybridSLAMEnv(gym.Env):
     """See the module docstring for spaces, reward and termination."""
 
-    metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 10}
+    metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 1.0}
 
     #: options of ``reset(options=...)``: a world seed and fields of the config that may change
     #: between episodes without changing the spaces
@@ -269,6 +278,10 @@ class HybridSLAMEnv(gym.Env):
         )
         self.config = HybridSLAMConfig.from_kwargs(**config)
         self.render_mode = render_mode
+        period_s = 1.0 / self.config.scenario_config().filter_rate_hz
+        self.metadata = {
+            **self.metadata, "render_fps": 1.0 / (self.config.decision_interval * period_s)
+        }
         self.action_space = spaces.MultiDiscrete([2, 2])
         self.observation_space = spaces.Box(
             low=0.0, high=OBSERVATION_MAX, shape=(len(self.config.observation_features),),
@@ -282,6 +295,7 @@ class HybridSLAMEnv(gym.Env):
         self.n_decisions = 0
         self._nees_band = nees_band(1)
         self._figure = None
+        self._warned_headless = False
 
     # ------------------------------------------------------------------ gym API
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -328,9 +342,16 @@ class HybridSLAMEnv(gym.Env):
     def step(self, action):
         if self.episode is None:
             raise RuntimeError("call reset() before step()")
-        action = np.asarray(action).reshape(-1)
-        if action.shape != (2,) or not self.action_space.contains(action.astype(np.int64)):
-            raise ValueError(f"action={action!r} is invalid: must be in MultiDiscrete([2, 2])")
+        action = np.asarray(action)
+        integral = np.issubdtype(action.dtype, np.integer) or action.dtype == np.bool_
+        if (
+            not integral or action.shape != (2,)
+            or not self.action_space.contains(action.astype(np.int64))
+        ):
+            raise ValueError(
+                f"action={action!r} is invalid: must be two integers (fuse, optimise) in "
+                "MultiDiscrete([2, 2])"
+            )
         fuse, optimise = bool(action[0]), bool(action[1])
         ep, c = self.episode, self.config
         failed_before = ep.failure.failed
@@ -400,10 +421,16 @@ class HybridSLAMEnv(gym.Env):
         if self.render_mode is None:
             gym.logger.warn("render() called without a render_mode; pass render_mode to gym.make")
             return None
-        from slam_gym.envs.rendering import render_frame
+        from slam_gym.envs.rendering import render_frame, show_in_window
 
         frame, self._figure = render_frame(self, self._figure, self.render_mode)
-        return frame
+        if self.render_mode != "human":
+            return frame
+        if not show_in_window(self._figure) and not self._warned_headless:
+            self._warned_headless = True
+            logger.warning("render_mode='human' needs an interactive matplotlib backend "
+                           "(MPLBACKEND); no window is shown: use render_mode='rgb_array'")
+        return None
 
     def close(self):
         if self._figure is not None:

@@ -56,9 +56,20 @@ def render_frame(env, figure, render_mode):
     ax.legend(loc="upper right", fontsize=6)
     figure.tight_layout()
     frame = figure_to_rgb(figure)
-    if render_mode == "human":
-        try:
-            plt.pause(0.001)
-        except Exception:  # noqa: BLE001 - a headless backend cannot show a window
-            logger.warning("render_mode='human' needs an interactive matplotlib backend")
     return frame, figure
+
+
+NON_INTERACTIVE_BACKENDS = ("agg", "cairo", "pdf", "pgf", "ps", "svg", "template")
+
+
+def show_in_window(figure) -> bool:
+    """Draw ``figure`` in its window (``render_mode="human"``); False if matplotlib's backend
+    cannot show windows (a headless machine)."""
+    import matplotlib
+    import matplotlib.pyplot as plt
+
+    if matplotlib.get_backend().lower() in NON_INTERACTIVE_BACKENDS:
+        return False
+    figure.show()
+    plt.pause(0.001)
+    return True

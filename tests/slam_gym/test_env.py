@@ -40,13 +40,55 @@ ACTIONS = [np.array([i % 5 == 4, i % 7 == 6], dtype=np.int64) for i in range(14)
 
 @pytest.mark.parametrize("env_id", ENV_IDS)
 def test_gymnasium_env_checker_without_warnings(env_id):
+    """Gymnasium's checker with its render check: every declared render mode is made from the
+    spec, reset and rendered, and must return what the mode promises."""
     from gymnasium.utils.env_checker import check_env
 
-    env = make(env_id)
+    env = make(env_id, render_mode="rgb_array")
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        check_env(env.unwrapped, skip_render_check=True)
+        check_env(env.unwrapped)
     env.close()
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_human_rendering_returns_none(env_id, caplog):
+    env = make(env_id, render_mode="human")
+    env.reset(seed=0)
+    assert env.render() is None
+    env.step(np.array([0, 0]))  # renders too (human mode draws at every step)
+    assert env.render() is None
+    warned = [r for r in caplog.records if "interactive matplotlib backend" in r.getMessage()]
+    assert len(warned) <= 1  # headless: said once, not at every frame
+    env.close()
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_render_fps_is_one_frame_per_decision_in_real_time(env_id):
+    env = make(env_id)
+    assert env.metadata["render_fps"] == pytest.approx(1.0)  # 10 iterations x 0.1 s
+    assert make(env_id, decision_interval=5).metadata["render_fps"] == pytest.approx(2.0)
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_registered_time_limit_does_not_cut_a_normal_episode(env_id):
+    spec = gym.registry[env_id]
+    env = gym.make(f"slam_gym:{env_id}", n_particles=10)
+    scenario = env.unwrapped.config.scenario_config()
+    decisions = scenario.path_length_m / scenario.speed_mps * scenario.filter_rate_hz / 10
+    assert decisions < spec.max_episode_steps <= 2 * decisions
+
+
+@pytest.mark.parametrize(
+    "action", [np.array([0.5, 1.0]), np.array([1.0, 0.0]), np.array([1, 0, 1]), np.array([2, 0]),
+               np.array([[1, 0]]), 3, "fuse"],
+)
+def test_invalid_actions_raise_value_error(action):
+    env = make("SlamGym/HybridSLAM-v0")
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="action"):
+        env.step(action)
+    env.step(np.array([True, False]))  # booleans are integers 0/1
 
 
 @pytest.mark.parametrize("env_id", ENV_IDS)

@@ -57,10 +57,10 @@ def test_default_data_dir_comes_from_the_one_setting(monkeypatch, tmp_path):
 def test_gymnasium_env_checker_without_warnings():
     from gymnasium.utils.env_checker import check_env
 
-    env = make()
+    env = gym.make("slam_gym:SlamGym/MRCLAM-v0", render_mode="rgb_array", **SMALL)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        check_env(env, skip_render_check=True)
+        check_env(env.unwrapped)  # with its render check of every declared mode
     env.close()
 
 
@@ -136,17 +136,17 @@ def test_sensor_calibration_and_front_end_options_reach_stream_and_filter():
         make(front_end_options={"gate_chi2": -1.0}).reset(seed=0)
 
 
-def test_episode_runs_on_after_failure_when_asked():
+def test_episodes_run_the_recording_after_a_failure_by_default():
     # a tiny sensor noise makes the filter over-confident: BB's failure criterion triggers early
     kwargs = {"n_steps": 600, "sensor_noise_scale": 0.02, "n_particles": 5}
-    stop = make(**kwargs)
+    stop = make(terminate_on_failure=True, **kwargs)
     stop.reset(seed=0)
     for _ in range(100):
         _, _, terminated, truncated, info = stop.step(np.array([0, 0]))
         if terminated or truncated:
             break
     assert terminated and info["failed"] and not stop.episode.done
-    go_on = make(terminate_on_failure=False, **kwargs)
+    go_on = make(**kwargs)  # the default
     go_on.reset(seed=0)
     penalties = []
     for _ in range(100):
@@ -158,6 +158,17 @@ def test_episode_runs_on_after_failure_when_asked():
     # charged the one-off penalty once, without the remaining path's worst case: it goes on
     assert go_on.episode.iteration == len(go_on.stream)  # the whole (cut) recording
     assert sum(penalties) == go_on.config.failure_penalty
+    # ending at the failure charges the remaining path's worst case on top
+    assert stop_charge(kwargs) > go_on.config.failure_penalty
+
+
+def stop_charge(kwargs):
+    env = make(terminate_on_failure=True, **kwargs)
+    env.reset(seed=0)
+    while True:
+        _, _, terminated, truncated, info = env.step(np.array([0, 0]))
+        if terminated or truncated:
+            return info["reward_components"]["failure_charge"]
 
 
 def test_env_pickles_and_the_copy_continues_identically():
