@@ -33,6 +33,7 @@ import os
 import pickle
 import signal
 import sys
+import threading
 import time
 import traceback
 from collections import Counter, deque
@@ -100,9 +101,24 @@ def execute_job(run_fn: RunFn, job: Job) -> Outcome:
     }
 
 
-def _ignore_sigint() -> None:
-    """Pool-worker initializer: Ctrl-C is handled by the parent, which terminates the workers."""
+PARENT_POLL_S = 0.5
+"""How often a pool worker checks that the process that started it is still alive."""
+
+
+def _init_worker(parent_pid: int) -> None:
+    """Pool-worker initializer: Ctrl-C is handled by the parent, which terminates the workers;
+    and a worker ends by itself when its parent dies (even by SIGKILL, which leaves the parent
+    no chance to stop it): a daemon thread watches the parent's pid and exits the process once
+    the worker has been re-parented."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+    def watch_parent() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(PARENT_POLL_S)
+        os._exit(1)
+
+    threading.Thread(target=watch_parent, name="parent-watch", daemon=True).start()
 
 
 def _terminate_pool(pool: ProcessPoolExecutor) -> None:
@@ -125,7 +141,8 @@ def _run_pool_until_broken(
     on_outcome: Callable[[Job, Outcome], None],
 ) -> list[Job]:
     """Run ``queue`` on a pool of ``workers``; return the jobs in flight if the pool broke."""
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_ignore_sigint)
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker,
+                               initargs=(os.getpid(),))
     in_flight: dict[Future, Job] = {}
     broken: list[Job] = []
     pool_broken = False
@@ -164,7 +181,8 @@ def _run_pool_until_broken(
 
 def _run_isolated(ctx: Any, run_fn: RunFn, job: Job) -> Outcome:
     """Run one job alone in a fresh single-worker pool; a dead worker becomes an error outcome."""
-    pool = ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=_ignore_sigint)
+    pool = ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=_init_worker,
+                               initargs=(os.getpid(),))
     t0 = time.perf_counter()
     try:
         fut = pool.submit(execute_job, run_fn, job)

@@ -501,3 +501,61 @@ def test_mean_interval_is_students_t():
     half = t.ppf(0.975, 3) * statistics.stdev(values) / 2.0
     assert (lo, hi) == pytest.approx((3.5 - half, 3.5 + half))
     assert mean_interval([1.0]) is None
+
+
+def _children(pid: int) -> list[int]:
+    """Pids of the live processes whose parent is ``pid`` (Linux /proc)."""
+    from pathlib import Path
+
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid and fields[0] != "Z":
+            out.append(int(stat.parent.name))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    from pathlib import Path
+
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_pool_workers_end_when_the_benchmark_is_killed(tmp_path):
+    """SIGKILL leaves the parent no chance to stop its pool: the workers must notice on their
+    own (they watch their parent) and be gone a few seconds later."""
+    import signal
+    import subprocess
+    import time
+
+    argv = [sys.executable, "-m", "slam_gym.cli", "benchmark", "--policies", "always",
+            "--clutter-levels", "0", "--seeds", "6", "--particles", "500", "--workers", "1",
+            "--executor", "process", "--baselines", "", "--no-figures", "--quiet",
+            "--out", str(tmp_path)]
+    parent = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 120
+        workers = []
+        while time.monotonic() < deadline and not workers:
+            time.sleep(0.5)
+            workers = [p for p in _children(parent.pid)
+                       if b"spawn_main" in open(f"/proc/{p}/cmdline", "rb").read()]
+        assert workers, "the benchmark started no pool worker"
+        time.sleep(2.0)  # the worker is busy in its first run
+        parent.send_signal(signal.SIGKILL)
+        parent.wait(timeout=10)
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and any(_alive(p) for p in workers):
+            time.sleep(0.2)
+        assert not any(_alive(p) for p in workers), "a pool worker outlived its killed parent"
+    finally:
+        if parent.poll() is None:
+            parent.kill()
