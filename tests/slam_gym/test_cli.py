@@ -75,6 +75,7 @@ def test_benchmark_reports_accuracy_against_compute_with_a_pareto_figure(tmp_pat
         assert lo <= g["map_error_m"]["mean"] <= hi
         assert "return" in g and g["map_completeness"] > 0.5
     assert groups["dead-reckoning"]["map_completeness"] == 0.0  # succeeds, maps nothing
+    assert "map_error_m_succeeded" not in groups["dead-reckoning"]
     rows = read_results(tmp_path / "results.jsonl")
     assert {r["options"].get("back_end") for r in rows if r.get("policy")} == {"relative"}
     assert doc["figures"]["pareto"].endswith("pareto.png")

@@ -559,3 +559,18 @@ def test_pool_workers_end_when_the_benchmark_is_killed(tmp_path):
     finally:
         if parent.poll() is None:
             parent.kill()
+
+
+def test_map_error_of_successful_runs_leaves_failed_runs_out():
+    from slam_gym.evaluation import summarise
+
+    rows = [
+        {"policy": "p", "scenario": "s", "clutter_level": 0, "status": "ok", "success": ok,
+         "map_error_m": err, "total_cpu_s": 1.0}
+        for ok, err in ((True, 0.4), (True, 0.6), (False, 0.01))
+    ]
+    (group,) = summarise(rows)
+    assert group["map_error_m"]["mean"] == pytest.approx(1.01 / 3)
+    assert group["map_error_m_succeeded"] == pytest.approx(0.5)
+    lo, hi = group["ci95"]["map_error_m_succeeded"]
+    assert lo < 0.5 < hi
