@@ -438,6 +438,8 @@ def plot_pareto(
     fig = Figure(figsize=(width, 4.2), dpi=dpi)
     FigureCanvasAgg(fig)
     axes = fig.subplots(1, len(levels), squeeze=False, sharey=True)[0]
+    xs = [value(g, x) for g in groups]
+    log_x = min(xs) > 0 and max(xs) / min(xs) > 100.0  # one scale for every panel
     for ax, level in zip(axes, levels, strict=True):
         members = [g for g in groups if g.get("clutter_level") == level]
         pts = [(value(g, x), value(g, y)) for g in members]
@@ -454,8 +456,6 @@ def plot_pareto(
             )
         ordered = sorted(front, key=lambda i: pts[i][0])
         ax.plot([pts[i][0] for i in ordered], [pts[i][1] for i in ordered], "k--", lw=0.8)
-        xs = [p[0] for p in pts]
-        log_x = len(xs) > 1 and min(xs) > 0 and max(xs) / min(xs) > 10.0
         if log_x:
             ax.set_xscale("log")
         ax.grid(True, alpha=0.3, linewidth=0.6)
