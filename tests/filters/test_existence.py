@@ -52,3 +52,49 @@ def test_false_alarm_in_gate_matches_monte_carlo():
         beta, n_visible, ex.gate_area(S, gamma), max_range, fov
     )
     assert hit.mean() == pytest.approx(predicted, rel=0.1)
+
+
+def test_bb_reading_uses_beta_as_written_and_the_gate_reading_the_gate():
+    args = (0.06, 5.0, 0.01, 25.0, 2 * np.pi)
+    assert ex.false_alarm_probability_one(True, *args) == 0.06
+    assert ex.false_alarm_probability_one(False, *args) == pytest.approx(
+        ex.false_alarm_in_gate_probability_one(*args)
+    )
+    assert ex.false_alarm_probability_one(False, *args) < 1e-3
+
+
+def _detections_to_confirm(filter_name, existence_model):
+    """Detections of one landmark, seen from a fixed pose at BB's clutter level 3 (alpha 0.1,
+    beta 0.06), before its existence passes 0.95."""
+    from filters.ekf_slam import EKFSLAM
+    from filters.fastslam import FastSLAM2
+    from filters.models import ClutterModel, ProportionalVelocityNoise, RangeBearingSensor
+
+    sensor, clutter = RangeBearingSensor(), ClutterModel(alpha=0.1, beta=0.06)
+    noise = ProportionalVelocityNoise(v_floor_mps=0.005, omega_floor_radps=0.005)
+    if filter_name == "ekf":
+        f = EKFSLAM(sensor, clutter, noise, existence_model=existence_model)
+    else:
+        f = FastSLAM2(sensor, clutter, noise, np.random.default_rng(0), n_particles=20,
+                      existence_model=existence_model)
+    for n in range(1, 30):
+        f.predict(np.zeros(2), 0.1)
+        f.update(np.array([[10.0, 0.3]]))
+        if f.landmarks().existence.max(initial=0.0) > ex.CONFIRMED_PROBABILITY:
+            return n
+    return 30
+
+
+@pytest.mark.parametrize("filter_name", ["ekf", "fastslam"])
+def test_bb_reading_needs_several_detections_in_heavy_clutter(filter_name):
+    """Under BB's beta a detection multiplies the odds by alpha / beta = 1.67 at level 3, so
+    from p = 0.5 it takes ceil(log 19 / log 1.67) = 6 detections; the gate reading confirms a
+    feature whose gate is a few cm wide after 1-2."""
+    assert _detections_to_confirm(filter_name, "gate") <= 2
+    assert _detections_to_confirm(filter_name, "bb") >= 5
+
+
+@pytest.mark.parametrize("filter_name", ["ekf", "fastslam"])
+def test_unknown_existence_model_raises_naming_it(filter_name):
+    with pytest.raises(ValueError, match="existence_model"):
+        _detections_to_confirm(filter_name, "literal")
