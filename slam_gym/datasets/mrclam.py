@@ -88,6 +88,7 @@ from filters.models import (
 )
 from filters.validation import check_range, require
 from slam_gym.datasets.align import hold_average, interpolate_poses
+from slam_gym.datasets.tables import load_table
 from slam_gym.stream import ArraySteps, Stream
 
 logger = logging.getLogger(__name__)
@@ -140,16 +141,6 @@ class MrclamRecording:
         return np.where(found, pos, -1).astype(np.int64)
 
 
-def _load_table(path: Path, columns: int) -> np.ndarray:
-    require(path.is_file(), "directory", str(path.parent), f"a directory containing {path.name}")
-    table = np.loadtxt(path, comments="#", ndmin=2, dtype=float)
-    require(
-        table.shape[1] == columns, path.name, f"{table.shape[1]} columns", f"{columns} columns"
-    )
-    require(bool(np.all(np.isfinite(table))), path.name, "non-finite values", "finite numbers")
-    return table
-
-
 def read_mrclam(directory, robot: int = 1) -> MrclamRecording:
     """Parse the tables of ``robot`` (1-5) in an MRCLAM data set ``directory``."""
     require(
@@ -160,12 +151,12 @@ def read_mrclam(directory, robot: int = 1) -> MrclamRecording:
     )
     directory = Path(directory)
     require(directory.is_dir(), "directory", str(directory), "an existing MRCLAM directory")
-    barcodes = _load_table(directory / "Barcodes.dat", 2).astype(np.int64)
-    landmarks = _load_table(directory / "Landmark_Groundtruth.dat", 5)
+    barcodes = load_table(directory / "Barcodes.dat", 2).astype(np.int64)
+    landmarks = load_table(directory / "Landmark_Groundtruth.dat", 5)
     landmarks = landmarks[np.argsort(landmarks[:, 0], kind="stable")]
-    odometry = _load_table(directory / f"Robot{robot}_Odometry.dat", 3)
-    groundtruth = _load_table(directory / f"Robot{robot}_Groundtruth.dat", 4)
-    measurements = _load_table(directory / f"Robot{robot}_Measurement.dat", 4)
+    odometry = load_table(directory / f"Robot{robot}_Odometry.dat", 3)
+    groundtruth = load_table(directory / f"Robot{robot}_Groundtruth.dat", 4)
+    measurements = load_table(directory / f"Robot{robot}_Measurement.dat", 4)
     require(
         bool(np.all(np.diff(odometry[:, 0]) >= 0.0)),
         f"Robot{robot}_Odometry.dat",

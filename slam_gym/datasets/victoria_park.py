@@ -74,6 +74,7 @@ import numpy as np
 from filters.models import ClutterModel, ProportionalVelocityNoise, RangeBearingSensor
 from filters.validation import check_range, require
 from slam_gym.datasets.align import hold_average
+from slam_gym.datasets.tables import load_table
 from slam_gym.stream import ArraySteps, Stream
 
 logger = logging.getLogger(__name__)
@@ -169,17 +170,6 @@ class VictoriaParkRecording:
     geometry: VehicleGeometry
 
 
-def _load(path: Path, columns: int) -> np.ndarray:
-    require(path.is_file(), "directory", str(path.parent), f"a directory containing {path.name}")
-    table = np.loadtxt(path, comments="#", ndmin=2, dtype=float)
-    require(table.shape[1] == columns, path.name, f"{table.shape[1]} columns", f"{columns}")
-    require(bool(np.all(np.isfinite(table))), path.name, "non-finite values", "finite numbers")
-    require(
-        bool(np.all(np.diff(table[:, 0]) >= 0.0)), path.name, "decreasing times", "sorted times"
-    )
-    return table
-
-
 def read_victoria_park(directory, geometry: VehicleGeometry | None = None) -> VictoriaParkRecording:
     """Parse a Victoria Park directory (geometry from info.txt unless given)."""
     directory = Path(directory)
@@ -189,9 +179,9 @@ def read_victoria_park(directory, geometry: VehicleGeometry | None = None) -> Vi
         geometry = read_geometry(info) if info.is_file() else VehicleGeometry()
     return VictoriaParkRecording(
         directory=directory,
-        inputs=_load(directory / "inputs.dat", 3),
-        measurements=_load(directory / "measurements.dat", 4),
-        gps=_load(directory / "gps.dat", 3),
+        inputs=load_table(directory / "inputs.dat", 3, sorted_times=True),
+        measurements=load_table(directory / "measurements.dat", 4, sorted_times=True),
+        gps=load_table(directory / "gps.dat", 3, sorted_times=True),
         geometry=geometry,
     )
 
