@@ -2,11 +2,10 @@
 
 import numpy as np
 import pytest
+from realdata import MRCLAM_DIR, VP_DIR
 
 from slam_gym.datasets import load_mrclam, load_victoria_park
 from slam_gym.datasets.tables import load_table
-
-from realdata import MRCLAM_DIR, VP_DIR
 
 
 def _copy(src, dst):
