@@ -29,23 +29,6 @@ Choices the papers leave open (documented here, overridable):
   100 Hz are summed into each 0.1 s step; CM (14)'s variance is linear in the travel, so the sum
   has exactly the per-step variance the filters assume).
 
-The ``extremities`` path model (``path_model="extremities"``; issue 14, not yet the default: the
-reported results are on the square loop). BB 5.2 describe a path "near the extremities of the
-environment, such that one significant loop closure had to be executed" at up to 100 deg/s, and
-BB 5.4 "many uncertain turns (including one sharp turn near the beginning of the trajectory)";
-their Fig. 4 closes the loop near iteration 4400. The square loop turns little (about 10 rad in
-all, ~1 % of its steps faster than 0.5 rad/s). The generator, with choices made a priori (none
-fitted to reported worlds):
-* the same ring 15 m inside the edges (the loop's side from ``loop_fraction``), waypoints every
-  ``0.5 * waypoint_spacing_m`` along it (11 m in BB's world), each moved *across* the ring by
-  a uniform offset in [-1.5, 1.5] x ``path_perturbation_m`` (+-7.5 m) and along it by up to
-  ``path_perturbation_m`` / 2, so the vehicle swerves at every waypoint;
-* a sharp turn near the beginning: 10 m along the ring the path turns back-inward by about
-  135 deg for 8 m, then rejoins the ring;
-* the whole loop is driven (its swerves make it longer than the ring), then on over the start
-  as far as the square loop's path goes past it ((1 - loop_fraction) x path_length_m = 40 m), so
-  the end re-observes the first landmarks: one significant loop closure, after ~420-460 m.
-
 CM choices in detail (``conte-martinelli-*``):
 * **the first scan is taken at the start pose** (``scan_at_start``: a motionless step 0 at t = 0,
   then a scan every 5 s). CM measure map error in the global frame fixed by the known start pose
@@ -80,9 +63,6 @@ CLUTTER_LEVELS: dict[int, tuple[float, float]] = {
 """BB Table 1: (alpha, beta) for clutter levels 0-3."""
 
 ODOMETRY_MODELS = ("proportional", "chong-kleeman")
-PATH_MODELS = ("square", "extremities")
-"""``square``: the perturbed square loop (module docstring); ``extremities``: a random path near
-the edges with a turn at every waypoint and a sharp turn at the start (BB 5.2 / 5.4, below)."""
 
 
 @dataclass(frozen=True)
@@ -119,7 +99,6 @@ class Scenario:
     compass_std_rad: float | None = None
     scan_at_start: bool = False
     n_steps: int | None = None
-    path_model: str = "square"
 
     def __post_init__(self):
         require(isinstance(self.name, str) and self.name != "", "name", self.name, "a string")
@@ -189,10 +168,6 @@ class Scenario:
                 isinstance(self.n_steps, (int, np.integer)) and self.n_steps >= 1,
                 "n_steps", self.n_steps, "a positive integer or None",
             )
-        require(
-            self.path_model in PATH_MODELS, "path_model", self.path_model,
-            f"one of {PATH_MODELS}",
-        )
 
     @property
     def loop_side_m(self) -> float:

@@ -92,69 +92,18 @@ def loop_waypoints(scenario: Scenario, rng: np.random.Generator) -> np.ndarray:
     return waypoints
 
 
-def extremity_waypoints(scenario: Scenario, rng: np.random.Generator) -> np.ndarray:
-    """BB 5.2's random path near the extremities (``path_model="extremities"``): waypoints
-    along the loop's ring, each swerving across it, after a sharp turn at the start
-    (:mod:`slam_gym.scenarios` states every choice)."""
-    side = scenario.loop_side_m
-    centre = 0.5 * scenario.world_size_m
-    lo, hi = centre - 0.5 * side, centre + 0.5 * side
-    corners = np.array([[centre, lo], [hi, lo], [hi, hi], [lo, hi], [lo, lo], [centre, lo]])
-    spacing = 0.5 * scenario.waypoint_spacing_m
-    p = scenario.path_perturbation_m
-    points = [corners[0]]
-    for a, b in zip(corners[:-1], corners[1:], strict=True):
-        along = (b - a) / np.linalg.norm(b - a)
-        inward = np.array([-along[1], along[0]])  # counter-clockwise: the centre is to the left
-        n = max(1, int(math.ceil(np.linalg.norm(b - a) / spacing)))
-        for k in range(1, n + 1):
-            offset = rng.uniform(-1.5 * p, 1.5 * p) * inward + rng.uniform(-0.5, 0.5) * p * along
-            points.append(a + (b - a) * k / n + (offset if k < n else 0.0))
-    waypoints = np.array(points[:-1])  # the last point is the start again
-    start = waypoints[0]
-    ahead = (corners[1] - corners[0]) / np.linalg.norm(corners[1] - corners[0])
-    inward = np.array([-ahead[1], ahead[0]])
-    # the sharp turn: 10 m along the ring, then back-inward (135 deg), then on along the ring
-    first = start + 10.0 * ahead
-    sharp = first + 8.0 * (-0.7 * ahead + 0.7 * inward)
-    return np.vstack([start, first, sharp, waypoints[1:]])
-
-
-def scenario_waypoints(scenario: Scenario, rng: np.random.Generator) -> np.ndarray:
-    """The waypoints of the scenario's path model (``square`` or ``extremities``)."""
-    if scenario.path_model == "extremities":
-        return extremity_waypoints(scenario, rng)
-    return loop_waypoints(scenario, rng)
-
-
-def turning_statistics(poses: np.ndarray, dt_s: float, fast_radps: float = 0.5) -> dict:
-    """``total_turning_rad`` (sum of |heading change|) and ``fraction_fast_turning`` (steps
-    turning faster than ``fast_radps``) of a true path (n + 1, 3)."""
-    dtheta = np.abs((np.diff(np.asarray(poses)[:, 2]) + np.pi) % (2.0 * np.pi) - np.pi)
-    return {
-        "total_turning_rad": float(dtheta.sum()),
-        "fraction_fast_turning": float(np.mean(dtheta / dt_s > fast_radps)) if len(dtheta) else 0.0,
-    }
-
-
 def route(scenario: Scenario, waypoints: np.ndarray) -> np.ndarray:
-    """The loop, then its start again, up to the first waypoint at ``path_length_m`` along it
-    (``extremities``: the whole loop plus the square loop's overlap past the start).
+    """The loop, then its start again, up to the first waypoint at ``path_length_m`` along it.
 
     The driven path is a little shorter than this polyline (corners are cut) and varies with the
     perturbation of the waypoints.
     """
     loop = np.vstack([waypoints, waypoints[:1]])
     loop_length = float(np.sum(np.linalg.norm(np.diff(loop, axis=0), axis=1)))
-    length = scenario.path_length_m
-    if scenario.path_model == "extremities":
-        # the whole (swerving, so longer) loop, then on over the start as far as the square
-        # loop's path goes past it: one significant loop closure, near 400-450 m (BB Fig. 4)
-        length = loop_length + (1.0 - scenario.loop_fraction) * scenario.path_length_m
-    repeats = 2 + int(length // max(loop_length, 1e-9))
+    repeats = 2 + int(scenario.path_length_m // max(loop_length, 1e-9))
     polyline = np.vstack([waypoints] * repeats + [waypoints[:1]])
     along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(polyline, axis=0), axis=1))])
-    last = int(np.searchsorted(along, length))
+    last = int(np.searchsorted(along, scenario.path_length_m))
     return polyline[: min(last, len(polyline) - 1) + 1]
 
 
@@ -262,7 +211,7 @@ def simulate(scenario: Scenario, seed: int) -> Stream:
         np.random.default_rng(s) for s in np.random.SeedSequence(int(seed)).spawn(3)
     )
     landmarks = landmark_field(scenario, world_rng)
-    waypoints = scenario_waypoints(scenario, world_rng)
+    waypoints = loop_waypoints(scenario, world_rng)
     poses, commands, true_velocities = drive(scenario, route(scenario, waypoints), odometry_rng)
     odometry = measured_odometry(scenario, commands, true_velocities, odometry_rng)
     sensor = sensor_of(scenario)

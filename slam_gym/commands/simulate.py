@@ -6,8 +6,7 @@ import numpy as np
 
 from filters.dead_reckoning import DeadReckoning
 from slam_gym.commands.common import add_common_options, emit, out_dir
-from slam_gym.scenarios import PATH_MODELS, scenario_names
-from slam_gym.world import turning_statistics
+from slam_gym.scenarios import scenario_names
 
 
 def add_parser(subparsers) -> None:
@@ -19,8 +18,6 @@ def add_parser(subparsers) -> None:
     p.add_argument("--scenario", default="brooks-bailey", choices=scenario_names())
     p.add_argument("--clutter-level", type=int, default=None, choices=[0, 1, 2, 3])
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--path-model", choices=list(PATH_MODELS), default=None,
-                   help="the path generator (default: the scenario's)")
     add_common_options(p, default_out="out/simulate")
     p.set_defaults(run=run)
 
@@ -70,7 +67,6 @@ def summarise(stream) -> dict:
         "n_detections": n_det,
         "n_false_alarms": n_fa,
         "loop_closed": loop_closed(stream),
-        **turning_statistics(poses, stream.dt_s),
     }
 
 
@@ -105,8 +101,6 @@ def run(args) -> int:
     from slam_gym.scenarios import make_stream
 
     overrides = {} if args.clutter_level is None else {"clutter_level": args.clutter_level}
-    if args.path_model is not None:
-        overrides["path_model"] = args.path_model
     stream = make_stream(args.scenario, seed=args.seed, **overrides)
     means, covs = dead_reckon(stream)
     out = out_dir(args)
@@ -124,8 +118,6 @@ def run(args) -> int:
             f"(alpha={summary['alpha']}, beta={summary['beta']})",
             f"  path {summary['path_length_m']:.1f} m in {summary['iterations']} iterations, "
             f"loop closed: {summary['loop_closed']}",
-            f"  turning {summary['total_turning_rad']:.1f} rad in all, "
-            f"{100 * summary['fraction_fast_turning']:.1f} % of steps faster than 0.5 rad/s",
             f"  {summary['n_landmarks']} landmarks, {summary['n_visible']} landmark-in-range "
             f"events, {summary['n_detections']} detections, "
             f"{summary['n_false_alarms']} false alarms",

@@ -296,31 +296,3 @@ def test_unknown_association_confirms_the_landmarks_between_sparse_scans(system)
     metrics = episode.metrics()
     assert len(episode.detected_landmarks) >= 10
     assert metrics["map_completeness"] >= 0.8, metrics
-
-
-def test_extremities_paths_turn_more_close_one_loop_and_start_with_a_sharp_turn():
-    from slam_gym.world import turning_statistics
-
-    for seed in (1000, 1001):
-        square = make_stream("brooks-bailey", seed=seed)
-        bb = make_stream("brooks-bailey", seed=seed, path_model="extremities")
-        turns = {
-            name: turning_statistics(s.metadata["true_poses"], s.dt_s)
-            for name, s in (("square", square), ("extremities", bb))
-        }
-        assert turns["extremities"]["total_turning_rad"] > 2 * turns["square"]["total_turning_rad"]
-        assert (turns["extremities"]["fraction_fast_turning"]
-                > 2 * turns["square"]["fraction_fast_turning"])
-        poses = bb.metadata["true_poses"]
-        # near the extremities: the path stays in the outer ring of the world, and the end
-        # re-observes the landmarks seen first (one loop closure)
-        centre = 0.5 * get_scenario("brooks-bailey").world_size_m
-        assert np.min(np.max(np.abs(poses[:, :2] - centre), axis=1)) > 20.0
-        from slam_gym.commands.simulate import loop_closed
-
-        assert loop_closed(bb)
-        # a sharp turn in the first 30 s: the heading changes by more than 120 deg
-        heading = np.unwrap(poses[:300, 2])
-        assert np.ptp(heading) > np.radians(120.0)
-    with pytest.raises(ValueError, match="path_model"):
-        get_scenario("brooks-bailey", path_model="spiral")
