@@ -54,7 +54,6 @@ from filters.association import (
 )
 from filters.existence import (
     CONFIRMED_PROBABILITY,
-    EXISTENCE_MODELS,
     detection_update,
     false_alarm_in_gate_probability,
     gate_area,
@@ -122,7 +121,6 @@ class EKFSLAMConfig:
     clutter_rate_forgetting: per-update forgetting factor of the running clutter-rate estimate.
     feature_budget: the front-end's feature budget (only reported, ``local_map_budget_ratio``).
     initial_feature_capacity: features preallocated (the arrays double when exceeded).
-    existence_model: ``"gate"`` or ``"bb"``, the reading of BB (11) (:mod:`filters.existence`).
     """
 
     gate_probability: float = 0.999
@@ -134,13 +132,8 @@ class EKFSLAMConfig:
     clutter_rate_forgetting: float = 0.99
     feature_budget: int = 100
     initial_feature_capacity: int = 32
-    existence_model: str = "gate"
 
     def __post_init__(self):
-        require(
-            self.existence_model in EXISTENCE_MODELS, "existence_model", self.existence_model,
-            f"one of {EXISTENCE_MODELS}",
-        )
         validate_gate_probability(self.gate_probability)
         check_range(
             "initial_existence", self.initial_existence, 0.0, 1.0, low_open=True, high_open=True
@@ -458,22 +451,19 @@ class EKFSLAM:
         detected[pairing[pairing >= 0]] = True
         if detected.any():
             n_visible = max(1.0, float(np.sum(p[in_view])))
-            p_fa = self._false_alarm_probability(pred.S[detected], n_visible)
+            area = gate_area(pred.S[detected], self._gate(1))
+            p_fa = false_alarm_in_gate_probability(
+                self._beta, n_visible, area, self.sensor.max_range_m, self.sensor.fov_rad
+            )
             p[detected] = detection_update(p[detected], self._alpha, p_fa)
         missed = in_view & ~detected
         if missed.any():
             n_visible = max(1.0, float(np.sum(p[in_view])))
-            p_fa = self._false_alarm_probability(pred.S[missed], n_visible)
+            area = gate_area(pred.S[missed], self._gate(1))
+            p_fa = false_alarm_in_gate_probability(
+                self._beta, n_visible, area, self.sensor.max_range_m, self.sensor.fov_rad
+            )
             p[missed] = miss_update(p[missed], self._alpha, p_fa)
-
-    def _false_alarm_probability(self, S, n_visible):
-        """BB (11)'s false-alarm term for features with innovation covariances ``S`` (K, 2, 2)."""
-        if self.config.existence_model == "bb":
-            return np.full(len(S), self._beta)
-        area = gate_area(S, self._gate(1))
-        return false_alarm_in_gate_probability(
-            self._beta, n_visible, area, self.sensor.max_range_m, self.sensor.fov_rad
-        )
 
     def _add_features(self, z):
         """Initialise features from observations z (k, 2); returns their new ids."""

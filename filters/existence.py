@@ -27,12 +27,6 @@ For beta = 0 this gives P_fa = 0 and a single detection confirms a feature; for 
 (beta = 0.06, ~5 landmarks in view, a gate of a few cm by a few degrees) it is about 1e-4, far
 below beta itself.
 
-Both readings are available (``existence_model``, :data:`EXISTENCE_MODELS`): ``"gate"`` (the
-default) is the above; ``"bb"`` is BB (11) as written, ``P_fa = beta`` for every detection and
-miss. Under ``"bb"`` a detection multiplies a feature's odds by ``alpha / beta`` (level 3:
-0.1 / 0.06), so confirmation (p > 0.95 from p = 0.5) takes ``log 19 / log(alpha / beta)``
-detections: 1 at level 0 (beta = 0), 2 at level 1, 3 at level 2, 6 at level 3, before misses.
-
 A feature is *confirmed* when p > 0.95 (BB 5.1: only those are fused) and *culled* when p falls
 below a cull threshold.
 """
@@ -46,10 +40,6 @@ from numba import njit
 
 CONFIRMED_PROBABILITY = 0.95
 """BB 5.1: only features with p(exists) above this are fused into the global map."""
-
-EXISTENCE_MODELS: tuple[str, ...] = ("gate", "bb")
-"""Readings of BB (11)'s false-alarm term (module docstring): the chance that clutter lands in
-the feature's gate, or BB's ``beta`` as written."""
 
 
 def gate_area(S, gate_chi2):
@@ -82,15 +72,6 @@ def miss_update_one(p, alpha, p_fa):
     num = p * (1.0 - alpha)
     den = num + (1.0 - p) * (1.0 - p_fa)
     return num / den if den > 0.0 else 0.0
-
-
-@njit(cache=True)
-def false_alarm_probability_one(literal_beta, beta, n_visible, gate_area_rb, max_range_m, fov_rad):
-    """BB (11)'s false-alarm term: ``beta`` as written (``literal_beta``), else the chance that a
-    false alarm lands in the gate (:func:`false_alarm_in_gate_probability_one`)."""
-    if literal_beta:
-        return beta
-    return false_alarm_in_gate_probability_one(beta, n_visible, gate_area_rb, max_range_m, fov_rad)
 
 
 def false_alarm_in_gate_probability(beta, n_visible, gate_area_rb, max_range_m, fov_rad):

@@ -101,7 +101,7 @@ from filters.conversion import (
     pose_moments,
     vote_all,
 )
-from filters.existence import CONFIRMED_PROBABILITY, EXISTENCE_MODELS
+from filters.existence import CONFIRMED_PROBABILITY
 from filters.fastslam_kernel import ScanModel, draw_poses, propagate, scan_update
 from filters.geometry import wrap_angle
 from filters.models import ClutterModel, RangeBearingSensor
@@ -133,7 +133,6 @@ class FastSLAM2:
     cull_threshold, cull_interval_steps: existence bookkeeping (module doc).
     feature_budget: the front-end's feature budget (``local_map_budget_ratio``).
     clutter_rate_memory: observations over which ``clutter_rate`` is averaged (exponential).
-    existence_model: ``"gate"`` or ``"bb"``, the reading of BB (11) (:mod:`filters.existence`).
     initial_capacity: initial feature slots per particle (doubles when full).
 
     Storage is structure-of-arrays: each feature component (mean x, y; covariance xx, xy, yy;
@@ -162,13 +161,7 @@ class FastSLAM2:
         feature_budget: int = 100,
         clutter_rate_memory: float = 100.0,
         initial_capacity: int = 16,
-        existence_model: str = "gate",
     ):
-        require(
-            existence_model in EXISTENCE_MODELS, "existence_model", existence_model,
-            f"one of {EXISTENCE_MODELS}",
-        )
-        self.existence_model = existence_model
         require(isinstance(sensor, RangeBearingSensor), "sensor", sensor, "a RangeBearingSensor")
         require(isinstance(clutter, ClutterModel), "clutter", clutter, "a ClutterModel")
         require(
@@ -242,7 +235,6 @@ class FastSLAM2:
             b_var=float(R[1, 1]),
             detection_probability=float(self.detection_probability),
             beta=float(clutter.beta),
-            literal_beta=existence_model == "bb",
             gate_chi2=self.gate_chi2,
             max_range_m=float(sensor.max_range_m),
             fov_rad=float(sensor.fov_rad),

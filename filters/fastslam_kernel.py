@@ -32,7 +32,7 @@ from filters.conversion import CLUTTER_VOTE as CLUTTER
 from filters.conversion import NEW_VOTE as NEW
 from filters.existence import (
     detection_update_one,
-    false_alarm_probability_one,
+    false_alarm_in_gate_probability_one,
     miss_update_one,
 )
 
@@ -49,7 +49,6 @@ class ScanModel(NamedTuple):
     b_var: float
     detection_probability: float
     beta: float
-    literal_beta: bool
     gate_chi2: float
     max_range_m: float
     fov_rad: float
@@ -248,7 +247,6 @@ def scan_update(
     b_var,
     detection_probability,
     beta,
-    literal_beta,
     gate_chi2,
     max_range_m,
     fov_rad,
@@ -403,9 +401,7 @@ def scan_update(
         pose[1] += step[1]
         pose[2] = _wrap(pose[2] + step[2])
         Pc[:, :] = 0.0
-        p_fa_miss = false_alarm_probability_one(
-            literal_beta, beta, n_vis, area_r, max_range_m, fov_rad
-        )
+        p_fa_miss = false_alarm_in_gate_probability_one(beta, n_vis, area_r, max_range_m, fov_rad)
         for j in range(n):
             if not claimed[j] and p_vis[j] > 0.0:
                 ex[p, j] = miss_update_one(ex[p, j], alpha * p_vis[j], p_fa_miss)
@@ -417,8 +413,8 @@ def scan_update(
                     pose[0], pose[1], pose[2], mx[p, j], my[p, j],
                     sxx[p, j], sxy[p, j], syy[p, j], zr, zb, r_var, b_var,
                 )
-                p_fa = false_alarm_probability_one(
-                    literal_beta, beta, n_vis, gate_areas[k], max_range_m, fov_rad
+                p_fa = false_alarm_in_gate_probability_one(
+                    beta, n_vis, gate_areas[k], max_range_m, fov_rad
                 )
                 ex[p, j] = min(detection_update_one(ex[p, j], alpha, p_fa), max_existence)
             elif j == NEW:

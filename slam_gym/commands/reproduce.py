@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from filters.existence import EXISTENCE_MODELS
 from slam_gym.commands.common import emit, out_dir
 from slam_gym.commands.runs import (
     add_run_options,
@@ -22,10 +21,7 @@ BB_TABLE1 = {
     "hybrid": {0: 0.87, 1: 0.89, 2: 0.83, 3: 0.63},
 }
 #: the names BB uses for its three filters -> our systems
-BB_SYSTEMS = {
-    "fastslam": "fastslam", "ekf": "ekf-submap", "hybrid": "hybrid",
-    "dead-reckoning": "dead-reckoning",
-}
+BB_SYSTEMS = {"fastslam": "fastslam", "ekf": "ekf-submap", "hybrid": "hybrid"}
 
 
 def add_parser(subparsers) -> None:
@@ -38,11 +34,7 @@ def add_parser(subparsers) -> None:
         "and the vehicle-uncertainty traces of BB Figs. 3 and 4.",
     )
     bb.add_argument("--systems", default="fastslam,ekf,hybrid",
-                    help="comma-separated among fastslam, ekf, hybrid, dead-reckoning (which meets "
-                    "BB's criterion without a map: see map completeness)")
-    bb.add_argument("--existence-model", choices=list(EXISTENCE_MODELS), default="gate",
-                    help="the reading of BB (11): 'gate' (the chance that clutter lands in the "
-                    "feature's gate, default) or 'bb' (BB's beta as written); filters.existence")
+                    help="comma-separated among fastslam, ekf, hybrid")
     bb.add_argument("--clutter-levels", default="0,1,2,3")
     bb.add_argument("--particles", type=int, default=500)
     bb.add_argument("--fusion-interval-s", type=float, default=10.0)
@@ -59,8 +51,6 @@ def add_parser(subparsers) -> None:
 
 
 def run_brooks_bailey(args) -> int:
-    """BB Table 1; the existence model is in the title and the JSON (rows run with "bb" carry it
-    in their options; the default "gate" is left out so earlier results resume)."""
     from slam_gym.evaluation import Job, write_summary
 
     systems = name_list(args.systems)
@@ -71,14 +61,9 @@ def run_brooks_bailey(args) -> int:
     out = out_dir(args)
     options = {"n_particles": args.particles, "fusion_interval_s": args.fusion_interval_s,
                "optimise": args.optimise}
-    model = {} if args.existence_model == "gate" else {"existence_model": args.existence_model}
-    per_system = {
-        "fastslam": {"n_particles": args.particles, **model},
-        "dead-reckoning": {},
-    }
     jobs = [
         Job("system", BB_SYSTEMS[s], "brooks-bailey", level, seed,
-            per_system.get(s, {**options, **model}))
+            options if BB_SYSTEMS[s] != "fastslam" else {"n_particles": args.particles})
         for s in systems
         for level in levels
         for seed in range(args.seed_start, args.seed_start + args.trials)
@@ -92,10 +77,8 @@ def run_brooks_bailey(args) -> int:
                                                  title="BB Table 1: success rate"))}
     if not args.no_figures:
         figures.update(trace_figures(systems, args.seed_start, args.particles, out))
-    print_table(args, doc, paper=paper, title="BB Table 1 reproduced (paper in the last column); "
-                f"existence model {args.existence_model!r}")
-    emit(args, {"summary": doc, "figures": figures, "out": str(out),
-                "existence_model": args.existence_model},
+    print_table(args, doc, paper=paper, title="BB Table 1 reproduced (paper in the last column)")
+    emit(args, {"summary": doc, "figures": figures, "out": str(out)},
          [f"wrote {out / 'results.jsonl'}, summary.json, table.md and {len(figures)} figures"])
     return 0
 

@@ -34,7 +34,6 @@ SYSTEM_OPTIONS = {
     "known_association": False,
     "stop_on_failure": True,
     "n_steps": None,
-    "existence_model": "gate",
 }
 POLICY_OPTIONS = {
     "n_particles": 500,
@@ -84,23 +83,14 @@ def run_system(
     stop_on_failure=True,
     record_trace=False,
     system_options=None,
-    existence_model="gate",
 ) -> Episode:
     """Run system ``name`` over ``stream`` on BB's fixed fusion schedule; the finished episode.
 
     ``system_options``: keyword options of the estimator (:func:`slam_gym.systems.make_system`;
-    ``front_``-prefixed for sub-map systems). ``existence_model``: the reading of BB (11) of the
-    filters that keep existence probabilities (:mod:`filters.existence`)."""
-    from filters.existence import EXISTENCE_MODELS
+    ``front_``-prefixed for sub-map systems)."""
     from slam_gym.systems import KNOWN_ASSOCIATION_ONLY, SUBMAP_SYSTEMS, make_system
 
     require(optimise in OPTIMISE_MODES, "optimise", optimise, f"one of {OPTIMISE_MODES}")
-    require(existence_model in EXISTENCE_MODELS, "existence_model", existence_model,
-            f"one of {EXISTENCE_MODELS}")
-    system_options = dict(system_options or {})
-    if existence_model != "gate" and name in (*SUBMAP_SYSTEMS, "ekf-slam", "fastslam"):
-        key = "front_existence_model" if name in SUBMAP_SYSTEMS else "existence_model"
-        system_options[key] = existence_model
     system = make_system(name, stream, _seeds(seed), n_particles=n_particles, back_end=back_end,
                          **(system_options or {}))
     known = bool(known_association) or name in KNOWN_ASSOCIATION_ONLY

@@ -128,16 +128,3 @@ def test_train_smoke_and_the_model_loads_and_acts(tmp_path, capsys):
     assert policy.observation_transform == "log1p"
     action = policy.act(np.ones(len(FEATURE_NAMES), dtype=np.float32), {})
     assert action.shape == (2,) and action.dtype == np.int64 and set(action) <= {0, 1}
-
-
-def test_reproduce_brooks_bailey_reports_its_existence_model(tmp_path, capsys):
-    argv = ["reproduce", "brooks-bailey", "--systems", "fastslam,dead-reckoning",
-            "--clutter-levels", "3", "--trials", "1", "--particles", "10", "--no-figures",
-            "--existence-model", "bb", "--workers", "1", "--executor", "serial",
-            "--out", str(tmp_path)]
-    doc = run_json(capsys, argv)
-    assert doc["existence_model"] == "bb"
-    rows = read_results(tmp_path / "results.jsonl")
-    by_system = {r["system"]: r for r in rows}
-    assert by_system["fastslam"]["options"]["existence_model"] == "bb"
-    assert by_system["dead-reckoning"]["map_completeness"] == 0.0
