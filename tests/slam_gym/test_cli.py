@@ -20,8 +20,11 @@ def test_simulate_json_keys_and_picture(tmp_path, capsys):
     for key in ("path_length_m", "iterations", "n_landmarks", "n_visible", "n_detections",
                 "n_false_alarms", "loop_closed"):
         assert key in out
-    assert 350 <= out["path_length_m"] <= 450 and out["n_landmarks"] == 35
+    assert 400 <= out["path_length_m"] <= 470 and out["n_landmarks"] == 35
     assert out["loop_closed"] is True
+    # many turns (BB 5.5): far more than the ~10 rad of a square loop, within the turn-rate limit
+    assert 15.0 < out["total_turning_rad"] < np.deg2rad(100.0) * out["iterations"] * 0.1
+    assert 0.0 < out["fraction_fast_turning"] < 1.0
     # alpha = 0.4, beta = 0.04: detections and false alarms per landmark-in-range event
     assert out["n_detections"] / out["n_visible"] == pytest.approx(0.4, abs=0.03)
     assert out["n_false_alarms"] / out["n_visible"] == pytest.approx(0.04, abs=0.01)
