@@ -50,6 +50,41 @@ def test_reproduce_brooks_bailey_tiny_and_resumable(tmp_path, capsys):
     assert len(read_results(tmp_path / "results.jsonl")) == 4
 
 
+def test_reproduce_brooks_bailey_table1_both_existence_models_and_extension(tmp_path, capsys):
+    """Dead-reckoning row, both readings of BB (11), paired differences over the same worlds, and
+    a rerun with more --trials into the same --out runs only the new worlds."""
+    argv = ["reproduce", "brooks-bailey", "--systems", "dead-reckoning,ekf,hybrid",
+            "--clutter-levels", "1", "--trials", "1", "--particles", "20", "--no-figures",
+            "--workers", "1", "--existence-model", "gate,bb", "--out", str(tmp_path)]
+    doc = run_json(capsys, argv)
+    assert doc["existence_models"] == ["gate", "bb"]
+    rows = read_results(tmp_path / "results.jsonl")
+    # dead reckoning has no existence model: one run per world, the two filters one per model
+    assert len(rows) == 1 + 2 * 2
+    models = {(r["system"], (r["options"] or {}).get("existence_model")) for r in rows}
+    assert models == {("dead-reckoning", None), ("ekf-submap", "gate"), ("ekf-submap", "bb"),
+                      ("hybrid", "gate"), ("hybrid", "bb")}
+    table = doc["table1"]
+    assert {(r["system"], r["existence_model"]) for r in table["rows"]} == {
+        ("dead-reckoning", "-"), ("ekf-submap", "gate"), ("ekf-submap", "bb"),
+        ("hybrid", "gate"), ("hybrid", "bb")}
+    for row in table["rows"]:
+        assert "map_completeness" in row and "anees" in row and row["n"] == 1
+    by_model = {p["existence_model"]: p for p in table["paired"]}
+    assert set(by_model) == {"gate", "bb"}
+    for p in by_model.values():
+        assert p["n_worlds"] == 1 and p["success_difference"]["mean"] in (-1.0, 0.0, 1.0)
+    text = (tmp_path / "table1.md").read_text()
+    assert "Existence model(s): gate, bb" in text and "dead-reckoning" in text
+    argv[argv.index("--trials") + 1] = "2"
+    run_json(capsys, argv)
+    rows = read_results(tmp_path / "results.jsonl")
+    assert len(rows) == 2 * 5 and sorted({r["seed"] for r in rows}) == [0, 1]
+    assert main(["reproduce", "brooks-bailey", "--existence-model", "literal",
+                 "--out", str(tmp_path / "bad")]) == 2
+    assert "existence_model" in capsys.readouterr().err
+
+
 def test_benchmark_tiny(tmp_path, capsys):
     doc = run_json(capsys, ["benchmark", "--policies", "fixed-10s,always", "--clutter-levels",
                             "0", "--seeds", "1", "--particles", "10", "--no-figures",
