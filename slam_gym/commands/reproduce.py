@@ -64,9 +64,9 @@ def bb_table(rows, first="hybrid", second="ekf-submap") -> dict:
             model = "-"
         groups.setdefault((r["system"], model, r["clutter_level"]), []).append(r)
     table = []
+    order = ["dead-reckoning", "fastslam", "ekf-submap", "hybrid"]
     for (system, model, level), members in sorted(groups.items(), key=lambda kv: (
-            list(BB_SYSTEMS.values()).index(kv[0][0]) if kv[0][0] in BB_SYSTEMS.values() else 9,
-            kv[0][1], kv[0][2])):
+            order.index(kv[0][0]) if kv[0][0] in order else len(order), kv[0][1], kv[0][2])):
         n_success = sum(1 for r in members if r.get("success") is True)
         def mean_of(key, members=members):
             return mean_ci95([r.get(key) for r in members])["mean"]
