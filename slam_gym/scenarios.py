@@ -33,7 +33,8 @@ the number of turns is read from the text, not counted. The generator's choices,
 Over seeds 0-19 this gives 26 rad of total turning and 3.8 % of steps turning faster than
 0.5 rad/s, against 9.8 rad and 1.3 % for the previous square loop with 22.5 m waypoint spacing
 (docs/RESULTS.md, "BB's path"). The old path is still available as the overrides
-``waypoint_spacing_m=22.5, path_length_m=400, initial_heading_spread_rad=0``.
+:data:`SQUARE_LOOP_OVERRIDES` (``waypoint_spacing_m=22.5, path_length_m=400,
+initial_heading_spread_rad=0``).
 
 Choices the papers leave open (documented here, overridable):
 * the path is a counter-clockwise square loop centred in the world whose perimeter is
@@ -230,6 +231,12 @@ class Scenario:
         elif ("alpha" in overrides or "beta" in overrides) and "clutter_level" not in overrides:
             overrides["clutter_level"] = None
         return dataclasses.replace(self, **overrides)
+
+
+SQUARE_LOOP_OVERRIDES: dict = {
+    "waypoint_spacing_m": 22.5, "path_length_m": 400.0, "initial_heading_spread_rad": 0.0,
+}
+"""Overrides that give ``brooks-bailey`` its path before #14 (a square loop, no first turn)."""
 
 
 def _presets() -> dict[str, Scenario]:

@@ -25,18 +25,13 @@ from filters.models import (
     observe_jacobians,
 )
 from filters.types import FeatureIds
-from slam_gym.scenarios import make_stream
+from slam_gym.scenarios import SQUARE_LOOP_OVERRIDES, make_stream
 
 LOCAL_KEYS = {
     "local_map_age_s", "local_map_distance_m", "ess_ratio", "particle_position_spread_m",
     "particle_heading_spread_rad", "local_feature_count", "local_confirmed_count", "vote_margin",
     "clutter_rate", "local_map_budget_ratio",
 }
-
-
-OLD_BB_PATH = {"waypoint_spacing_m": 22.5, "path_length_m": 400.0,
-               "initial_heading_spread_rad": 0.0}
-"""The brooks-bailey path before #14 (a square loop, no sharp first turn)."""
 
 
 def make_filter(stream=None, seed=0, **options):
@@ -248,7 +243,7 @@ def test_clutter_does_not_create_confirmed_features():
     # the start of the square loop (no sharp first turn): the robot's own uncertainty stays
     # small, so a confirmed feature far from every landmark can only come from clutter
     stream = make_stream("brooks-bailey", seed=1, n_steps=200, clutter_level=3,
-                         **OLD_BB_PATH)
+                         **SQUARE_LOOP_OVERRIDES)
     f = make_filter(stream, seed=1, n_particles=100)
     run(f, stream, every=lambda step: feature_covs_spd(f))
     lm = f.landmarks()

@@ -7,7 +7,13 @@ from filters.dead_reckoning import DeadReckoning
 from filters.geometry import wrap_angle
 from filters.models import observe
 from slam_gym.metrics import nees, nees_band
-from slam_gym.scenarios import CLUTTER_LEVELS, get_scenario, make_stream, scenario_names
+from slam_gym.scenarios import (
+    CLUTTER_LEVELS,
+    SQUARE_LOOP_OVERRIDES,
+    get_scenario,
+    make_stream,
+    scenario_names,
+)
 
 
 def path_length(stream):
@@ -98,8 +104,7 @@ def test_brooks_bailey_paths_turn_often_near_the_extremities():
         assert np.max(np.abs(omega)) <= np.deg2rad(100.0) + 1e-12
         assert np.max(np.abs(omega[:50])) > 0.5 or seed_start_faces_waypoint(stream)
         old.append(turning_statistics(make_stream(
-            "brooks-bailey", seed=seed, waypoint_spacing_m=22.5, path_length_m=400.0,
-            initial_heading_spread_rad=0.0,
+            "brooks-bailey", seed=seed, **SQUARE_LOOP_OVERRIDES
         )))
     total_new = np.mean([s["total_turning_rad"] for s in new])
     total_old = np.mean([s["total_turning_rad"] for s in old])
