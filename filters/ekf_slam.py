@@ -58,6 +58,7 @@ from filters.existence import (
     false_alarm_in_gate_probability,
     gate_area,
     miss_update,
+    validate_existence_model,
 )
 from filters.geometry import wrap_angle
 from filters.models import inverse_observe, inverse_observe_jacobians, motion, motion_jacobians
@@ -121,6 +122,7 @@ class EKFSLAMConfig:
     clutter_rate_forgetting: per-update forgetting factor of the running clutter-rate estimate.
     feature_budget: the front-end's feature budget (only reported, ``local_map_budget_ratio``).
     initial_feature_capacity: features preallocated (the arrays double when exceeded).
+    existence_model: ``"gate"`` or ``"bb"``, the reading of BB (11) (:mod:`filters.existence`).
     """
 
     gate_probability: float = 0.999
@@ -132,9 +134,11 @@ class EKFSLAMConfig:
     clutter_rate_forgetting: float = 0.99
     feature_budget: int = 100
     initial_feature_capacity: int = 32
+    existence_model: str = "gate"
 
     def __post_init__(self):
         validate_gate_probability(self.gate_probability)
+        validate_existence_model(self.existence_model)
         check_range(
             "initial_existence", self.initial_existence, 0.0, 1.0, low_open=True, high_open=True
         )
@@ -444,6 +448,15 @@ class EKFSLAM:
         kalman_update(x, P, cols, H, nu.ravel(), R)
         x[2] = wrap_angle(x[2])
 
+    def _existence_false_alarm(self, S, n_visible):
+        """``P_fa`` of BB (11) for gates of innovation covariances S (k, 2, 2)."""
+        if self.config.existence_model == "bb":
+            return np.full(len(S), self._beta)
+        area = gate_area(S, self._gate(1))
+        return false_alarm_in_gate_probability(
+            self._beta, n_visible, area, self.sensor.max_range_m, self.sensor.fov_rad
+        )
+
     def _update_existence(self, pairing, pred, in_view):
         N = self.n_features
         p = self._exist[:N]
@@ -451,18 +464,12 @@ class EKFSLAM:
         detected[pairing[pairing >= 0]] = True
         if detected.any():
             n_visible = max(1.0, float(np.sum(p[in_view])))
-            area = gate_area(pred.S[detected], self._gate(1))
-            p_fa = false_alarm_in_gate_probability(
-                self._beta, n_visible, area, self.sensor.max_range_m, self.sensor.fov_rad
-            )
+            p_fa = self._existence_false_alarm(pred.S[detected], n_visible)
             p[detected] = detection_update(p[detected], self._alpha, p_fa)
         missed = in_view & ~detected
         if missed.any():
             n_visible = max(1.0, float(np.sum(p[in_view])))
-            area = gate_area(pred.S[missed], self._gate(1))
-            p_fa = false_alarm_in_gate_probability(
-                self._beta, n_visible, area, self.sensor.max_range_m, self.sensor.fov_rad
-            )
+            p_fa = self._existence_false_alarm(pred.S[missed], n_visible)
             p[missed] = miss_update(p[missed], self._alpha, p_fa)
 
     def _add_features(self, z):

@@ -27,6 +27,15 @@ For beta = 0 this gives P_fa = 0 and a single detection confirms a feature; for 
 (beta = 0.06, ~5 landmarks in view, a gate of a few cm by a few degrees) it is about 1e-4, far
 below beta itself.
 
+Two readings of BB (11) (``existence_model``, #14)
+-------------------------------------------------
+* ``"gate"`` (the default): ``P_fa`` as derived above, the chance that clutter lands in the gate;
+  features confirm after 1-2 detections at every clutter level;
+* ``"bb"``: BB's beta, as written in BB (11): ``P_fa = beta``. At level 3 (alpha 0.1, beta 0.06)
+  a detection multiplies the odds by alpha / beta = 1.7 and a miss by (1 - alpha) / (1 - beta)
+  = 0.96, so a feature needs tens of seconds of detections to pass 0.95.
+Both models use the same update formulas; only ``P_fa`` differs.
+
 A feature is *confirmed* when p > 0.95 (BB 5.1: only those are fused) and *culled* when p falls
 below a cull threshold.
 """
@@ -40,6 +49,17 @@ from numba import njit
 
 CONFIRMED_PROBABILITY = 0.95
 """BB 5.1: only features with p(exists) above this are fused into the global map."""
+
+EXISTENCE_MODELS = ("gate", "bb")
+"""The two readings of BB (11) (module docstring): clutter in the gate, or BB's beta literally."""
+
+
+def validate_existence_model(existence_model) -> str:
+    if existence_model not in EXISTENCE_MODELS:
+        raise ValueError(
+            f"existence_model={existence_model!r} is invalid: must be one of {EXISTENCE_MODELS}"
+        )
+    return existence_model
 
 
 def gate_area(S, gate_chi2):
@@ -56,6 +76,17 @@ def gate_area(S, gate_chi2):
 def false_alarm_in_gate_probability_one(beta, n_visible, gate_area_rb, max_range_m, fov_rad):
     """Probability that at least one false alarm lands in a gate of the given area (see module)."""
     return -math.expm1(-beta * n_visible * gate_area_rb / (max_range_m * fov_rad))
+
+
+@njit(cache=True)
+def existence_false_alarm_one(
+    literal_beta, beta, n_visible, gate_area_rb, max_range_m, fov_rad
+):
+    """``P_fa`` of BB (11): beta itself (``literal_beta``, the "bb" model) or the chance that a
+    false alarm lands in the gate (the "gate" model)."""
+    if literal_beta:
+        return beta
+    return false_alarm_in_gate_probability_one(beta, n_visible, gate_area_rb, max_range_m, fov_rad)
 
 
 @njit(cache=True)

@@ -101,7 +101,7 @@ from filters.conversion import (
     pose_moments,
     vote_all,
 )
-from filters.existence import CONFIRMED_PROBABILITY
+from filters.existence import CONFIRMED_PROBABILITY, validate_existence_model
 from filters.fastslam_kernel import ScanModel, draw_poses, propagate, scan_update
 from filters.geometry import wrap_angle
 from filters.models import ClutterModel, RangeBearingSensor
@@ -134,6 +134,7 @@ class FastSLAM2:
     feature_budget: the front-end's feature budget (``local_map_budget_ratio``).
     clutter_rate_memory: observations over which ``clutter_rate`` is averaged (exponential).
     initial_capacity: initial feature slots per particle (doubles when full).
+    existence_model: ``"gate"`` or ``"bb"``, the reading of BB (11) (:mod:`filters.existence`).
 
     Storage is structure-of-arrays: each feature component (mean x, y; covariance xx, xy, yy;
     existence; active; correspondence id) is one (P, C) array, so gathers and scatters by flat
@@ -161,6 +162,7 @@ class FastSLAM2:
         feature_budget: int = 100,
         clutter_rate_memory: float = 100.0,
         initial_capacity: int = 16,
+        existence_model: str = "gate",
     ):
         require(isinstance(sensor, RangeBearingSensor), "sensor", sensor, "a RangeBearingSensor")
         require(isinstance(clutter, ClutterModel), "clutter", clutter, "a ClutterModel")
@@ -242,7 +244,9 @@ class FastSLAM2:
             bearing_std_rad=float(sensor.bearing_std_rad),
             new_landmark_density=self.new_landmark_density,
             max_existence=self.max_existence,
+            literal_beta=validate_existence_model(existence_model) == "bb",
         )
+        self.existence_model = existence_model
         self._capacity = int(initial_capacity)
         self._clutter_num = 0.0
         self._clutter_den = 0.0

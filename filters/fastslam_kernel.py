@@ -32,7 +32,7 @@ from filters.conversion import CLUTTER_VOTE as CLUTTER
 from filters.conversion import NEW_VOTE as NEW
 from filters.existence import (
     detection_update_one,
-    false_alarm_in_gate_probability_one,
+    existence_false_alarm_one,
     miss_update_one,
 )
 
@@ -56,6 +56,7 @@ class ScanModel(NamedTuple):
     bearing_std_rad: float
     new_landmark_density: float
     max_existence: float
+    literal_beta: bool
 
 
 @njit(cache=True, inline="always")
@@ -254,6 +255,7 @@ def scan_update(
     bearing_std_rad,
     new_landmark_density,
     max_existence,
+    literal_beta,
 ):
     """One scan for every particle (module doc of filters.fastslam), in place.
 
@@ -401,7 +403,9 @@ def scan_update(
         pose[1] += step[1]
         pose[2] = _wrap(pose[2] + step[2])
         Pc[:, :] = 0.0
-        p_fa_miss = false_alarm_in_gate_probability_one(beta, n_vis, area_r, max_range_m, fov_rad)
+        p_fa_miss = existence_false_alarm_one(
+            literal_beta, beta, n_vis, area_r, max_range_m, fov_rad
+        )
         for j in range(n):
             if not claimed[j] and p_vis[j] > 0.0:
                 ex[p, j] = miss_update_one(ex[p, j], alpha * p_vis[j], p_fa_miss)
@@ -413,8 +417,8 @@ def scan_update(
                     pose[0], pose[1], pose[2], mx[p, j], my[p, j],
                     sxx[p, j], sxy[p, j], syy[p, j], zr, zb, r_var, b_var,
                 )
-                p_fa = false_alarm_in_gate_probability_one(
-                    beta, n_vis, gate_areas[k], max_range_m, fov_rad
+                p_fa = existence_false_alarm_one(
+                    literal_beta, beta, n_vis, gate_areas[k], max_range_m, fov_rad
                 )
                 ex[p, j] = min(detection_update_one(ex[p, j], alpha, p_fa), max_existence)
             elif j == NEW:

@@ -44,6 +44,8 @@ from slam_gym.scenarios import Scenario
 from slam_gym.stream import Step, StepTruth, Stream, steps_from_list
 
 WAYPOINT_SWITCH_RADIUS_M = 2.0
+WORLD_EDGE_MARGIN_M = 2.0
+"""Waypoints stay this far inside the world (the robot drives inside its own world)."""
 
 
 def sensor_of(scenario: Scenario) -> RangeBearingSensor:
@@ -75,7 +77,8 @@ def loop_waypoints(scenario: Scenario, rng: np.random.Generator) -> np.ndarray:
     """Perturbed waypoints of one counter-clockwise square loop centred in the world.
 
     The loop starts in the middle of its bottom edge and runs counter-clockwise; every waypoint
-    except the start is moved uniformly by up to ``path_perturbation_m`` in x and y.
+    except the start is moved uniformly by up to ``path_perturbation_m`` in x and y, then kept
+    ``WORLD_EDGE_MARGIN_M`` inside the world.
     """
     side = scenario.loop_side_m
     centre = 0.5 * scenario.world_size_m
@@ -89,26 +92,33 @@ def loop_waypoints(scenario: Scenario, rng: np.random.Generator) -> np.ndarray:
     waypoints = np.array(points[:-1])  # the last point is the start again
     p = scenario.path_perturbation_m
     waypoints[1:] += rng.uniform(-p, p, size=waypoints[1:].shape)
-    return waypoints
+    margin = min(WORLD_EDGE_MARGIN_M, 0.25 * scenario.world_size_m)
+    return np.clip(waypoints, margin, scenario.world_size_m - margin)
 
 
 def route(scenario: Scenario, waypoints: np.ndarray) -> np.ndarray:
     """The loop, then its start again, up to the first waypoint at ``path_length_m`` along it.
 
-    The driven path is a little shorter than this polyline (corners are cut) and varies with the
-    perturbation of the waypoints.
+    The route always returns to the start (the loop closure), even when the perturbed loop is
+    longer than ``path_length_m``. The driven path is a little shorter than this polyline
+    (corners are cut) and varies with the perturbation of the waypoints.
     """
     loop = np.vstack([waypoints, waypoints[:1]])
     loop_length = float(np.sum(np.linalg.norm(np.diff(loop, axis=0), axis=1)))
     repeats = 2 + int(scenario.path_length_m // max(loop_length, 1e-9))
     polyline = np.vstack([waypoints] * repeats + [waypoints[:1]])
     along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(polyline, axis=0), axis=1))])
-    last = int(np.searchsorted(along, scenario.path_length_m))
+    last = max(int(np.searchsorted(along, scenario.path_length_m)), len(waypoints))
     return polyline[: min(last, len(polyline) - 1) + 1]
 
 
-def drive(scenario: Scenario, waypoints: np.ndarray, rng: np.random.Generator):
+def drive(
+    scenario: Scenario, waypoints: np.ndarray, rng: np.random.Generator,
+    heading_offset_rad: float = 0.0,
+):
     """Drive through the waypoints in order until the last one is reached.
+
+    The robot starts at the first waypoint facing the second, turned by ``heading_offset_rad``.
 
     Returns the true poses at every filter step (n_steps + 1, 3), the commanded velocities of
     every odometry tick (n_steps, ticks_per_step, 2) and the true velocities of every tick (the
@@ -121,7 +131,7 @@ def drive(scenario: Scenario, waypoints: np.ndarray, rng: np.random.Generator):
     noise = odometry_noise_of(scenario)
     perturb = isinstance(noise, ProportionalVelocityNoise)
     x, y = float(waypoints[0, 0]), float(waypoints[0, 1])
-    theta = math.atan2(waypoints[1, 1] - y, waypoints[1, 0] - x)
+    theta = math.atan2(waypoints[1, 1] - y, waypoints[1, 0] - x) + heading_offset_rad
     target = 1
     v = scenario.speed_mps
     w_max = scenario.max_turn_rate_radps
@@ -203,6 +213,22 @@ def scan(
     return z[order], ids[order], visible.astype(np.int64)
 
 
+FAST_TURN_RADPS = 0.5
+"""A step turns fast when its commanded turn rate exceeds this (rad/s)."""
+
+
+def turning_statistics(stream, fast_radps: float = FAST_TURN_RADPS) -> dict:
+    """Total turning (rad, from the odometry's turn rates) and the fraction of moving steps
+    whose turn rate exceeds ``fast_radps``."""
+    steps = [s for s in stream if s.dt_s > 0.0]
+    omega = np.array([s.odometry[1] for s in steps]) if steps else np.zeros(0)
+    dt = np.array([s.dt_s for s in steps]) if steps else np.zeros(0)
+    return {
+        "total_turning_rad": float(np.sum(np.abs(omega) * dt)),
+        "fraction_fast_turning": float(np.mean(np.abs(omega) > fast_radps)) if len(omega) else 0.0,
+    }
+
+
 def simulate(scenario: Scenario, seed: int) -> Stream:
     """Simulate ``scenario`` for ``seed`` (a non-negative integer)."""
     if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or seed < 0:
@@ -212,7 +238,11 @@ def simulate(scenario: Scenario, seed: int) -> Stream:
     )
     landmarks = landmark_field(scenario, world_rng)
     waypoints = loop_waypoints(scenario, world_rng)
-    poses, commands, true_velocities = drive(scenario, route(scenario, waypoints), odometry_rng)
+    spread = scenario.initial_heading_spread_rad
+    offset = float(world_rng.uniform(-spread, spread)) if spread > 0.0 else 0.0
+    poses, commands, true_velocities = drive(
+        scenario, route(scenario, waypoints), odometry_rng, heading_offset_rad=offset
+    )
     odometry = measured_odometry(scenario, commands, true_velocities, odometry_rng)
     sensor = sensor_of(scenario)
     clutter = ClutterModel(alpha=scenario.alpha, beta=scenario.beta)

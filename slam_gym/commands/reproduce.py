@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 
 from slam_gym.commands.common import emit, out_dir
@@ -20,8 +22,116 @@ BB_TABLE1 = {
     "ekf-submap": {0: 0.79, 1: 0.76, 2: 0.72, 3: 0.30},
     "hybrid": {0: 0.87, 1: 0.89, 2: 0.83, 3: 0.63},
 }
-#: the names BB uses for its three filters -> our systems
-BB_SYSTEMS = {"fastslam": "fastslam", "ekf": "ekf-submap", "hybrid": "hybrid"}
+#: the names BB uses for its three filters -> our systems (plus the dead-reckoning baseline)
+BB_SYSTEMS = {"fastslam": "fastslam", "ekf": "ekf-submap", "hybrid": "hybrid",
+              "dead-reckoning": "dead-reckoning"}
+#: Student t quantiles (0.975) for small paired samples; the normal 1.96 beyond the table
+_T975 = {1: 12.71, 2: 4.30, 3: 3.18, 4: 2.78, 5: 2.57, 6: 2.45, 7: 2.36, 8: 2.31, 9: 2.26,
+         10: 2.23, 12: 2.18, 15: 2.13, 20: 2.09, 25: 2.06, 30: 2.04, 40: 2.02, 60: 2.00}
+
+
+def _t975(dof: int) -> float:
+    if dof < 1:
+        return float("nan")
+    known = [d for d in sorted(_T975) if d <= dof]
+    return _T975[known[-1]] if dof <= 60 else 1.96
+
+
+def mean_ci95(values) -> dict:
+    """Mean and its t-based 95 % interval (None where fewer than 2 values)."""
+    v = np.asarray([x for x in values if x is not None and np.isfinite(x)], dtype=float)
+    if len(v) == 0:
+        return {"n": 0, "mean": None, "ci95": None}
+    mean = float(v.mean())
+    if len(v) < 2:
+        return {"n": 1, "mean": mean, "ci95": None}
+    half = _t975(len(v) - 1) * float(v.std(ddof=1)) / np.sqrt(len(v))
+    return {"n": int(len(v)), "mean": mean, "ci95": [mean - half, mean + half]}
+
+
+def bb_table(rows, first="hybrid", second="ekf-submap") -> dict:
+    """BB Table 1 as a reviewer would ask (#14): per system, existence model and clutter level the
+    success rate (Wilson 95 %), ANEES, map error, map completeness; and per level and existence
+    model the paired ``first - second`` differences (same worlds: seeds in both) in success and
+    map error with t-based 95 % intervals. Only rows with status ok count."""
+    from slam_gym.evaluation.summary import wilson_interval
+
+    ok = [r for r in rows if r.get("status") == "ok" and r.get("system")]
+    groups: dict[tuple, list] = {}
+    for r in ok:
+        model = (r.get("options") or {}).get("existence_model", "gate")
+        if r["system"] == "dead-reckoning":
+            model = "-"
+        groups.setdefault((r["system"], model, r["clutter_level"]), []).append(r)
+    table = []
+    order = ["dead-reckoning", "fastslam", "ekf-submap", "hybrid"]
+    for (system, model, level), members in sorted(groups.items(), key=lambda kv: (
+            order.index(kv[0][0]) if kv[0][0] in order else len(order), kv[0][1], kv[0][2])):
+        n_success = sum(1 for r in members if r.get("success") is True)
+        def mean_of(key, members=members):
+            return mean_ci95([r.get(key) for r in members])["mean"]
+        table.append({
+            "system": system, "existence_model": model, "clutter_level": level,
+            "n": len(members), "n_success": n_success,
+            "success_rate": n_success / len(members),
+            "success_ci95": list(wilson_interval(n_success, len(members))),
+            "paper_success_rate": BB_TABLE1.get(system, {}).get(level),
+            "anees": mean_of("anees"), "map_error_m": mean_of("map_error_m"),
+            "map_completeness": mean_of("map_completeness"),
+        })
+    paired = []
+    models = sorted({k[1] for k in groups if k[1] != "-"})
+    levels = sorted({k[2] for k in groups})
+    for model in models:
+        for level in levels:
+            a = {r["seed"]: r for r in groups.get((first, model, level), [])}
+            b = {r["seed"]: r for r in groups.get((second, model, level), [])}
+            seeds = sorted(set(a) & set(b))
+            if not seeds:
+                continue
+            d_success = [float(a[s]["success"] is True) - float(b[s]["success"] is True)
+                         for s in seeds]
+            d_map = [a[s]["map_error_m"] - b[s]["map_error_m"] for s in seeds
+                     if a[s].get("map_error_m") is not None and b[s].get("map_error_m") is not None]
+            paired.append({
+                "existence_model": model, "clutter_level": level, "n_worlds": len(seeds),
+                "success_difference": mean_ci95(d_success),
+                "map_error_difference_m": mean_ci95(d_map),
+            })
+    return {"difference": f"{first} - {second}, paired by world (seed)", "rows": table,
+            "paired": paired}
+
+
+def bb_table_markdown(doc: dict) -> str:
+    def pct(x):
+        return "-" if x is None else f"{100 * x:.0f} %"
+
+    def num(x, d=2):
+        return "-" if x is None else f"{x:.{d}f}"
+
+    def ci(c, scale=1.0, d=0):
+        return "-" if c is None else f"[{scale * c[0]:.{d}f}, {scale * c[1]:.{d}f}]"
+
+    lines = ["| system | existence | level | n | success [Wilson 95 %] | BB | ANEES "
+             "| map error (m) | completeness |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in doc["rows"]:
+        lines.append(
+            f"| {r['system']} | {r['existence_model']} | {r['clutter_level']} | {r['n']} | "
+            f"{pct(r['success_rate'])} {ci(r['success_ci95'], 100)} | "
+            f"{pct(r['paper_success_rate'])} | {num(r['anees'])} | {num(r['map_error_m'])} | "
+            f"{pct(r['map_completeness'])} |"
+        )
+    lines += ["", f"Paired differences ({doc['difference']}), mean [t 95 % CI]:", "",
+              "| existence | level | worlds | success difference | map error difference (m) |",
+              "|---|---|---|---|---|"]
+    for p in doc["paired"]:
+        s, m = p["success_difference"], p["map_error_difference_m"]
+        lines.append(
+            f"| {p['existence_model']} | {p['clutter_level']} | {p['n_worlds']} | "
+            f"{num(None if s['mean'] is None else 100 * s['mean'], 0)} pp {ci(s['ci95'], 100)} | "
+            f"{num(m['mean'])} {ci(m['ci95'], 1.0, 2)} |"
+        )
+    return "\n".join(lines) + "\n"
 
 
 def add_parser(subparsers) -> None:
@@ -34,7 +144,10 @@ def add_parser(subparsers) -> None:
         "and the vehicle-uncertainty traces of BB Figs. 3 and 4.",
     )
     bb.add_argument("--systems", default="fastslam,ekf,hybrid",
-                    help="comma-separated among fastslam, ekf, hybrid")
+                    help="comma-separated among fastslam, ekf, hybrid, dead-reckoning")
+    bb.add_argument("--existence-model", default="gate",
+                    help="comma-separated readings of BB (11) among gate (clutter in the gate, "
+                    "the default) and bb (BB's beta as written); filters.existence")
     bb.add_argument("--clutter-levels", default="0,1,2,3")
     bb.add_argument("--particles", type=int, default=500)
     bb.add_argument("--fusion-interval-s", type=float, default=10.0)
@@ -58,19 +171,40 @@ def run_brooks_bailey(args) -> int:
     if unknown:
         raise ValueError(f"systems={unknown} is invalid: must be among {sorted(BB_SYSTEMS)}")
     levels = int_list(args.clutter_levels)
+    from filters.existence import validate_existence_model
+
+    models = [validate_existence_model(m) for m in name_list(args.existence_model)]
     out = out_dir(args)
-    options = {"n_particles": args.particles, "fusion_interval_s": args.fusion_interval_s,
-               "optimise": args.optimise}
-    jobs = [
-        Job("system", BB_SYSTEMS[s], "brooks-bailey", level, seed,
-            options if BB_SYSTEMS[s] != "fastslam" else {"n_particles": args.particles})
-        for s in systems
-        for level in levels
-        for seed in range(args.seed_start, args.seed_start + args.trials)
-    ]
+
+    def options(system, model):
+        if system == "dead-reckoning":
+            return {}
+        if system == "fastslam":
+            return {"n_particles": args.particles, "existence_model": model}
+        return {"n_particles": args.particles, "fusion_interval_s": args.fusion_interval_s,
+                "optimise": args.optimise, "existence_model": model}
+
+    # seeds outermost: an interrupted run leaves whole worlds (every system and level), and a
+    # rerun with a larger --trials into the same --out only runs the new worlds (results.jsonl)
+    jobs, seen = [], set()
+    for seed in range(args.seed_start, args.seed_start + args.trials):
+        for level in levels:
+            for model in models:
+                for s in systems:
+                    job = Job("system", BB_SYSTEMS[s], "brooks-bailey", level, seed,
+                              options(BB_SYSTEMS[s], model))
+                    if job.key not in seen:
+                        seen.add(job.key)
+                        jobs.append(job)
     rows = execute(args, jobs, out)
     paper = BB_TABLE1
     doc = write_summary(out, rows, paper=paper)
+    table1 = bb_table(rows)
+    table1["existence_models"] = models
+    (out / "table1.json").write_text(json.dumps(table1, indent=2, allow_nan=False) + "\n")
+    (out / "table1.md").write_text(
+        f"Existence model(s): {', '.join(models)}\n\n" + bb_table_markdown(table1)
+    )
     from slam_gym.evaluation import plot_success_rates
 
     figures = {"success": str(plot_success_rates(doc, out / "success_rates.png", paper=paper,
@@ -78,8 +212,11 @@ def run_brooks_bailey(args) -> int:
     if not args.no_figures:
         figures.update(trace_figures(systems, args.seed_start, args.particles, out))
     print_table(args, doc, paper=paper, title="BB Table 1 reproduced (paper in the last column)")
-    emit(args, {"summary": doc, "figures": figures, "out": str(out)},
-         [f"wrote {out / 'results.jsonl'}, summary.json, table.md and {len(figures)} figures"])
+    emit(args, {"summary": doc, "table1": table1, "existence_models": models,
+                "figures": figures, "out": str(out)},
+         [f"existence model(s) (BB (11)): {', '.join(models)}", bb_table_markdown(table1),
+          f"wrote {out / 'results.jsonl'}, summary.json, table.md, table1.md and "
+          f"{len(figures)} figures"])
     return 0
 
 

@@ -7,6 +7,7 @@ import numpy as np
 from filters.dead_reckoning import DeadReckoning
 from slam_gym.commands.common import add_common_options, emit, out_dir
 from slam_gym.scenarios import scenario_names
+from slam_gym.world import turning_statistics
 
 
 def add_parser(subparsers) -> None:
@@ -67,6 +68,7 @@ def summarise(stream) -> dict:
         "n_detections": n_det,
         "n_false_alarms": n_fa,
         "loop_closed": loop_closed(stream),
+        **turning_statistics(stream),
     }
 
 
@@ -117,7 +119,9 @@ def run(args) -> int:
             f"scenario {summary['scenario']} seed {summary['seed']} "
             f"(alpha={summary['alpha']}, beta={summary['beta']})",
             f"  path {summary['path_length_m']:.1f} m in {summary['iterations']} iterations, "
-            f"loop closed: {summary['loop_closed']}",
+            f"loop closed: {summary['loop_closed']}, "
+            f"turning {summary['total_turning_rad']:.1f} rad, "
+            f"{100 * summary['fraction_fast_turning']:.1f} % of steps faster than 0.5 rad/s",
             f"  {summary['n_landmarks']} landmarks, {summary['n_visible']} landmark-in-range "
             f"events, {summary['n_detections']} detections, "
             f"{summary['n_false_alarms']} false alarms",

@@ -11,7 +11,8 @@ System jobs (BB Table 1, CM) take options:
 ``"after-loop-closure"``: once, right after the first fusion that matches a global feature no
 fusion had touched for 60 s),
 ``back_end`` (``"ekf"``/``"relative"``), ``known_association`` (False; forced on for the ESDFs),
-``stop_on_failure`` (True: stop at BB's failure, the outcome is known), ``n_steps`` (cut the path).
+``stop_on_failure`` (True: stop at BB's failure, the outcome is known), ``n_steps`` (cut the path),
+``existence_model`` (``"gate"``/``"bb"``: the reading of BB (11), :mod:`filters.existence`).
 Policy jobs take ``n_particles`` (500), ``decision_interval`` (10), ``front_end``, ``back_end``,
 ``model_path`` (for ``learned``); the env ends an episode at BB's failure.
 """
@@ -34,6 +35,7 @@ SYSTEM_OPTIONS = {
     "known_association": False,
     "stop_on_failure": True,
     "n_steps": None,
+    "existence_model": "gate",
 }
 POLICY_OPTIONS = {
     "n_particles": 500,
@@ -83,6 +85,7 @@ def run_system(
     stop_on_failure=True,
     record_trace=False,
     system_options=None,
+    existence_model="gate",
 ) -> Episode:
     """Run system ``name`` over ``stream`` on BB's fixed fusion schedule; the finished episode.
 
@@ -91,8 +94,16 @@ def run_system(
     from slam_gym.systems import KNOWN_ASSOCIATION_ONLY, SUBMAP_SYSTEMS, make_system
 
     require(optimise in OPTIMISE_MODES, "optimise", optimise, f"one of {OPTIMISE_MODES}")
+    system_options = dict(system_options or {})
+    if existence_model != "gate":  # the filters' default; only systems with existence take it
+        from filters.existence import validate_existence_model
+
+        validate_existence_model(existence_model)
+        key = "front_existence_model" if name in SUBMAP_SYSTEMS else "existence_model"
+        if name in SUBMAP_SYSTEMS or name in ("fastslam", "ekf-slam"):
+            system_options[key] = existence_model
     system = make_system(name, stream, _seeds(seed), n_particles=n_particles, back_end=back_end,
-                         **(system_options or {}))
+                         **system_options)
     known = bool(known_association) or name in KNOWN_ASSOCIATION_ONLY
     episode = Episode(system, stream, known_association=known, record_trace=record_trace)
     submap = name in SUBMAP_SYSTEMS

@@ -378,3 +378,19 @@ def test_unknown_option_and_bad_inputs():
         f.predict(np.array([1.0, 0.0]), -0.1)
     with pytest.raises(ValueError, match="initial_pose_cov"):
         EKFSLAM(SENSOR, ClutterModel(), NOISE, initial_pose_cov=-np.eye(3))
+
+
+def test_existence_model_bb_uses_beta_literally():
+    """BB (11) as written: P_fa = beta, so a detection multiplies the odds by alpha / beta."""
+    f, clutter = _static_filter(existence_model="bb")
+    z = np.array([[10.0, 0.2]])
+    f.update(z)
+    f.update(z)
+    expected = float(detection_update(0.5, clutter.alpha, clutter.beta))
+    assert f.existence()[0] == pytest.approx(expected, rel=1e-9)
+    gate, _ = _static_filter()
+    gate.update(z)
+    gate.update(z)
+    assert gate.existence()[0] > expected  # clutter in a small gate is far rarer than beta
+    with pytest.raises(ValueError, match="existence_model"):
+        _static_filter(existence_model="literal")

@@ -25,7 +25,7 @@ from filters.models import (
     observe_jacobians,
 )
 from filters.types import FeatureIds
-from slam_gym.scenarios import make_stream
+from slam_gym.scenarios import SQUARE_LOOP_OVERRIDES, make_stream
 
 LOCAL_KEYS = {
     "local_map_age_s", "local_map_distance_m", "ess_ratio", "particle_position_spread_m",
@@ -240,7 +240,10 @@ def test_das_picks_the_right_association_for_nearly_all_particles():
 
 
 def test_clutter_does_not_create_confirmed_features():
-    stream = make_stream("brooks-bailey", seed=1, n_steps=200, clutter_level=3)
+    # the start of the square loop (no sharp first turn): the robot's own uncertainty stays
+    # small, so a confirmed feature far from every landmark can only come from clutter
+    stream = make_stream("brooks-bailey", seed=1, n_steps=200, clutter_level=3,
+                         **SQUARE_LOOP_OVERRIDES)
     f = make_filter(stream, seed=1, n_particles=100)
     run(f, stream, every=lambda step: feature_covs_spd(f))
     lm = f.landmarks()
@@ -511,3 +514,36 @@ def test_visibility_is_soft_at_the_range_limit():
         p_vis[:3], [0.5 * (1 + math.erf(d / sigma / np.sqrt(2))) for d in (0.1, 0.0, -0.1)]
     )
     assert p_vis[3] == 1.0 and p_vis[4] == 0.0
+
+
+def test_existence_model_bb_uses_beta_literally():
+    """BB (11) as written (P_fa = beta): a detection at alpha 0.3, beta 0.2 multiplies the odds
+    of existence by 1.5 in every particle; the gate model confirms faster."""
+    sensor = RangeBearingSensor()
+    clutter = ClutterModel(alpha=0.3, beta=0.2)
+    noise = ProportionalVelocityNoise(0.0, 0.0, 1e-3, 1e-3)
+    existence = {}
+    for model in ("bb", "gate"):
+        f = FastSLAM2(sensor, clutter, noise, np.random.default_rng(1), n_particles=20,
+                      existence_model=model)
+        z = observe(np.zeros(3), np.array([[8.0, 3.0]]))
+        f.predict([0.0, 0.0], 0.1)
+        f.update(z)
+        first = f._ex[:, 0].copy()
+        f.predict([0.0, 0.0], 0.1)
+        f.update(z)
+        existence[model] = (first, f._ex[:, 0].copy())
+    first_bb, second_bb = existence["bb"]
+    # the first detection creates the feature; the second updates it by BB (11) with beta
+    from filters.existence import detection_update
+
+    held = first_bb > 0.0  # particles that started the feature at the first scan
+    assert held.sum() >= 10 and np.all(first_bb < 0.9)
+    np.testing.assert_allclose(
+        second_bb[held], detection_update(first_bb[held], 0.3, 0.2), rtol=1e-9
+    )
+    first_gate, second_gate = existence["gate"]
+    both = held & (first_gate > 0.0)
+    assert both.any() and np.all(second_gate[both] > second_bb[both] + 0.05)
+    with pytest.raises(ValueError, match="existence_model"):
+        FastSLAM2(sensor, clutter, noise, np.random.default_rng(1), existence_model="x")

@@ -21,8 +21,11 @@ def test_simulate_json_keys_and_picture(tmp_path, capsys):
     for key in ("path_length_m", "iterations", "n_landmarks", "n_visible", "n_detections",
                 "n_false_alarms", "loop_closed"):
         assert key in out
-    assert 350 <= out["path_length_m"] <= 450 and out["n_landmarks"] == 35
+    assert 400 <= out["path_length_m"] <= 470 and out["n_landmarks"] == 35
     assert out["loop_closed"] is True
+    # many turns (BB 5.5): far more than the ~10 rad of a square loop, within the turn-rate limit
+    assert 15.0 < out["total_turning_rad"] < np.deg2rad(100.0) * out["iterations"] * 0.1
+    assert 0.0 < out["fraction_fast_turning"] < 1.0
     # alpha = 0.4, beta = 0.04: detections and false alarms per landmark-in-range event
     assert out["n_detections"] / out["n_visible"] == pytest.approx(0.4, abs=0.03)
     assert out["n_false_alarms"] / out["n_visible"] == pytest.approx(0.04, abs=0.01)
@@ -46,6 +49,41 @@ def test_reproduce_brooks_bailey_tiny_and_resumable(tmp_path, capsys):
     assert doc["summary"]["n_runs"] == 4
     run_json(capsys, argv)  # a rerun finds every run done
     assert len(read_results(tmp_path / "results.jsonl")) == 4
+
+
+def test_reproduce_brooks_bailey_table1_both_existence_models_and_extension(tmp_path, capsys):
+    """Dead-reckoning row, both readings of BB (11), paired differences over the same worlds, and
+    a rerun with more --trials into the same --out runs only the new worlds."""
+    argv = ["reproduce", "brooks-bailey", "--systems", "dead-reckoning,ekf,hybrid",
+            "--clutter-levels", "1", "--trials", "1", "--particles", "20", "--no-figures",
+            "--workers", "1", "--existence-model", "gate,bb", "--out", str(tmp_path)]
+    doc = run_json(capsys, argv)
+    assert doc["existence_models"] == ["gate", "bb"]
+    rows = read_results(tmp_path / "results.jsonl")
+    # dead reckoning has no existence model: one run per world, the two filters one per model
+    assert len(rows) == 1 + 2 * 2
+    models = {(r["system"], (r["options"] or {}).get("existence_model")) for r in rows}
+    assert models == {("dead-reckoning", None), ("ekf-submap", "gate"), ("ekf-submap", "bb"),
+                      ("hybrid", "gate"), ("hybrid", "bb")}
+    table = doc["table1"]
+    assert {(r["system"], r["existence_model"]) for r in table["rows"]} == {
+        ("dead-reckoning", "-"), ("ekf-submap", "gate"), ("ekf-submap", "bb"),
+        ("hybrid", "gate"), ("hybrid", "bb")}
+    for row in table["rows"]:
+        assert "map_completeness" in row and "anees" in row and row["n"] == 1
+    by_model = {p["existence_model"]: p for p in table["paired"]}
+    assert set(by_model) == {"gate", "bb"}
+    for p in by_model.values():
+        assert p["n_worlds"] == 1 and p["success_difference"]["mean"] in (-1.0, 0.0, 1.0)
+    text = (tmp_path / "table1.md").read_text()
+    assert "Existence model(s): gate, bb" in text and "dead-reckoning" in text
+    argv[argv.index("--trials") + 1] = "2"
+    run_json(capsys, argv)
+    rows = read_results(tmp_path / "results.jsonl")
+    assert len(rows) == 2 * 5 and sorted({r["seed"] for r in rows}) == [0, 1]
+    assert main(["reproduce", "brooks-bailey", "--existence-model", "literal",
+                 "--out", str(tmp_path / "bad")]) == 2
+    assert "existence_model" in capsys.readouterr().err
 
 
 def test_benchmark_tiny(tmp_path, capsys):

@@ -4,9 +4,16 @@ import numpy as np
 import pytest
 
 from filters.dead_reckoning import DeadReckoning
+from filters.geometry import wrap_angle
 from filters.models import observe
 from slam_gym.metrics import nees, nees_band
-from slam_gym.scenarios import CLUTTER_LEVELS, get_scenario, make_stream, scenario_names
+from slam_gym.scenarios import (
+    CLUTTER_LEVELS,
+    SQUARE_LOOP_OVERRIDES,
+    get_scenario,
+    make_stream,
+    scenario_names,
+)
 
 
 def path_length(stream):
@@ -75,8 +82,43 @@ def test_brooks_bailey_paths_close_one_large_loop():
             seen_at_end.update(step.truth.visible_ids.tolist())
         assert first & seen_at_end, "the path's end must re-observe landmarks seen at the start"
         assert len(stream) == last.index + 1
-    assert 350 <= min(lengths) and max(lengths) <= 450
+    # BB Fig. 4: the loop closes near iteration 4400 (~440 m at 1 m/s)
+    assert 400 <= min(lengths) and max(lengths) <= 470
     assert np.std(lengths) > 0.5  # randomly perturbed
+
+
+def test_brooks_bailey_paths_turn_often_near_the_extremities():
+    """BB 5.2/5.5: near the extremities, many uncertain turns, one sharp turn at the start;
+    the old square loop (22.5 m waypoints, no start turn) turns about three times less."""
+    from slam_gym.world import turning_statistics
+
+    new, old = [], []
+    for seed in range(6):
+        stream = make_stream("brooks-bailey", seed=seed)
+        new.append(turning_statistics(stream))
+        poses = stream.metadata["true_poses"]
+        # near the extremities: the path stays within ~20 m of the edges, never crosses the middle
+        edge_distance = np.minimum(poses[:, :2], 120.0 - poses[:, :2]).min(axis=1)
+        assert np.max(edge_distance) < 25.0
+        omega = np.array([s.odometry[1] for s in stream])
+        assert np.max(np.abs(omega)) <= np.deg2rad(100.0) + 1e-12
+        assert np.max(np.abs(omega[:50])) > 0.5 or seed_start_faces_waypoint(stream)
+        old.append(turning_statistics(make_stream(
+            "brooks-bailey", seed=seed, **SQUARE_LOOP_OVERRIDES
+        )))
+    total_new = np.mean([s["total_turning_rad"] for s in new])
+    total_old = np.mean([s["total_turning_rad"] for s in old])
+    assert total_new > 2.0 * total_old
+    assert np.mean([s["fraction_fast_turning"] for s in new]) > 2.0 * np.mean(
+        [s["fraction_fast_turning"] for s in old]
+    )
+
+
+def seed_start_faces_waypoint(stream) -> bool:
+    """Whether the start heading happens to be within 15 deg of the first waypoint's bearing."""
+    w = stream.metadata["waypoints"]
+    bearing = np.arctan2(w[1, 1] - w[0, 1], w[1, 0] - w[0, 0])
+    return abs(wrap_angle(stream.initial_pose[2] - bearing)) < np.deg2rad(15.0)
 
 
 @pytest.mark.parametrize("name, length, speed", [

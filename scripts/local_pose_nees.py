@@ -1,0 +1,49 @@
+"""Local-pose NEES of a front-end's local maps at BB's fusion points (#14, docs/RESULTS.md).
+
+Usage: python scripts/local_pose_nees.py FRONT_END LEVELS N_SEEDS N_STEPS [N_PARTICLES] [known]
+e.g.   python scripts/local_pose_nees.py fastslam 0,1,2,3 4 1000 500
+FRONT_END is fastslam or ekf; ``known`` gives FastSLAM the true associations.
+"""
+
+import logging
+import sys
+
+import numpy as np
+from scipy.stats import chi2
+
+from filters.ekf_slam import EKFSLAM
+from filters.fastslam import FastSLAM2
+from slam_gym.local_consistency import local_pose_nees_at_fusion
+from slam_gym.scenarios import make_stream
+
+
+def main(argv) -> int:
+    front, levels, n_seeds, n_steps = argv[0], argv[1], int(argv[2]), int(argv[3])
+    n_particles = int(argv[4]) if len(argv) > 4 else 500
+    known = len(argv) > 5 and argv[5] == "known"
+    lo, hi = chi2.ppf([0.025, 0.975], 3)
+    values = []
+    for level in (int(x) for x in levels.split(",")):
+        for seed in range(n_seeds):
+            s = make_stream("brooks-bailey", seed=seed, clutter_level=level, n_steps=n_steps)
+            if front == "fastslam":
+                f = FastSLAM2(s.sensor, s.clutter, s.odometry_noise,
+                              np.random.default_rng([seed, 11]), n_particles=n_particles)
+            elif front == "ekf":
+                f = EKFSLAM(s.sensor, s.clutter, s.odometry_noise)
+            else:
+                raise ValueError(f"front_end={front!r} is invalid: must be fastslam or ekf")
+            values.append(local_pose_nees_at_fusion(f, s, 100, known))
+    v = np.concatenate(values)
+    logging.getLogger(__name__).info(
+        "%s levels %s seeds 0-%d, %d steps, %d particles, known=%s: %d fusions, "
+        "outside the 95 %% band %.3f, worst %.3g",
+        front, levels, n_seeds - 1, n_steps, n_particles, known, len(v),
+        np.mean((v < lo) | (v > hi)), v.max(),
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    sys.exit(main(sys.argv[1:]))
