@@ -21,11 +21,13 @@ from filters.submap_optimise import (
 )
 from filters.types import GaussianMap
 from slam_gym.episode import Episode
-from slam_gym.scenarios import make_stream
+from slam_gym.scenarios import SQUARE_LOOP_OVERRIDES, make_stream
 
 FUSE_EVERY = 100
 #: a small closed loop (side 27 m, ~1100 iterations) in a 60 m world: fast, with a loop closure
-SMALL_LOOP = dict(path_length_m=120.0, world_size_m=60.0, n_landmarks=25, waypoint_spacing_m=9.0)
+# a small square loop (no sharp first turn: initial_heading_spread_rad=0, as before #14)
+SMALL_LOOP = dict(path_length_m=120.0, world_size_m=60.0, n_landmarks=25, waypoint_spacing_m=9.0,
+                  initial_heading_spread_rad=0.0)
 NOISE_FREE = dict(
     v_noise_fraction=0.0,
     omega_noise_fraction=0.0,
@@ -209,8 +211,10 @@ def test_no_submap_is_a_no_op_with_book_keeping():
 
 # ------------------------------------------------------------------ the relative back-end
 def test_relative_chain_equals_ekf_back_end_before_any_loop_closure():
-    # the innovation test disabled and a long chain allowed: no loop closure on this stretch
-    stream = make_stream("brooks-bailey", seed=1, n_steps=700)
+    # the innovation test disabled and a long chain allowed: no loop closure on this stretch;
+    # on the square loop (BB's path of #14 turns more: the two back-ends then linearise at
+    # different points, 0.25 std apart at seed 1, which is not what this test is about)
+    stream = make_stream("brooks-bailey", seed=1, n_steps=700, **SQUARE_LOOP_OVERRIDES)
     ekf = run(stream)
     rel = run(stream, "relative", innovation_sigmas=100.0, max_chain=1000)
     ge, gr = ekf.system.back_end, rel.system.back_end
