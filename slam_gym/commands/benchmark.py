@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 
 from slam_gym.commands.common import emit, out_dir
@@ -13,6 +15,8 @@ from slam_gym.commands.runs import (
     plot_episode_map,
     print_table,
 )
+
+logger = logging.getLogger(__name__)
 
 QUICK = {
     "policies": "fixed-10s,esdf-innovation,learned",
@@ -105,15 +109,19 @@ def run(args) -> int:
         figures["success"] = str(plot_success_rates(doc, out / "success_rates.png",
                                                     title="Success rate per clutter level"))
         env_name = args.env or f"{args.front_end} front-end, {args.back_end} back-end"
-        figures["pareto"] = str(plot_pareto(
-            doc, out / "pareto.png",
-            title=f"Map error against all compute ({env_name}, {args.particles} particles)",
-        ))
-        figures["pareto_interface"] = str(plot_pareto(
-            doc, out / "pareto_interface.png", x="interface_cpu_s",
-            title=f"Map error against the compute of fusions and optimisations ({env_name}, "
-            f"{args.particles} particles)",
-        ))
+        if any(g.get("map_error_m_succeeded") is not None for g in doc["groups"]):
+            figures["pareto"] = str(plot_pareto(
+                doc, out / "pareto.png",
+                title=f"Map error against all compute ({env_name}, {args.particles} particles)",
+            ))
+            figures["pareto_interface"] = str(plot_pareto(
+                doc, out / "pareto_interface.png", x="interface_cpu_s",
+                title=f"Map error against the compute of fusions and optimisations "
+                f"({env_name}, {args.particles} particles)",
+            ))
+        else:
+            logger.warning("no policy succeeded in any world: no map error to plot against "
+                           "compute (the Pareto figures are left out)")
         figures.update(episode_figures(names, args, levels[-1], out))
     print_table(args, doc, title=f"Policies on {args.scenario} ({args.particles} particles)")
     emit(args, {"summary": doc, "figures": figures, "out": str(out)},

@@ -99,10 +99,11 @@ def test_benchmark_tiny(tmp_path, capsys):
 
 
 def test_benchmark_reports_accuracy_against_compute_with_a_pareto_figure(tmp_path, capsys):
+    # the compass scenario (BB Fig. 3): both rules survive there, so every figure has points
     doc = run_json(capsys, ["benchmark", "--env", "SlamGym/HybridSLAM-Relative-v0", "--policies",
-                            "fixed-10s,fixed-10s-optimise", "--clutter-levels", "0", "--seeds",
-                            "2", "--particles", "100", "--workers", "1", "--executor", "serial",
-                            "--out", str(tmp_path)])
+                            "fixed-10s,fixed-10s-optimise", "--scenario", "brooks-bailey-compass",
+                            "--clutter-levels", "0", "--seeds", "2", "--particles", "100",
+                            "--workers", "1", "--executor", "serial", "--out", str(tmp_path)])
     groups = {g.get("policy") or g.get("system"): g for g in doc["summary"]["groups"]}
     assert set(groups) == {"fixed-10s", "fixed-10s-optimise", "dead-reckoning"}
     opt, plain = groups["fixed-10s-optimise"], groups["fixed-10s"]
@@ -166,3 +167,11 @@ def test_train_smoke_and_the_model_loads_and_acts(tmp_path, capsys):
     assert policy.observation_transform == "log1p"
     action = policy.act(np.ones(len(FEATURE_NAMES), dtype=np.float32), {})
     assert action.shape == (2,) and action.dtype == np.int64 and set(action) <= {0, 1}
+
+
+def test_benchmark_where_every_run_fails_still_writes_its_table(tmp_path, capsys):
+    doc = run_json(capsys, ["benchmark", "--policies", "never", "--clutter-levels", "3",
+                            "--seeds", "1", "--particles", "5", "--baselines", "", "--workers",
+                            "1", "--executor", "serial", "--out", str(tmp_path)])
+    assert doc["summary"]["groups"][0]["success_rate"] == 0.0
+    assert "pareto" not in doc["figures"] and (tmp_path / "table.md").exists()
