@@ -1,0 +1,129 @@
+"""The interface decisions of a benchmark, as docs/RESULTS.md reports them (#13).
+
+Usage: python scripts/interface_report.py OUT_DIR [OUT_DIR ...]
+e.g.   python scripts/interface_report.py out/bench-relative
+
+Reads the ``results.jsonl`` of ``slam-gym benchmark`` runs (rules only: baselines such as dead
+reckoning have no decisions and no return) and prints, per rule and clutter level:
+
+* the decisions: success, worlds in which the rule optimised at least once, optimisations per
+  episode, map error of the runs that did not fail (mean [t 95 % interval]) and the CPU seconds
+  of fusions + optimisations;
+* the returns: mean over all, failed and surviving runs;
+* the paired check the reward is built for: over every world (clutter level, seed) and every pair
+  of rules where one failed and the other survived, how often the failed run's return is the
+  higher one (it must be never). Exit status 1 if it ever is.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from slam_gym.evaluation.summary import mean_interval
+
+logger = logging.getLogger(__name__)
+
+
+def load_runs(out_dirs) -> list[dict]:
+    runs = []
+    for out in out_dirs:
+        path = Path(out) / "results.jsonl"
+        if not path.is_file():
+            raise ValueError(f"out_dir={str(out)!r} is invalid: it holds no results.jsonl")
+        with path.open() as handle:
+            for line in handle:
+                row = json.loads(line)
+                if row.get("status") == "ok" and row.get("return") is not None and "policy" in row:
+                    runs.append(row)
+    return runs
+
+
+def paired_failures(runs) -> tuple[int, int, list[tuple]]:
+    """(pairs compared, pairs where the failed run returned more, those pairs)."""
+    by_world = defaultdict(list)
+    for r in runs:
+        by_world[(r["clutter_level"], r["seed"])].append(r)
+    n_pairs, bad = 0, []
+    for world, rows in sorted(by_world.items()):
+        failed = [r for r in rows if not r["success"]]
+        survived = [r for r in rows if r["success"]]
+        for f in failed:
+            for s in survived:
+                n_pairs += 1
+                if f["return"] >= s["return"]:
+                    bad.append((world, f["policy"], f["return"], s["policy"], s["return"]))
+    return n_pairs, len(bad), bad
+
+
+def decisions_table(runs) -> str:
+    groups = defaultdict(list)
+    for r in runs:
+        groups[(r["policy"], r["clutter_level"])].append(r)
+    lines = ["| rule | clutter | success | worlds optimised | optimisations | "
+             "map error, runs that did not fail (m) | interface CPU (s) |",
+             "|---|---:|---:|---:|---:|---:|---:|"]
+    for (name, level), rows in groups.items():
+        survived = [r["map_error_m"] for r in rows if r["success"] and r["map_error_m"] is not None]
+        if len(survived) > 1:
+            ci = mean_interval(survived)
+            error = f"{np.mean(survived):.2f} [{ci[0]:.2f}, {ci[1]:.2f}]"
+        else:
+            error = f"{survived[0]:.2f}" if survived else "–"
+        cpu = np.mean([r["fusion_cpu_s"] + r["optimise_cpu_s"] for r in rows])
+        lines.append(
+            f"| {name} | {level} | {sum(r['success'] for r in rows)}/{len(rows)} | "
+            f"{sum(r['n_optimisations'] > 0 for r in rows)}/{len(rows)} | "
+            f"{np.mean([r['n_optimisations'] for r in rows]):.1f} | {error} | {cpu:.2f} |"
+        )
+    return "\n".join(lines)
+
+
+def returns_table(runs) -> str:
+    groups = defaultdict(list)
+    for r in runs:
+        groups[(r["policy"], r["clutter_level"])].append(r)
+    policies = list(dict.fromkeys(r["policy"] for r in runs))
+    levels = sorted({r["clutter_level"] for r in runs})
+    lines = ["| rule | " + " | ".join(f"level {lv}" for lv in levels) + " |",
+             "|---|" + "---:|" * len(levels)]
+
+    def mean(rows):
+        return f"{np.mean([r['return'] for r in rows]):.0f}" if rows else "–"
+
+    for name in policies:
+        cells = []
+        for lv in levels:
+            rows = groups[(name, lv)]
+            failed = [r for r in rows if not r["success"]]
+            survived = [r for r in rows if r["success"]]
+            cells.append(f"{mean(rows)} ({mean(failed)} / {mean(survived)}, "
+                         f"{len(failed)} failed)")
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main(argv) -> int:
+    if not argv:
+        raise ValueError("out_dir is missing: give one or more benchmark --out directories")
+    runs = load_runs(argv)
+    n_pairs, n_bad, bad = paired_failures(runs)
+    logger.info("decisions per rule and clutter level:\n%s", decisions_table(runs))
+    logger.info("mean return (failed / surviving runs, failures) per rule and clutter level:\n%s",
+                returns_table(runs))
+    logger.info("%d runs; %d (failed, surviving) pairs on the same world; the failed run "
+                "returned more in %d", len(runs), n_pairs, n_bad)
+    for world, fp, fr, sp, sr in bad:
+        logger.info("  level %d seed %d: %s failed with %.1f >= %s survived with %.1f",
+                    *world, fp, fr, sp, sr)
+    return 1 if n_bad else 0
+
+
+if __name__ == "__main__":
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    sys.exit(main(sys.argv[1:]))
