@@ -59,7 +59,7 @@ over existence. Sampling *clutter* apart from *new feature* (the earlier rule, s
 the few particles that drew *clutter* for a false alarm escape the miss factor (about 0.3 per
 scan at BB's level 1) that all others pay, and take over the cloud within a few scans. At 500
 particles this left a median of 6-7 ancestors (since the restart) per local map at levels 1-2
-and made the local pose over-confident at fusion in 22 % of local maps (14 % with this rule, as
+and made the local pose over-confident at fusion in 22 % of local maps (11 % with this rule, as
 with known association; docs/RESULTS.md, "Local maps at fusion").
 
 Why the missed-detection terms matter: without them a particle holding two features for one
