@@ -39,14 +39,28 @@ each observation ``z`` in turn, with the particle's current proposal ``N(x, P)``
   uniform over range x bearing (BB 5.1). ``n_vis`` is the larger of the particle's expected
   number of visible features ``sum_j e_j p_vis,j`` and the scan's own estimate
   ``K / (alpha + beta)``;
-* the association is sampled in proportion to these (DAS, FS2), a feature already taken by an
-  earlier observation of the same scan being excluded (one observation per landmark per scan);
+* the association is sampled (DAS, FS2) among the gated features and one *unexplained*
+  hypothesis of value ``L_new + L_clutter``, a feature already taken by an earlier observation of
+  the same scan being excluded (one observation per landmark per scan). An unexplained
+  observation always starts a new feature, whose existence ``L_new / (L_new + L_clutter)``
+  (below) is the probability that it is not clutter: clutter is marginalised by the feature's
+  existence, not sampled (next paragraph);
 * the weight is multiplied by the FS2 importance factor ``sum_j L_j + L_new + L_clutter`` (the
   predictive likelihood of ``z``; the association and the pose are both drawn from their
   posteriors, so with the missed-detection product this is the exact importance ratio up to
   linearisation);
 * if an existing feature was chosen, the proposal is refined in Kalman form
   ``x += P G^T S^-1 nu``, ``P -= P G^T S^-1 G P`` (FS2 proposal; well defined for singular P).
+
+Why clutter is not a hypothesis of its own (issue #14): the new feature's existence already
+carries the clutter probability, and its later misses cost ``1 - alpha e p_vis``, the marginal
+over existence. Sampling *clutter* apart from *new feature* (the earlier rule, still available as
+``sample_clutter=True``) counts that probability twice and makes the weights depend on the draw:
+the few particles that drew *clutter* for a false alarm escape the miss factor (about 0.3 per
+scan at BB's level 1) that all others pay, and take over the cloud within a few scans. At 500
+particles this left a median of 6-7 ancestors (since the restart) per local map at levels 1-2
+and made the local pose over-confident at fusion in 22 % of local maps (11 % with this rule, as
+with known association; docs/RESULTS.md, "Local maps at fusion").
 
 Why the missed-detection terms matter: without them a particle holding two features for one
 landmark (created when it sampled *new feature* for a poorly predicted observation) collects the
@@ -77,7 +91,8 @@ Correspondences (BB 3.1) are voted per observation, with the weights after that 
 observation get the winner's id (a new id from the shared :class:`filters.types.FeatureIds` when
 *new feature* wins), except where the particle already holds another feature with that id: ids
 stay unique within a particle (:func:`filters.conversion.assign_correspondence_ids`). When
-clutter wins, modified features keep their id and created ones get -1 (no common feature yet).
+clutter wins (a known false alarm, or ``sample_clutter=True``), modified features keep their id
+and created ones get -1 (no common feature yet).
 ``last_associations[k]`` is the winning id (-1 = clutter).
 
 Systematic resampling runs when ``N_eff < resample_threshold * P``.
@@ -121,6 +136,14 @@ _FEATURE_FIELDS = ("_mx", "_my", "_sxx", "_sxy", "_syy", "_ex", "_active", "_cid
 _FIELD_FILL = {"_active": False, "_cid": -1}
 
 
+def clutter_share(log_weights, clutter_prob) -> np.ndarray:
+    """Per observation, the weighted probability that it is a false alarm: ``sum_p w_k^p c_k^p``
+    with ``w_k`` the normalised weights after observation k and ``c_k^p`` (K, P) the particle's
+    clutter probability (1 for clutter, ``1 - e_new`` for a new feature, 0 for an existing one)."""
+    w = np.exp(log_weights - log_weights.max(axis=1, keepdims=True))
+    return np.sum(w * clutter_prob, axis=1) / np.sum(w, axis=1)
+
+
 class FastSLAM2:
     """FastSLAM 2.0 with Data Association Sampling, existence and correspondence voting.
 
@@ -135,6 +158,9 @@ class FastSLAM2:
     clutter_rate_memory: observations over which ``clutter_rate`` is averaged (exponential).
     initial_capacity: initial feature slots per particle (doubles when full).
     existence_model: ``"gate"`` or ``"bb"``, the reading of BB (11) (:mod:`filters.existence`).
+    sample_clutter: draw *clutter* and *new feature* as two DAS hypotheses (the earlier rule,
+    kept for comparison; over-confident local maps, docs/RESULTS.md) instead of one new feature
+    whose existence carries the clutter probability (module doc; the default).
 
     Storage is structure-of-arrays: each feature component (mean x, y; covariance xx, xy, yy;
     existence; active; correspondence id) is one (P, C) array, so gathers and scatters by flat
@@ -163,6 +189,7 @@ class FastSLAM2:
         clutter_rate_memory: float = 100.0,
         initial_capacity: int = 16,
         existence_model: str = "gate",
+        sample_clutter: bool = False,
     ):
         require(isinstance(sensor, RangeBearingSensor), "sensor", sensor, "a RangeBearingSensor")
         require(isinstance(clutter, ClutterModel), "clutter", clutter, "a ClutterModel")
@@ -209,6 +236,12 @@ class FastSLAM2:
         )
         check_range("clutter_rate_memory", clutter_rate_memory, 1.0, 1e9)
         require(
+            isinstance(sample_clutter, (bool, np.bool_)),
+            "sample_clutter",
+            sample_clutter,
+            "a bool",
+        )
+        require(
             isinstance(initial_capacity, (int, np.integer)) and 1 <= initial_capacity <= 1e6,
             "initial_capacity",
             initial_capacity,
@@ -245,6 +278,7 @@ class FastSLAM2:
             new_landmark_density=self.new_landmark_density,
             max_existence=self.max_existence,
             literal_beta=validate_existence_model(existence_model) == "bb",
+            sample_clutter=bool(sample_clutter),
         )
         self.existence_model = existence_model
         self._capacity = int(initial_capacity)
@@ -418,20 +452,21 @@ class FastSLAM2:
         votes = np.empty((K, P), dtype=np.int64)
         slots = np.empty((K, P), dtype=np.int64)
         logw_after = np.empty((K, P))
+        clutter_prob = np.empty((K, P))
         scan_update(
             self._poses, self._prop_cov, self._logw,
             self._mx, self._my, self._sxx, self._sxy, self._syy, self._ex, self._active,
             self._cid, self._count, z, uniforms, normals, known_cids, votes, slots, logw_after,
-            *self._scan_model,
+            clutter_prob, *self._scan_model,
         )
         self._pending = False
 
         # --- correspondence votes (BB 3.1), one per observation, with the weights after it
         if known_cids is None:
-            winners, margins, clutter_shares = vote_all(logw_after, votes)
+            winners, margins, _ = vote_all(logw_after, votes)
             for k in np.flatnonzero(winners == NEW_VOTE):
                 winners[k] = self.ids.new(1)[0]
-            for share in clutter_shares:
+            for share in clutter_share(logw_after, clutter_prob):
                 self._remember_clutter(share)
         else:
             winners, margins = known_cids, np.ones(K)

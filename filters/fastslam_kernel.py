@@ -57,6 +57,7 @@ class ScanModel(NamedTuple):
     new_landmark_density: float
     max_existence: float
     literal_beta: bool
+    sample_clutter: bool
 
 
 @njit(cache=True, inline="always")
@@ -244,6 +245,7 @@ def scan_update(
     votes,
     slots,
     logw_after,
+    clutter_prob,
     r_var,
     b_var,
     detection_probability,
@@ -256,6 +258,7 @@ def scan_update(
     new_landmark_density,
     max_existence,
     literal_beta,
+    sample_clutter,
 ):
     """One scan for every particle (module doc of filters.fastslam), in place.
 
@@ -264,8 +267,10 @@ def scan_update(
     (P, 3) the pose draw. ``known_cids`` (K,) is None for DAS, else the common id each
     observation belongs to (-1: a known false alarm). Outputs (K, P): ``votes`` (a common id,
     CLUTTER or NEW; a feature without id votes NEW), ``slots`` (the slot updated or created,
-    -1 for clutter) and ``logw_after`` (the log weight after each observation, for voting).
-    The remaining parameters are the fields of :class:`ScanModel`.
+    -1 for clutter), ``logw_after`` (the log weight after each observation, for voting) and
+    ``clutter_prob`` (the probability, under the particle's hypothesis, that the observation is a
+    false alarm: 1 for clutter, ``1 - e_new`` for a new feature, 0 for an existing one). The
+    remaining parameters are the fields of :class:`ScanModel`.
     """
     P = poses.shape[0]
     K = z.shape[0]
@@ -313,11 +318,13 @@ def scan_update(
             l_new = alpha * new_landmark_density * max(zr, range_std_m)
             new_existence[k] = min(l_new / (l_new + clutter_density), max_existence)
             chosen = -1
+            clutter_prob[k, p] = 0.0
             if known_cids is not None:
                 target = known_cids[k]
                 votes[k, p] = target
                 if target < 0:
                     slots[k, p] = CLUTTER
+                    clutter_prob[k, p] = 1.0
                     logw_after[k, p] = logw[p]
                     continue
                 for j in range(n):
@@ -334,6 +341,7 @@ def scan_update(
                 else:
                     logw[p] += math.log(max(l_new, 1e-300))
                     slots[k, p] = NEW
+                    clutter_prob[k, p] = 1.0 - new_existence[k]
             else:
                 # Data Association Sampling among the gated features, new feature and clutter
                 sig_pos = math.sqrt(max(Pc[0, 0] + Pc[1, 1], 0.0))
@@ -363,9 +371,13 @@ def scan_update(
                             hyp_value[n_hyp] = like
                             n_hyp += 1
                 hyp_slot[n_hyp] = NEW
-                hyp_value[n_hyp] = l_new
                 hyp_slot[n_hyp + 1] = CLUTTER
-                hyp_value[n_hyp + 1] = clutter_density
+                if sample_clutter:  # the earlier rule: new feature and clutter drawn apart
+                    hyp_value[n_hyp] = l_new
+                    hyp_value[n_hyp + 1] = clutter_density
+                else:  # one Bernoulli hypothesis: a new feature that exists with e_new
+                    hyp_value[n_hyp] = l_new + clutter_density
+                    hyp_value[n_hyp + 1] = 0.0
                 total = 0.0
                 for i in range(n_hyp + 2):
                     total += hyp_value[i]
@@ -390,6 +402,10 @@ def scan_update(
                 else:
                     votes[k, p] = chosen
                     slots[k, p] = chosen
+                    if chosen == CLUTTER:
+                        clutter_prob[k, p] = 1.0
+                    elif not sample_clutter:
+                        clutter_prob[k, p] = 1.0 - new_existence[k]
             if chosen >= 0:
                 _refine(pose, Pc, t[0], t[1], t[2], t[3], t[4], t[5], t[7], t[8], t[9], t[10])
                 claimed[chosen] = True

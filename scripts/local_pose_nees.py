@@ -2,7 +2,8 @@
 
 Usage: python scripts/local_pose_nees.py FRONT_END LEVELS N_SEEDS N_STEPS [N_PARTICLES] [known]
 e.g.   python scripts/local_pose_nees.py fastslam 0,1,2,3 4 1000 500
-FRONT_END is fastslam or ekf; ``known`` gives FastSLAM the true associations.
+FRONT_END is fastslam, fastslam-sampled-clutter (the earlier DAS rule, ``sample_clutter=True``)
+or ekf; ``known`` gives FastSLAM the true associations.
 """
 
 import logging
@@ -26,20 +27,22 @@ def main(argv) -> int:
     for level in (int(x) for x in levels.split(",")):
         for seed in range(n_seeds):
             s = make_stream("brooks-bailey", seed=seed, clutter_level=level, n_steps=n_steps)
-            if front == "fastslam":
+            if front in ("fastslam", "fastslam-sampled-clutter"):
                 f = FastSLAM2(s.sensor, s.clutter, s.odometry_noise,
-                              np.random.default_rng([seed, 11]), n_particles=n_particles)
+                              np.random.default_rng([seed, 11]), n_particles=n_particles,
+                              sample_clutter=front == "fastslam-sampled-clutter")
             elif front == "ekf":
                 f = EKFSLAM(s.sensor, s.clutter, s.odometry_noise)
             else:
-                raise ValueError(f"front_end={front!r} is invalid: must be fastslam or ekf")
+                raise ValueError(f"front_end={front!r} is invalid: must be fastslam, "
+                                 "fastslam-sampled-clutter or ekf")
             values.append(local_pose_nees_at_fusion(f, s, 100, known))
     v = np.concatenate(values)
     logging.getLogger(__name__).info(
         "%s levels %s seeds 0-%d, %d steps, %d particles, known=%s: %d fusions, "
-        "outside the 95 %% band %.3f, worst %.3g",
+        "outside the 95 %% band %.3f (over-confident %.3f, under-confident %.3f), worst %.3g",
         front, levels, n_seeds - 1, n_steps, n_particles, known, len(v),
-        np.mean((v < lo) | (v > hi)), v.max(),
+        np.mean((v < lo) | (v > hi)), np.mean(v > hi), np.mean(v < lo), v.max(),
     )
     return 0
 

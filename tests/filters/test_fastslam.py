@@ -547,3 +547,30 @@ def test_existence_model_bb_uses_beta_literally():
     assert both.any() and np.all(second_gate[both] > second_bb[both] + 0.05)
     with pytest.raises(ValueError, match="existence_model"):
         FastSLAM2(sensor, clutter, noise, np.random.default_rng(1), existence_model="x")
+
+
+def test_unexplained_observation_is_a_new_feature_whose_existence_carries_clutter():
+    """#14 (2): no particle draws *clutter* for an unexplained observation; every one starts the
+    feature with existence L_new / (L_new + L_clutter), so the weights stay even and the clutter
+    share is 1 - that existence. ``sample_clutter=True`` keeps the earlier draw."""
+    sensor = RangeBearingSensor()
+    clutter = ClutterModel(alpha=0.5, beta=0.3)
+    noise = ProportionalVelocityNoise(0.0, 0.0, 1e-3, 1e-3)
+    f = FastSLAM2(sensor, clutter, noise, np.random.default_rng(0), n_particles=200)
+    f.predict([0.0, 0.0], 0.1)
+    f.update([[5.0, 0.3]])
+    assert np.all(f.active.sum(axis=1) == 1)
+    e = f.existence[f.active]
+    assert np.all(e < 0.95) and np.ptp(e) == 0.0
+    assert np.ptp(f.weights) < 1e-12
+    assert np.all(f.last_votes == NEW_VOTE)
+    assert f.local_statistics()["clutter_rate"] == pytest.approx(1.0 - e[0])
+    g = FastSLAM2(sensor, clutter, noise, np.random.default_rng(0), n_particles=200,
+                  sample_clutter=True)
+    g.predict([0.0, 0.0], 0.1)
+    g.update([[5.0, 0.3]])
+    taken = g.active.sum(axis=1)
+    assert 0 < taken.sum() < 200  # some particles drew clutter
+    assert np.all(g.last_votes[0, taken == 0] == CLUTTER_VOTE)
+    with pytest.raises(ValueError, match="sample_clutter"):
+        FastSLAM2(sensor, clutter, noise, np.random.default_rng(0), sample_clutter="yes")
