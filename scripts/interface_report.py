@@ -10,6 +10,10 @@ reckoning have no decisions and no return) and prints, per rule and clutter leve
   episode, map error of the runs that did not fail (mean [t 95 % interval]) and the CPU seconds
   of fusions + optimisations;
 * the returns: mean over all, failed and surviving runs;
+* which rules are dominated: per clutter level, the rules no other rule beats on both the map
+  error of the runs that did not fail and the CPU of fusions + optimisations (the Pareto figure
+  ``pareto_interface.png``), on the map error and the total CPU (``pareto.png``), and with the
+  success rate as a third objective;
 * the paired check the reward is built for: over every world (clutter level, seed) and every pair
   of rules where one failed and the other survived, how often the failed run's return is the
   higher one (it must be never). Exit status 1 if it ever is.
@@ -84,6 +88,44 @@ def decisions_table(runs) -> str:
     return "\n".join(lines)
 
 
+def _dominates(a, b) -> bool:
+    """``a`` no worse than ``b`` in every (minimised) objective and better in one."""
+    return all(x <= y for x, y in zip(a, b, strict=True)) and any(
+        x < y for x, y in zip(a, b, strict=True))
+
+
+def fronts_table(runs) -> str:
+    groups = defaultdict(list)
+    for r in runs:
+        groups[(r["clutter_level"], r["policy"])].append(r)
+    levels = sorted({lv for lv, _ in groups})
+    lines = ["| clutter | objectives | non-dominated | dominated |", "|---:|---|---|---|"]
+    for lv in levels:
+        points = {}
+        for (level, name), rows in groups.items():
+            survived = [r["map_error_m"] for r in rows
+                        if r["success"] and r["map_error_m"] is not None]
+            if level != lv or not survived:
+                continue
+            points[name] = {
+                "map": float(np.mean(survived)),
+                "interface": float(np.mean([r["fusion_cpu_s"] + r["optimise_cpu_s"]
+                                            for r in rows])),
+                "total": float(np.mean([r["total_cpu_s"] for r in rows])),
+                "failure": 1.0 - float(np.mean([r["success"] for r in rows])),
+            }
+        for label, keys in (("map error, interface CPU", ("map", "interface")),
+                            ("map error, total CPU", ("map", "total")),
+                            ("map error, interface CPU, success", ("map", "interface", "failure"))):
+            vec = {n: tuple(p[k] for k in keys) for n, p in points.items()}
+            beaten = {n: sorted(m for m in vec if m != n and _dominates(vec[m], vec[n]))
+                      for n in vec}
+            front = [n for n in vec if not beaten[n]]
+            dominated = [f"{n} (by {', '.join(beaten[n])})" for n in vec if beaten[n]]
+            lines.append(f"| {lv} | {label} | {', '.join(front)} | {'; '.join(dominated) or '–'} |")
+    return "\n".join(lines)
+
+
 def returns_table(runs) -> str:
     groups = defaultdict(list)
     for r in runs:
@@ -114,6 +156,7 @@ def main(argv) -> int:
     runs = load_runs(argv)
     n_pairs, n_bad, bad = paired_failures(runs)
     logger.info("decisions per rule and clutter level:\n%s", decisions_table(runs))
+    logger.info("which rules are dominated (means per clutter level):\n%s", fronts_table(runs))
     logger.info("mean return (failed / surviving runs, failures) per rule and clutter level:\n%s",
                 returns_table(runs))
     logger.info("%d runs; %d (failed, surviving) pairs on the same world; the failed run "
