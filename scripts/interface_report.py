@@ -10,6 +10,8 @@ reckoning have no decisions and no return) and prints, per rule and clutter leve
   episode, map error of the runs that did not fail (mean [t 95 % interval]) and the CPU seconds
   of fusions + optimisations;
 * the returns: mean over all, failed and surviving runs;
+* paired against ``fixed-10s`` (BB's rule, never optimising) on the worlds where both survived:
+  the mean map error difference [t 95 % interval] and in how many of those worlds it was lower;
 * which rules are dominated: per clutter level, the rules no other rule beats on both the map
   error of the runs that did not fail and the CPU of fusions + optimisations (the Pareto figure
   ``pareto_interface.png``), on the map error and the total CPU (``pareto.png``), and with the
@@ -88,6 +90,30 @@ def decisions_table(runs) -> str:
     return "\n".join(lines)
 
 
+def paired_table(runs, reference: str = "fixed-10s") -> str:
+    by = {(r["policy"], r["clutter_level"], r["seed"]): r for r in runs}
+    names = [n for n in dict.fromkeys(r["policy"] for r in runs) if n != reference]
+    levels = sorted({r["clutter_level"] for r in runs})
+    lines = [f"| rule | clutter | worlds both survived | map error minus {reference}'s (m) | "
+             "lower in |", "|---|---:|---:|---:|---:|"]
+    for name in names:
+        for lv in levels:
+            diffs = []
+            for (n, level, seed), r in by.items():
+                ref = by.get((reference, level, seed))
+                if n != name or level != lv or ref is None:
+                    continue
+                if r["success"] and ref["success"] and None not in (r["map_error_m"],
+                                                                    ref["map_error_m"]):
+                    diffs.append(r["map_error_m"] - ref["map_error_m"])
+            if len(diffs) < 2:
+                continue
+            ci = mean_interval(diffs)
+            lines.append(f"| {name} | {lv} | {len(diffs)} | {np.mean(diffs):+.2f} "
+                         f"[{ci[0]:+.2f}, {ci[1]:+.2f}] | {sum(d < 0 for d in diffs)} |")
+    return "\n".join(lines)
+
+
 def _dominates(a, b) -> bool:
     """``a`` no worse than ``b`` in every (minimised) objective and better in one."""
     return all(x <= y for x, y in zip(a, b, strict=True)) and any(
@@ -156,6 +182,8 @@ def main(argv) -> int:
     runs = load_runs(argv)
     n_pairs, n_bad, bad = paired_failures(runs)
     logger.info("decisions per rule and clutter level:\n%s", decisions_table(runs))
+    if any(r["policy"] == "fixed-10s" for r in runs):
+        logger.info("paired against fixed-10s:\n%s", paired_table(runs))
     logger.info("which rules are dominated (means per clutter level):\n%s", fronts_table(runs))
     logger.info("mean return (failed / surviving runs, failures) per rule and clutter level:\n%s",
                 returns_table(runs))
