@@ -19,7 +19,7 @@ from slam_gym.commands.runs import (
 logger = logging.getLogger(__name__)
 
 QUICK = {
-    "policies": "fixed-10s,esdf-innovation,learned",
+    "policies": "fixed-10s,esdf-innovation,fixed-10s-optimise,learned",
     "clutter_levels": "0,1,2,3",
     "seeds": 3,
     "particles": 500,
