@@ -344,12 +344,30 @@ def pose_moments(poses, weights, pose_covs=None):
 
 def _gather(means, covs, slots):
     """Features (P, N, 2) and covariances (P, N, 2, 2) at ``slots`` (P, N); missing -> zeros."""
-    has = slots >= 0
-    rows = np.arange(slots.shape[0])[:, None]
-    safe = np.where(has, slots, 0)
+    has, rows, safe = _gather_index(slots)
     mu = np.where(has[..., None], means[rows, safe], 0.0)
     sig = np.where(has[..., None, None], covs[rows, safe], 0.0)
     return has, mu, sig
+
+
+def _gather_index(slots):
+    """Which particles hold each feature (P, N), and the row and slot indices to gather with."""
+    has = slots >= 0
+    rows = np.arange(slots.shape[0])[:, None]
+    return has, rows, np.where(has, slots, 0)
+
+
+def _feature_weights(w, has):
+    """Each particle's share (P, N) of each feature's moments: its weight over the feature's
+    mass among the particles holding it."""
+    mass = w @ has
+    require(
+        bool(np.all(mass > 0.0)),
+        "slots",
+        "a feature held by no weighted particle",
+        "every common feature held by a particle of positive weight",
+    )
+    return w[:, None] * has / mass
 
 
 def feature_moments(weights, means, covs, slots):
@@ -361,18 +379,21 @@ def feature_moments(weights, means, covs, slots):
     w = _normalised(weights)
     slots = np.asarray(slots, dtype=np.int64)
     has, mu, sig = _gather(np.asarray(means, float), np.asarray(covs, float), slots)
-    mass = w @ has
-    require(
-        bool(np.all(mass > 0.0)),
-        "slots",
-        "a feature held by no weighted particle",
-        "every common feature held by a particle of positive weight",
-    )
-    wc = w[:, None] * has / mass
+    wc = _feature_weights(w, has)
     m = np.einsum("pn,pnk->nk", wc, mu)
     d = np.where(has[..., None], mu - m, 0.0)
     cov = np.einsum("pn,pnij->nij", wc, sig) + np.einsum("pn,pni,pnj->nij", wc, d, d)
     return m, 0.5 * (cov + np.swapaxes(cov, -1, -2))
+
+
+def feature_means(weights, means, slots):
+    """The means of :func:`feature_moments` alone (the same numbers, bit for bit), without
+    gathering or summing any covariance: for callers that need no uncertainty (map scoring)."""
+    w = _normalised(weights)
+    slots = np.asarray(slots, dtype=np.int64)
+    has, rows, safe = _gather_index(slots)
+    mu = np.where(has[..., None], np.asarray(means, float)[rows, safe], 0.0)
+    return np.einsum("pn,pnk->nk", _feature_weights(w, has), mu)
 
 
 def nearest_spd(P, eig_floor: float = EIGENVALUE_FLOOR):

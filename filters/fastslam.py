@@ -111,6 +111,7 @@ from filters.conversion import (
     NEW_VOTE,
     assign_correspondence_ids,
     common_features,
+    feature_means,
     feature_moments,
     moment_match,
     pose_moments,
@@ -558,6 +559,16 @@ class FastSLAM2:
             return LandmarkEstimate.empty()
         means, covs = feature_moments(self.weights, self.means, self.covs, common.slots)
         return LandmarkEstimate(common.ids.copy(), means, covs, common.existence.copy())
+
+    def landmark_means(self):
+        """``(ids, means, existence)`` of :meth:`landmarks` without the covariances (the same
+        numbers): what map scoring needs, at a fraction of the cost."""
+        common = self._common()
+        if len(common) == 0:
+            empty = LandmarkEstimate.empty()
+            return empty.ids, empty.means, empty.existence
+        means = feature_means(self.weights, self.means, common.slots)
+        return common.ids.copy(), means, common.existence.copy()
 
     def to_gaussian(self) -> GaussianMap:
         """BB 3.2: [pose, features with p(exists) > 0.95] as one SPD Gaussian (local frame)."""
