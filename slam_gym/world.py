@@ -28,6 +28,8 @@ observations of a scan are shuffled.
 
 from __future__ import annotations
 
+import copy
+import functools
 import math
 
 import numpy as np
@@ -229,10 +231,36 @@ def turning_statistics(stream, fast_radps: float = FAST_TURN_RADPS) -> dict:
     }
 
 
-def simulate(scenario: Scenario, seed: int) -> Stream:
-    """Simulate ``scenario`` for ``seed`` (a non-negative integer)."""
+WORLD_CACHE_SIZE = 8
+"""Worlds :func:`simulate_cached` keeps per process (a ``brooks-bailey`` world is about 5 MB)."""
+
+
+def _check_seed(seed) -> None:
     if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or seed < 0:
         raise ValueError(f"seed={seed!r} is invalid: must be a non-negative integer")
+
+
+@functools.lru_cache(maxsize=WORLD_CACHE_SIZE)
+def _remembered_world(scenario: Scenario, seed: int) -> Stream:
+    """The world of ``(scenario, seed)``, never handed out: :func:`simulate_cached` copies it."""
+    return simulate(scenario, seed)
+
+
+def simulate_cached(scenario: Scenario, seed: int) -> Stream:
+    """:func:`simulate`, remembering the last :data:`WORLD_CACHE_SIZE` worlds of this process.
+
+    A world is a pure function of the scenario and the seed, so a remembered one is the world
+    :func:`simulate` would return, bit for bit. Each call returns its own deep copy, so no caller
+    can change another's world; a copy costs about a third of a simulation. Each process (e.g. a
+    spawned worker) keeps its own cache.
+    """
+    _check_seed(seed)
+    return copy.deepcopy(_remembered_world(scenario, int(seed)))
+
+
+def simulate(scenario: Scenario, seed: int) -> Stream:
+    """Simulate ``scenario`` for ``seed`` (a non-negative integer)."""
+    _check_seed(seed)
     world_rng, odometry_rng, sensor_rng = (
         np.random.default_rng(s) for s in np.random.SeedSequence(int(seed)).spawn(3)
     )

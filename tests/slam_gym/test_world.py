@@ -338,3 +338,40 @@ def test_unknown_association_confirms_the_landmarks_between_sparse_scans(system)
     metrics = episode.metrics()
     assert len(episode.detected_landmarks) >= 10
     assert metrics["map_completeness"] >= 0.8, metrics
+
+
+def _assert_same_stream(a, b):
+    assert len(a) == len(b) and np.array_equal(a.landmarks_true, b.landmarks_true)
+    assert np.array_equal(a.initial_pose, b.initial_pose)
+    for sa, sb in zip(a, b, strict=True):
+        assert (sa.index, sa.t_s, sa.dt_s, sa.compass_rad, sa.scanned) == (
+            sb.index, sb.t_s, sb.dt_s, sb.compass_rad, sb.scanned)
+        assert np.array_equal(sa.z, sb.z) and np.array_equal(sa.odometry, sb.odometry)
+        assert np.array_equal(sa.truth.pose, sb.truth.pose)
+        assert np.array_equal(sa.truth.landmark_ids, sb.truth.landmark_ids)
+        va, vb = sa.truth.visible_ids, sb.truth.visible_ids
+        assert (va is None and vb is None) or np.array_equal(va, vb)
+
+
+def test_a_remembered_world_equals_a_fresh_simulation_and_is_a_private_copy():
+    from slam_gym.world import simulate, simulate_cached
+
+    scenario = get_scenario("brooks-bailey", clutter_level=2, n_steps=300)
+    first = simulate_cached(scenario, 11)
+    first_step = next(iter(first))
+    first_step.z[:] = -1.0  # a caller spoiling its copy must not spoil the next caller's
+    first.metadata["seed"] = -5
+    again = simulate_cached(scenario, 11)
+    _assert_same_stream(again, simulate(scenario, 11))
+    assert again.metadata["seed"] == 11 and again is not first
+    with pytest.raises(ValueError, match="seed"):
+        simulate_cached(scenario, True)
+
+
+def test_the_world_cache_is_bounded():
+    from slam_gym.world import WORLD_CACHE_SIZE, _remembered_world, simulate_cached
+
+    scenario = get_scenario("brooks-bailey", clutter_level=0, n_steps=20)
+    for seed in range(WORLD_CACHE_SIZE + 3):
+        simulate_cached(scenario, seed)
+    assert _remembered_world.cache_info().currsize <= WORLD_CACHE_SIZE
