@@ -241,6 +241,34 @@ def assign_correspondence_ids(cids, active, observations, particles, slots, prop
     return kept
 
 
+@njit(cache=True)
+def assign_scan_ids(cids, active, slots, winners) -> int:
+    """:func:`assign_correspondence_ids` for one scan as :class:`filters.fastslam.FastSLAM2`
+    holds it: ``slots`` (K, P) the slot observation k modified or created in particle p (-1:
+    none), ``winners`` (K,) the voted ids. Integer work only, so it writes exactly the ids the
+    general function writes: each particle's changes in observation order, a change skipped
+    where the particle holds the id in another active slot. Returns the number so skipped.
+    """
+    K, P = slots.shape
+    C = cids.shape[1]
+    kept = 0
+    for p in range(P):
+        for k in range(K):
+            s, w = slots[k, p], winners[k]
+            if s < 0 or w < 0 or cids[p, s] == w:
+                continue
+            clash = False
+            for c in range(C):
+                if c != s and active[p, c] and cids[p, c] == w:
+                    clash = True
+                    break
+            if clash:
+                kept += 1
+            else:
+                cids[p, s] = w
+    return kept
+
+
 def _assign_if_free(cids, active, p, s, w) -> int:
     """``cids[p, s] = w`` where particle ``p`` (distinct) holds ``w`` in no other active slot;
     returns the number of clashes (left unchanged)."""

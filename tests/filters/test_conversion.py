@@ -409,3 +409,25 @@ def test_assign_ids_equals_the_entry_by_entry_rule_and_leaves_ids_unique(seed):
     assign_correspondence_ids(cids, active, obs, parts, slots, proposed)
     np.testing.assert_array_equal(cids, expected)
     assert _duplicates(cids, active) == []
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_compiled_scan_assignment_writes_the_ids_of_the_general_one(seed):
+    from filters.conversion import assign_scan_ids
+
+    rng = np.random.default_rng(seed)
+    K, P, C = 4, 30, 8
+    active = rng.random((P, C)) < 0.7
+    cids = np.where(active, rng.integers(0, 6, (P, C)), -1)
+    # each observation takes at most one slot per particle and each slot at most one observation
+    slots = np.full((K, P), -1, dtype=np.int64)
+    for p in range(P):
+        chosen = rng.permutation(C)[:K]
+        use = rng.random(K) < 0.6
+        slots[use, p] = chosen[use]
+    winners = rng.integers(-1, 6, K)
+    a, b = cids.copy(), cids.copy()
+    ks, ps = np.nonzero(slots >= 0)
+    kept_general = assign_correspondence_ids(a, active, ks, ps, slots[ks, ps], winners[ks])
+    kept_compiled = assign_scan_ids(b, active, slots, winners)
+    assert np.array_equal(a, b) and kept_general == kept_compiled
