@@ -118,7 +118,13 @@ from filters.conversion import (
     vote_all,
 )
 from filters.existence import CONFIRMED_PROBABILITY, validate_existence_model
-from filters.fastslam_kernel import ScanModel, draw_poses, propagate, scan_update
+from filters.fastslam_kernel import (
+    ScanModel,
+    compact_features,
+    draw_poses,
+    propagate,
+    scan_update,
+)
 from filters.geometry import wrap_angle
 from filters.models import ClutterModel, RangeBearingSensor
 from filters.types import FeatureIds, GaussianMap, LandmarkEstimate
@@ -501,9 +507,9 @@ class FastSLAM2:
         if not dead.any():
             return
         self._active &= ~dead
-        order = np.argsort(~self._active, axis=1, kind="stable")
-        for name in _FEATURE_FIELDS:
-            setattr(self, name, np.take_along_axis(getattr(self, name), order, axis=1))
+        # each particle's active features to its first slots, in slot order (compiled)
+        compact_features(self._active, self._mx, self._my, self._sxx, self._sxy, self._syy,
+                         self._ex, self._cid)
         self._count = self._active.sum(axis=1)
         self._ex[~self._active] = 0.0
         self._cid[~self._active] = -1
