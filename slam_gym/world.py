@@ -28,7 +28,7 @@ observations of a scan are shuffled.
 
 from __future__ import annotations
 
-import copy
+import dataclasses
 import functools
 import math
 
@@ -196,21 +196,19 @@ def scan(
     z_true = observe(pose, landmarks) if len(landmarks) else np.zeros((0, 2))
     visible = np.flatnonzero(sensor.in_view(z_true))
     detected = visible[rng.random(len(visible)) < clutter.alpha]
-    z_det = z_true[detected] + rng.standard_normal((len(detected), 2)) * [
-        sensor.range_std_m,
-        sensor.bearing_std_rad,
-    ]
+    n_det = len(detected)
+    noise_std = np.array([sensor.range_std_m, sensor.bearing_std_rad])
+    z_det = z_true[detected] + rng.standard_normal((n_det, 2)) * noise_std
     n_false = int(np.count_nonzero(rng.random(len(visible)) < clutter.beta))
-    z_false = np.column_stack(
-        [
-            rng.uniform(0.0, sensor.max_range_m, n_false),
-            rng.uniform(-0.5 * sensor.fov_rad, 0.5 * sensor.fov_rad, n_false),
-        ]
-    )
-    z = np.vstack([z_det, z_false])
+    # detections first, then the false alarms (range, then bearing), in one array
+    z = np.empty((n_det + n_false, 2))
+    z[:n_det] = z_det
+    z[n_det:, 0] = rng.uniform(0.0, sensor.max_range_m, n_false)
+    z[n_det:, 1] = rng.uniform(-0.5 * sensor.fov_rad, 0.5 * sensor.fov_rad, n_false)
     z[:, 0] = np.maximum(z[:, 0], 0.0)  # a range sensor reports no negative range
     z[:, 1] = wrap_angle(z[:, 1])
-    ids = np.concatenate([detected, np.full(n_false, -1)]).astype(np.int64)
+    ids = np.full(n_det + n_false, -1, dtype=np.int64)
+    ids[:n_det] = detected
     order = rng.permutation(len(z))
     return z[order], ids[order], visible.astype(np.int64)
 
@@ -240,22 +238,43 @@ def _check_seed(seed) -> None:
         raise ValueError(f"seed={seed!r} is invalid: must be a non-negative integer")
 
 
+def _read_only(array):
+    if isinstance(array, np.ndarray):
+        array.flags.writeable = False
+    return array
+
+
+def _frozen(stream: Stream) -> Stream:
+    """``stream`` with every array read-only and its steps in a tuple: a world that can be
+    shared, since no holder can change it (its steps and truths are frozen dataclasses)."""
+    steps = tuple(stream)
+    for step in steps:
+        for array in (step.odometry, step.z, step.truth.pose, step.truth.landmark_ids,
+                      step.truth.visible_ids):
+            _read_only(array)
+    for array in (stream.initial_pose, stream.landmarks_true, *stream.metadata.values()):
+        _read_only(array)
+    return dataclasses.replace(stream, make_steps=steps_from_list(steps))
+
+
 @functools.lru_cache(maxsize=WORLD_CACHE_SIZE)
 def _remembered_world(scenario: Scenario, seed: int) -> Stream:
-    """The world of ``(scenario, seed)``, never handed out: :func:`simulate_cached` copies it."""
-    return simulate(scenario, seed)
+    """The read-only world of ``(scenario, seed)`` (:func:`simulate_cached`)."""
+    return _frozen(simulate(scenario, seed))
 
 
 def simulate_cached(scenario: Scenario, seed: int) -> Stream:
     """:func:`simulate`, remembering the last :data:`WORLD_CACHE_SIZE` worlds of this process.
 
     A world is a pure function of the scenario and the seed, so a remembered one is the world
-    :func:`simulate` would return, bit for bit. Each call returns its own deep copy, so no caller
-    can change another's world; a copy costs about a third of a simulation. Each process (e.g. a
-    spawned worker) keeps its own cache.
+    :func:`simulate` would return, bit for bit. Remembered worlds are shared read-only: their
+    arrays cannot be written (a write raises), their steps are frozen and held in a tuple, and
+    each call gets its own :class:`~slam_gym.stream.Stream` and ``metadata`` dict, so no caller
+    can change another's world. Each process (e.g. a spawned worker) keeps its own cache.
     """
     _check_seed(seed)
-    return copy.deepcopy(_remembered_world(scenario, int(seed)))
+    world = _remembered_world(scenario, int(seed))
+    return dataclasses.replace(world, metadata=dict(world.metadata))
 
 
 def simulate(scenario: Scenario, seed: int) -> Stream:

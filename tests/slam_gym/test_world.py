@@ -353,14 +353,17 @@ def _assert_same_stream(a, b):
         assert (va is None and vb is None) or np.array_equal(va, vb)
 
 
-def test_a_remembered_world_equals_a_fresh_simulation_and_is_a_private_copy():
+def test_a_remembered_world_equals_a_fresh_simulation_and_cannot_be_changed():
     from slam_gym.world import simulate, simulate_cached
 
     scenario = get_scenario("brooks-bailey", clutter_level=2, n_steps=300)
     first = simulate_cached(scenario, 11)
-    first_step = next(iter(first))
-    first_step.z[:] = -1.0  # a caller spoiling its copy must not spoil the next caller's
-    first.metadata["seed"] = -5
+    first.metadata["seed"] = -5  # a caller's own stream and metadata: the next one is unaffected
+    step = next(iter(first))
+    for array in (step.z, step.odometry, step.truth.pose, first.landmarks_true,
+                  first.metadata["true_poses"]):
+        with pytest.raises(ValueError, match="read-only"):
+            array[...] = -1.0
     again = simulate_cached(scenario, 11)
     _assert_same_stream(again, simulate(scenario, 11))
     assert again.metadata["seed"] == 11 and again is not first
