@@ -324,29 +324,76 @@ def common_features(
         cids.shape,
         "(P, C) like active and existence",
     )
-    p_idx, s_idx = np.nonzero(active & (cids >= 0))
-    if len(p_idx) == 0:
-        return CommonFeatures(np.zeros(0, np.int64), np.zeros((P, 0), np.int64), np.zeros(0))
-    c = cids[p_idx, s_idx]
-    e = existence[p_idx, s_idx]
+    cids = cids.astype(np.int64, copy=False)
     if tie_break is None:
-        trace = np.zeros(len(p_idx))
+        trace = np.zeros(cids.shape)
     else:
-        trace = np.asarray(tie_break, dtype=float)[p_idx, s_idx]
-    # Sort by particle, id, then best representative first: highest existence, smallest trace,
-    # lowest slot (np.nonzero gives slots in ascending order and lexsort is stable).
-    order = np.lexsort((trace, -e, c, p_idx))
-    p_sorted, c_sorted = p_idx[order], c[order]
-    first = np.ones(len(order), dtype=bool)
-    first[1:] = (p_sorted[1:] != p_sorted[:-1]) | (c_sorted[1:] != c_sorted[:-1])
-    keep = order[first]
-    # A feature held only by particles of zero weight is not part of the common set.
-    keep = keep[w[p_idx[keep]] > 0.0]
-    ids, column = np.unique(c[keep], return_inverse=True)
+        trace = np.asarray(tie_break, dtype=float)
+    if not (active & (cids >= 0)).any():
+        return CommonFeatures(np.zeros(0, np.int64), np.zeros((P, 0), np.int64), np.zeros(0))
+    # the products in numpy: numba may fuse a product and a sum into one (differently rounded) FMA
+    shares = w[:, None] * existence
+    ids, slots, weighted = _common_set(w, cids, active, existence, shares, trace, int(cids.max()))
+    return CommonFeatures(ids, slots, np.minimum(weighted, 1.0))
+
+
+@njit(cache=True, inline="always")
+def _key_order(a, b) -> int:
+    """-1 if sort key ``a`` comes before ``b`` in numpy's ascending order (NaN last), 1 if after,
+    0 if they tie."""
+    if np.isnan(a):
+        return 0 if np.isnan(b) else 1
+    if np.isnan(b) or a < b:
+        return -1
+    return 1 if a > b else 0
+
+
+@njit(cache=True)
+def _common_set(w, cids, active, existence, shares, trace, max_id):
+    """The common set of :func:`common_features`, compiled.
+
+    Each particle's representative of an id is the first of its slots holding it in the order
+    highest existence, smallest ``trace``, lowest slot (NaN keys last, as numpy sorts them);
+    representatives of particles of zero weight are dropped. Returns the ids in ascending order,
+    the slots (P, N) and the sum of the representatives' ``shares`` (P, C) = weight x existence
+    over the particles in ascending order (the order of the lexsort-and-bincount it replaces, so
+    the sums are the same to the bit).
+    """
+    P, C = cids.shape
+    rep = np.zeros((P, C), dtype=np.bool_)
+    owner = np.full(max_id + 1, -1, dtype=np.int64)  # the particle whose slot is in best_slot
+    best_slot = np.empty(max_id + 1, dtype=np.int64)
+    used = np.zeros(max_id + 1, dtype=np.bool_)
+    for p in range(P):
+        if not w[p] > 0.0:
+            continue
+        for s in range(C):
+            c = cids[p, s]
+            if not active[p, s] or c < 0:
+                continue
+            if owner[c] != p:
+                owner[c], best_slot[c] = p, s
+                rep[p, s] = True
+                used[c] = True
+                continue
+            t = best_slot[c]
+            order = _key_order(-existence[p, s], -existence[p, t])
+            if order == 0:
+                order = _key_order(trace[p, s], trace[p, t])
+            if order < 0:  # s before t (on a tie the lower slot, t, stays)
+                rep[p, t], rep[p, s] = False, True
+                best_slot[c] = s
+    column = np.cumsum(used) - 1
+    ids = np.flatnonzero(used).astype(np.int64)
     slots = np.full((P, len(ids)), -1, dtype=np.int64)
-    slots[p_idx[keep], column] = s_idx[keep]
-    weighted = np.bincount(column, weights=w[p_idx[keep]] * e[keep], minlength=len(ids))
-    return CommonFeatures(ids.astype(np.int64), slots, np.minimum(weighted, 1.0))
+    weighted = np.zeros(len(ids))
+    for p in range(P):
+        for s in range(C):
+            if rep[p, s]:
+                n = column[cids[p, s]]
+                slots[p, n] = s
+                weighted[n] += shares[p, s]
+    return ids, slots, weighted
 
 
 # --------------------------------------------------------------------------- moments (BB (6), (7))
