@@ -194,7 +194,12 @@ def scan(
 ):
     """One scan from ``pose``: shuffled observations (K, 2), their truth ids, visible ids."""
     z_true = observe(pose, landmarks) if len(landmarks) else np.zeros((0, 2))
-    visible = np.flatnonzero(sensor.in_view(z_true))
+    return _detect(z_true, np.flatnonzero(sensor.in_view(z_true)), sensor, clutter, rng)
+
+
+def _detect(z_true, visible, sensor, clutter, rng):
+    """The scan of :func:`scan` given the true observations of every landmark (L, 2) and the
+    indices of the visible ones: detections, false alarms, shuffled (the random draws)."""
     detected = visible[rng.random(len(visible)) < clutter.alpha]
     n_det = len(detected)
     noise_std = np.array([sensor.range_std_m, sensor.bearing_std_rad])
@@ -211,6 +216,26 @@ def scan(
     ids[:n_det] = detected
     order = rng.permutation(len(z))
     return z[order], ids[order], visible.astype(np.int64)
+
+
+OBSERVED_BLOCK_ELEMENTS = 1 << 16
+"""Pose-landmark pairs :func:`_true_views` observes at once (bounds its memory to a few MB)."""
+
+
+def _true_views(poses: np.ndarray, landmarks: np.ndarray, sensor: RangeBearingSensor):
+    """For each pose of ``poses`` (n, 3), in order: the true observations of every landmark
+    (L, 2) and the indices of the visible ones, as :func:`scan` computes them, for blocks of
+    poses at once (element-wise arithmetic on the same values, so the same numbers)."""
+    if len(landmarks) == 0:
+        for _ in range(len(poses)):
+            yield np.zeros((0, 2)), np.zeros(0, dtype=np.int64)
+        return
+    block = max(1, OBSERVED_BLOCK_ELEMENTS // len(landmarks))
+    for start in range(0, len(poses), block):
+        z_true = observe(poses[start:start + block, None, :], landmarks[None, :, :])
+        seen = sensor.in_view(z_true)
+        for z, in_view in zip(z_true, seen, strict=True):
+            yield z, np.flatnonzero(in_view)
 
 
 FAST_TURN_RADPS = 0.5
@@ -302,6 +327,12 @@ def simulate(scenario: Scenario, seed: int) -> Stream:
     every = scenario.steps_per_scan
     empty_z, empty_ids = np.zeros((0, 2)), np.zeros(0, dtype=np.int64)
     steps = []
+    scan_indices = [0] * first + [k + 1 for k in range(n_moving) if (k + 1) % every == 0]
+    views = _true_views(poses[scan_indices], landmarks, sensor)
+
+    def scan_at_next_pose():
+        z_true, visible = next(views)
+        return _detect(z_true, visible, sensor, clutter, sensor_rng)
 
     def compass_at(pose):
         if scenario.compass_std_rad is None:
@@ -309,7 +340,7 @@ def simulate(scenario: Scenario, seed: int) -> Stream:
         return float(wrap_angle(pose[2] + scenario.compass_std_rad * sensor_rng.normal()))
 
     if first:
-        z, ids, visible = scan(poses[0], landmarks, sensor, clutter, sensor_rng)
+        z, ids, visible = scan_at_next_pose()
         steps.append(
             Step(
                 index=0,
@@ -325,7 +356,7 @@ def simulate(scenario: Scenario, seed: int) -> Stream:
         pose = poses[k + 1]
         scanned = (k + 1) % every == 0
         if scanned:
-            z, ids, visible = scan(pose, landmarks, sensor, clutter, sensor_rng)
+            z, ids, visible = scan_at_next_pose()
         else:
             z, ids, visible = empty_z, empty_ids, None
         steps.append(

@@ -378,3 +378,20 @@ def test_the_world_cache_is_bounded():
     for seed in range(WORLD_CACHE_SIZE + 3):
         simulate_cached(scenario, seed)
     assert _remembered_world.cache_info().currsize <= WORLD_CACHE_SIZE
+
+
+def test_true_views_of_pose_blocks_equal_the_views_pose_by_pose():
+    from slam_gym.world import OBSERVED_BLOCK_ELEMENTS, _true_views, sensor_of
+
+    rng = np.random.default_rng(0)
+    sensor = sensor_of(get_scenario("brooks-bailey"))
+    landmarks = rng.uniform(0.0, 120.0, (37, 2))
+    n = 2 * OBSERVED_BLOCK_ELEMENTS // len(landmarks) + 5  # three blocks, the last one short
+    poses = np.column_stack([rng.uniform(0.0, 120.0, (n, 2)), rng.uniform(-4.0, 4.0, n)])
+    views = list(_true_views(poses, landmarks, sensor))
+    assert len(views) == n
+    for pose, (z_true, visible) in zip(poses, views, strict=True):
+        expected = observe(pose, landmarks)
+        assert z_true.tobytes() == expected.tobytes()
+        assert np.array_equal(visible, np.flatnonzero(sensor.in_view(expected)))
+    assert [len(z) for z, _ in _true_views(poses[:3], np.zeros((0, 2)), sensor)] == [0, 0, 0]
