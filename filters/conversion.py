@@ -241,6 +241,34 @@ def assign_correspondence_ids(cids, active, observations, particles, slots, prop
     return kept
 
 
+@njit(cache=True)
+def assign_scan_ids(cids, active, slots, winners) -> int:
+    """:func:`assign_correspondence_ids` for one scan as :class:`filters.fastslam.FastSLAM2`
+    holds it: ``slots`` (K, P) the slot observation k modified or created in particle p (-1:
+    none), ``winners`` (K,) the voted ids. Integer work only, so it writes exactly the ids the
+    general function writes: each particle's changes in observation order, a change skipped
+    where the particle holds the id in another active slot. Returns the number so skipped.
+    """
+    K, P = slots.shape
+    C = cids.shape[1]
+    kept = 0
+    for p in range(P):
+        for k in range(K):
+            s, w = slots[k, p], winners[k]
+            if s < 0 or w < 0 or cids[p, s] == w:
+                continue
+            clash = False
+            for c in range(C):
+                if c != s and active[p, c] and cids[p, c] == w:
+                    clash = True
+                    break
+            if clash:
+                kept += 1
+            else:
+                cids[p, s] = w
+    return kept
+
+
 def _assign_if_free(cids, active, p, s, w) -> int:
     """``cids[p, s] = w`` where particle ``p`` (distinct) holds ``w`` in no other active slot;
     returns the number of clashes (left unchanged)."""
@@ -296,29 +324,76 @@ def common_features(
         cids.shape,
         "(P, C) like active and existence",
     )
-    p_idx, s_idx = np.nonzero(active & (cids >= 0))
-    if len(p_idx) == 0:
-        return CommonFeatures(np.zeros(0, np.int64), np.zeros((P, 0), np.int64), np.zeros(0))
-    c = cids[p_idx, s_idx]
-    e = existence[p_idx, s_idx]
+    cids = cids.astype(np.int64, copy=False)
     if tie_break is None:
-        trace = np.zeros(len(p_idx))
+        trace = np.zeros(cids.shape)
     else:
-        trace = np.asarray(tie_break, dtype=float)[p_idx, s_idx]
-    # Sort by particle, id, then best representative first: highest existence, smallest trace,
-    # lowest slot (np.nonzero gives slots in ascending order and lexsort is stable).
-    order = np.lexsort((trace, -e, c, p_idx))
-    p_sorted, c_sorted = p_idx[order], c[order]
-    first = np.ones(len(order), dtype=bool)
-    first[1:] = (p_sorted[1:] != p_sorted[:-1]) | (c_sorted[1:] != c_sorted[:-1])
-    keep = order[first]
-    # A feature held only by particles of zero weight is not part of the common set.
-    keep = keep[w[p_idx[keep]] > 0.0]
-    ids, column = np.unique(c[keep], return_inverse=True)
+        trace = np.asarray(tie_break, dtype=float)
+    if not (active & (cids >= 0)).any():
+        return CommonFeatures(np.zeros(0, np.int64), np.zeros((P, 0), np.int64), np.zeros(0))
+    # the products in numpy: numba may fuse a product and a sum into one (differently rounded) FMA
+    shares = w[:, None] * existence
+    ids, slots, weighted = _common_set(w, cids, active, existence, shares, trace, int(cids.max()))
+    return CommonFeatures(ids, slots, np.minimum(weighted, 1.0))
+
+
+@njit(cache=True, inline="always")
+def _key_order(a, b) -> int:
+    """-1 if sort key ``a`` comes before ``b`` in numpy's ascending order (NaN last), 1 if after,
+    0 if they tie."""
+    if np.isnan(a):
+        return 0 if np.isnan(b) else 1
+    if np.isnan(b) or a < b:
+        return -1
+    return 1 if a > b else 0
+
+
+@njit(cache=True)
+def _common_set(w, cids, active, existence, shares, trace, max_id):
+    """The common set of :func:`common_features`, compiled.
+
+    Each particle's representative of an id is the first of its slots holding it in the order
+    highest existence, smallest ``trace``, lowest slot (NaN keys last, as numpy sorts them);
+    representatives of particles of zero weight are dropped. Returns the ids in ascending order,
+    the slots (P, N) and the sum of the representatives' ``shares`` (P, C) = weight x existence
+    over the particles in ascending order (the order of the lexsort-and-bincount it replaces, so
+    the sums are the same to the bit).
+    """
+    P, C = cids.shape
+    rep = np.zeros((P, C), dtype=np.bool_)
+    owner = np.full(max_id + 1, -1, dtype=np.int64)  # the particle whose slot is in best_slot
+    best_slot = np.empty(max_id + 1, dtype=np.int64)
+    used = np.zeros(max_id + 1, dtype=np.bool_)
+    for p in range(P):
+        if not w[p] > 0.0:
+            continue
+        for s in range(C):
+            c = cids[p, s]
+            if not active[p, s] or c < 0:
+                continue
+            if owner[c] != p:
+                owner[c], best_slot[c] = p, s
+                rep[p, s] = True
+                used[c] = True
+                continue
+            t = best_slot[c]
+            order = _key_order(-existence[p, s], -existence[p, t])
+            if order == 0:
+                order = _key_order(trace[p, s], trace[p, t])
+            if order < 0:  # s before t (on a tie the lower slot, t, stays)
+                rep[p, t], rep[p, s] = False, True
+                best_slot[c] = s
+    column = np.cumsum(used) - 1
+    ids = np.flatnonzero(used).astype(np.int64)
     slots = np.full((P, len(ids)), -1, dtype=np.int64)
-    slots[p_idx[keep], column] = s_idx[keep]
-    weighted = np.bincount(column, weights=w[p_idx[keep]] * e[keep], minlength=len(ids))
-    return CommonFeatures(ids.astype(np.int64), slots, np.minimum(weighted, 1.0))
+    weighted = np.zeros(len(ids))
+    for p in range(P):
+        for s in range(C):
+            if rep[p, s]:
+                n = column[cids[p, s]]
+                slots[p, n] = s
+                weighted[n] += shares[p, s]
+    return ids, slots, weighted
 
 
 # --------------------------------------------------------------------------- moments (BB (6), (7))
@@ -344,12 +419,30 @@ def pose_moments(poses, weights, pose_covs=None):
 
 def _gather(means, covs, slots):
     """Features (P, N, 2) and covariances (P, N, 2, 2) at ``slots`` (P, N); missing -> zeros."""
-    has = slots >= 0
-    rows = np.arange(slots.shape[0])[:, None]
-    safe = np.where(has, slots, 0)
+    has, rows, safe = _gather_index(slots)
     mu = np.where(has[..., None], means[rows, safe], 0.0)
     sig = np.where(has[..., None, None], covs[rows, safe], 0.0)
     return has, mu, sig
+
+
+def _gather_index(slots):
+    """Which particles hold each feature (P, N), and the row and slot indices to gather with."""
+    has = slots >= 0
+    rows = np.arange(slots.shape[0])[:, None]
+    return has, rows, np.where(has, slots, 0)
+
+
+def _feature_weights(w, has):
+    """Each particle's share (P, N) of each feature's moments: its weight over the feature's
+    mass among the particles holding it."""
+    mass = w @ has
+    require(
+        bool(np.all(mass > 0.0)),
+        "slots",
+        "a feature held by no weighted particle",
+        "every common feature held by a particle of positive weight",
+    )
+    return w[:, None] * has / mass
 
 
 def feature_moments(weights, means, covs, slots):
@@ -361,18 +454,21 @@ def feature_moments(weights, means, covs, slots):
     w = _normalised(weights)
     slots = np.asarray(slots, dtype=np.int64)
     has, mu, sig = _gather(np.asarray(means, float), np.asarray(covs, float), slots)
-    mass = w @ has
-    require(
-        bool(np.all(mass > 0.0)),
-        "slots",
-        "a feature held by no weighted particle",
-        "every common feature held by a particle of positive weight",
-    )
-    wc = w[:, None] * has / mass
+    wc = _feature_weights(w, has)
     m = np.einsum("pn,pnk->nk", wc, mu)
     d = np.where(has[..., None], mu - m, 0.0)
     cov = np.einsum("pn,pnij->nij", wc, sig) + np.einsum("pn,pni,pnj->nij", wc, d, d)
     return m, 0.5 * (cov + np.swapaxes(cov, -1, -2))
+
+
+def feature_means(weights, means, slots):
+    """The means of :func:`feature_moments` alone (the same numbers, bit for bit), without
+    gathering or summing any covariance: for callers that need no uncertainty (map scoring)."""
+    w = _normalised(weights)
+    slots = np.asarray(slots, dtype=np.int64)
+    has, rows, safe = _gather_index(slots)
+    mu = np.where(has[..., None], np.asarray(means, float)[rows, safe], 0.0)
+    return np.einsum("pn,pnk->nk", _feature_weights(w, has), mu)
 
 
 def nearest_spd(P, eig_floor: float = EIGENVALUE_FLOOR):

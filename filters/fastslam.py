@@ -109,15 +109,22 @@ import numpy as np
 
 from filters.conversion import (
     NEW_VOTE,
-    assign_correspondence_ids,
+    assign_scan_ids,
     common_features,
+    feature_means,
     feature_moments,
     moment_match,
     pose_moments,
     vote_all,
 )
 from filters.existence import CONFIRMED_PROBABILITY, validate_existence_model
-from filters.fastslam_kernel import ScanModel, draw_poses, propagate, scan_update
+from filters.fastslam_kernel import (
+    ScanModel,
+    compact_features,
+    draw_poses,
+    propagate,
+    scan_update,
+)
 from filters.geometry import wrap_angle
 from filters.models import ClutterModel, RangeBearingSensor
 from filters.types import FeatureIds, GaussianMap, LandmarkEstimate
@@ -472,9 +479,9 @@ class FastSLAM2:
             winners, margins = known_cids, np.ones(K)
         # every feature modified or created by an observation takes its winner's id, unless its
         # particle holds another feature with that id (clutter winning leaves modified features
-        # their id and created ones without one): filters.conversion.assign_correspondence_ids
-        ks, ps = np.nonzero(slots >= 0)
-        assign_correspondence_ids(self._cid, self._active, ks, ps, slots[ks, ps], winners[ks])
+        # their id and created ones without one): filters.conversion.assign_correspondence_ids,
+        # compiled for the scan's (K, P) slots
+        assign_scan_ids(self._cid, self._active, slots, np.asarray(winners, dtype=np.int64))
 
         self._outputs = {}
         self._steps += 1
@@ -500,9 +507,9 @@ class FastSLAM2:
         if not dead.any():
             return
         self._active &= ~dead
-        order = np.argsort(~self._active, axis=1, kind="stable")
-        for name in _FEATURE_FIELDS:
-            setattr(self, name, np.take_along_axis(getattr(self, name), order, axis=1))
+        # each particle's active features to its first slots, in slot order (compiled)
+        compact_features(self._active, self._mx, self._my, self._sxx, self._sxy, self._syy,
+                         self._ex, self._cid)
         self._count = self._active.sum(axis=1)
         self._ex[~self._active] = 0.0
         self._cid[~self._active] = -1
@@ -558,6 +565,16 @@ class FastSLAM2:
             return LandmarkEstimate.empty()
         means, covs = feature_moments(self.weights, self.means, self.covs, common.slots)
         return LandmarkEstimate(common.ids.copy(), means, covs, common.existence.copy())
+
+    def landmark_means(self):
+        """``(ids, means, existence)`` of :meth:`landmarks` without the covariances (the same
+        numbers): what map scoring needs, at a fraction of the cost."""
+        common = self._common()
+        if len(common) == 0:
+            empty = LandmarkEstimate.empty()
+            return empty.ids, empty.means, empty.existence
+        means = feature_means(self.weights, self.means, common.slots)
+        return common.ids.copy(), means, common.existence.copy()
 
     def to_gaussian(self) -> GaussianMap:
         """BB 3.2: [pose, features with p(exists) > 0.95] as one SPD Gaussian (local frame)."""

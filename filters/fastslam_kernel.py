@@ -453,3 +453,43 @@ def scan_update(
                 active[p, j] = True
                 cid[p, j] = -1
                 slots[k, p] = j
+
+
+@njit(cache=True)
+def _permute_row(a, p, order, buffer):
+    """``a[p] = a[p, order]`` through ``buffer``."""
+    C = a.shape[1]
+    for c in range(C):
+        buffer[c] = a[p, order[c]]
+    for c in range(C):
+        a[p, c] = buffer[c]
+
+
+@njit(cache=True)
+def compact_features(active, mx, my, sxx, sxy, syy, ex, cid):
+    """Move each particle's active features to its first slots, in place: active slots first,
+    then the inactive ones, each in slot order (the permutation
+    ``np.argsort(~active, axis=1, kind="stable")`` gives). Data movement only."""
+    P, C = active.shape
+    order = np.empty(C, dtype=np.int64)
+    floats = np.empty(C)
+    ints = np.empty(C, dtype=np.int64)
+    flags = np.empty(C, dtype=np.bool_)
+    for p in range(P):
+        n = 0
+        for c in range(C):
+            if active[p, c]:
+                order[n] = c
+                n += 1
+        for c in range(C):
+            if not active[p, c]:
+                order[n] = c
+                n += 1
+        _permute_row(mx, p, order, floats)
+        _permute_row(my, p, order, floats)
+        _permute_row(sxx, p, order, floats)
+        _permute_row(sxy, p, order, floats)
+        _permute_row(syy, p, order, floats)
+        _permute_row(ex, p, order, floats)
+        _permute_row(cid, p, order, ints)
+        _permute_row(active, p, order, flags)

@@ -201,7 +201,7 @@ def observe(pose, m):
     m = np.asarray(m, dtype=float)
     dx = m[..., 0] - pose[..., 0]
     dy = m[..., 1] - pose[..., 1]
-    out = np.empty(np.broadcast_shapes(pose.shape[:-1], m.shape[:-1]) + (2,))
+    out = np.empty(dx.shape + (2,))  # the broadcast shape of the poses and the points
     out[..., 0] = np.hypot(dx, dy)
     out[..., 1] = wrap_angle(np.arctan2(dy, dx) - pose[..., 2])
     return out
@@ -215,7 +215,7 @@ def observe_jacobians(pose, m):
     dy = m[..., 1] - pose[..., 1]
     q = dx * dx + dy * dy
     r = np.sqrt(q)
-    shape = np.broadcast_shapes(pose.shape[:-1], m.shape[:-1])
+    shape = dx.shape  # the broadcast shape of the poses and the points
     H_m = np.empty(shape + (2, 2))
     H_m[..., 0, 0] = dx / r
     H_m[..., 0, 1] = dy / r
@@ -233,7 +233,7 @@ def inverse_observe(pose, z):
     pose = np.asarray(pose, dtype=float)
     z = np.asarray(z, dtype=float)
     angle = pose[..., 2] + z[..., 1]
-    out = np.empty(np.broadcast_shapes(pose.shape[:-1], z.shape[:-1]) + (2,))
+    out = np.empty(angle.shape + (2,))  # the broadcast shape of the poses and the observations
     out[..., 0] = pose[..., 0] + z[..., 0] * np.cos(angle)
     out[..., 1] = pose[..., 1] + z[..., 0] * np.sin(angle)
     return out

@@ -205,6 +205,24 @@ class SubmapSLAM:
             existence=np.concatenate([glob.existence, loc.existence[keep]]),
         )
 
+    def landmark_means(self):
+        """``(ids, means, existence)`` of :meth:`landmarks` without the local features'
+        covariances (the same numbers), when the front-end can skip them (map scoring)."""
+        if not hasattr(self.front_end, "landmark_means"):
+            lm = self.landmarks()
+            return lm.ids, lm.means, lm.existence
+        glob = self.back_end.landmarks()
+        ids, means, existence = self.front_end.landmark_means()
+        keep = existence > CONFIRMED_PROBABILITY
+        if not keep.any():
+            return glob.ids, glob.means, glob.existence
+        v, _ = self.back_end.origin()
+        return (
+            np.concatenate([glob.ids, ids[keep]]),
+            np.vstack([glob.means, transform_point(v, means[keep])]),
+            np.concatenate([glob.existence, existence[keep]]),
+        )
+
     # ------------------------------------------------------------------ fusion / optimisation
     def fuse(self) -> FusionReport:
         """Fuse the local map into the global map and restart the front-end (BB section 4)."""

@@ -25,5 +25,13 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   # torch first, pinned to the CPU build, then everything else under the same constraint
   .venv/bin/python -m pip install --quiet -c constraints.txt "torch==2.13.0"
   .venv/bin/python -m pip install --quiet -c constraints.txt -e ".[test,ray]"
+  # compile the numba kernels now (numba caches them in __pycache__), not in the first env reset
+  # of the first process (~8 s): a few decisions of each back-end, fusing and optimising
+  .venv/bin/python -c 'import numpy as np; from slam_gym.envs.hybrid_slam import HybridSLAMEnv
+for back_end in ("ekf", "relative"):
+    env = HybridSLAMEnv(n_particles=10, n_steps=120, back_end=back_end)
+    env.reset(seed=0)
+    for _ in range(5):
+        env.step(np.array([1, 1]))'
   echo "$want" > "$stamp"
 fi

@@ -151,14 +151,27 @@ class Episode:
         )
 
     def map_score(self, min_existence: float = CONFIRMED_PROBABILITY):
-        lm = self.confirmed_landmarks(min_existence)
+        ids, means = self._confirmed_means(min_existence)
         return score_map(
-            lm.ids,
-            lm.means,
+            ids,
+            means,
             self.feature_truth,
             self.stream.landmarks_true,
             self.detected_landmarks,
         )
+
+    def _confirmed_means(self, min_existence: float):
+        """Ids and means of :meth:`confirmed_landmarks`, without computing covariances where the
+        system can skip them (``landmark_means``): the score needs none, and the env scores
+        the map at every decision."""
+        system = self.system
+        if hasattr(system, "landmark_means"):
+            ids, means, existence = system.landmark_means()
+        else:
+            lm = system.landmarks()
+            ids, means, existence = lm.ids, lm.means, lm.existence
+        keep = np.asarray(existence) >= min_existence
+        return np.asarray(ids)[keep], np.asarray(means)[keep]
 
     def metrics(self) -> dict:
         """The metrics of DESIGN section 6 for the run so far."""

@@ -296,7 +296,9 @@ def get_scenario(name: str | Scenario, **overrides) -> Scenario:
 
 
 def make_stream(name: str | Scenario, seed: int, **overrides):
-    """Simulate the scenario ``name`` (with overrides) for ``seed``, as a ``Stream``."""
-    from slam_gym.world import simulate
+    """Simulate the scenario ``name`` (with overrides) for ``seed``, as a ``Stream`` (a world
+    simulated recently in this process is copied, not simulated again:
+    :func:`slam_gym.world.simulate_cached`)."""
+    from slam_gym.world import simulate_cached
 
-    return simulate(get_scenario(name, **overrides), seed)
+    return simulate_cached(get_scenario(name, **overrides), seed)

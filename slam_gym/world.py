@@ -28,6 +28,8 @@ observations of a scan are shuffled.
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import math
 
 import numpy as np
@@ -192,25 +194,48 @@ def scan(
 ):
     """One scan from ``pose``: shuffled observations (K, 2), their truth ids, visible ids."""
     z_true = observe(pose, landmarks) if len(landmarks) else np.zeros((0, 2))
-    visible = np.flatnonzero(sensor.in_view(z_true))
+    return _detect(z_true, np.flatnonzero(sensor.in_view(z_true)), sensor, clutter, rng)
+
+
+def _detect(z_true, visible, sensor, clutter, rng):
+    """The scan of :func:`scan` given the true observations of every landmark (L, 2) and the
+    indices of the visible ones: detections, false alarms, shuffled (the random draws)."""
     detected = visible[rng.random(len(visible)) < clutter.alpha]
-    z_det = z_true[detected] + rng.standard_normal((len(detected), 2)) * [
-        sensor.range_std_m,
-        sensor.bearing_std_rad,
-    ]
+    n_det = len(detected)
+    noise_std = np.array([sensor.range_std_m, sensor.bearing_std_rad])
+    z_det = z_true[detected] + rng.standard_normal((n_det, 2)) * noise_std
     n_false = int(np.count_nonzero(rng.random(len(visible)) < clutter.beta))
-    z_false = np.column_stack(
-        [
-            rng.uniform(0.0, sensor.max_range_m, n_false),
-            rng.uniform(-0.5 * sensor.fov_rad, 0.5 * sensor.fov_rad, n_false),
-        ]
-    )
-    z = np.vstack([z_det, z_false])
+    # detections first, then the false alarms (range, then bearing), in one array
+    z = np.empty((n_det + n_false, 2))
+    z[:n_det] = z_det
+    z[n_det:, 0] = rng.uniform(0.0, sensor.max_range_m, n_false)
+    z[n_det:, 1] = rng.uniform(-0.5 * sensor.fov_rad, 0.5 * sensor.fov_rad, n_false)
     z[:, 0] = np.maximum(z[:, 0], 0.0)  # a range sensor reports no negative range
     z[:, 1] = wrap_angle(z[:, 1])
-    ids = np.concatenate([detected, np.full(n_false, -1)]).astype(np.int64)
+    ids = np.full(n_det + n_false, -1, dtype=np.int64)
+    ids[:n_det] = detected
     order = rng.permutation(len(z))
     return z[order], ids[order], visible.astype(np.int64)
+
+
+OBSERVED_BLOCK_ELEMENTS = 1 << 16
+"""Pose-landmark pairs :func:`_true_views` observes at once (bounds its memory to a few MB)."""
+
+
+def _true_views(poses: np.ndarray, landmarks: np.ndarray, sensor: RangeBearingSensor):
+    """For each pose of ``poses`` (n, 3), in order: the true observations of every landmark
+    (L, 2) and the indices of the visible ones, as :func:`scan` computes them, for blocks of
+    poses at once (element-wise arithmetic on the same values, so the same numbers)."""
+    if len(landmarks) == 0:
+        for _ in range(len(poses)):
+            yield np.zeros((0, 2)), np.zeros(0, dtype=np.int64)
+        return
+    block = max(1, OBSERVED_BLOCK_ELEMENTS // len(landmarks))
+    for start in range(0, len(poses), block):
+        z_true = observe(poses[start:start + block, None, :], landmarks[None, :, :])
+        seen = sensor.in_view(z_true)
+        for z, in_view in zip(z_true, seen, strict=True):
+            yield z, np.flatnonzero(in_view)
 
 
 FAST_TURN_RADPS = 0.5
@@ -229,10 +254,57 @@ def turning_statistics(stream, fast_radps: float = FAST_TURN_RADPS) -> dict:
     }
 
 
-def simulate(scenario: Scenario, seed: int) -> Stream:
-    """Simulate ``scenario`` for ``seed`` (a non-negative integer)."""
+WORLD_CACHE_SIZE = 8
+"""Worlds :func:`simulate_cached` keeps per process (a ``brooks-bailey`` world is about 5 MB)."""
+
+
+def _check_seed(seed) -> None:
     if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or seed < 0:
         raise ValueError(f"seed={seed!r} is invalid: must be a non-negative integer")
+
+
+def _read_only(array):
+    if isinstance(array, np.ndarray):
+        array.flags.writeable = False
+    return array
+
+
+def _frozen(stream: Stream) -> Stream:
+    """``stream`` with every array read-only and its steps in a tuple: a world that can be
+    shared, since no holder can change it (its steps and truths are frozen dataclasses)."""
+    steps = tuple(stream)
+    for step in steps:
+        for array in (step.odometry, step.z, step.truth.pose, step.truth.landmark_ids,
+                      step.truth.visible_ids):
+            _read_only(array)
+    for array in (stream.initial_pose, stream.landmarks_true, *stream.metadata.values()):
+        _read_only(array)
+    return dataclasses.replace(stream, make_steps=steps_from_list(steps))
+
+
+@functools.lru_cache(maxsize=WORLD_CACHE_SIZE)
+def _remembered_world(scenario: Scenario, seed: int) -> Stream:
+    """The read-only world of ``(scenario, seed)`` (:func:`simulate_cached`)."""
+    return _frozen(simulate(scenario, seed))
+
+
+def simulate_cached(scenario: Scenario, seed: int) -> Stream:
+    """:func:`simulate`, remembering the last :data:`WORLD_CACHE_SIZE` worlds of this process.
+
+    A world is a pure function of the scenario and the seed, so a remembered one is the world
+    :func:`simulate` would return, bit for bit. Remembered worlds are shared read-only: their
+    arrays cannot be written (a write raises), their steps are frozen and held in a tuple, and
+    each call gets its own :class:`~slam_gym.stream.Stream` and ``metadata`` dict, so no caller
+    can change another's world. Each process (e.g. a spawned worker) keeps its own cache.
+    """
+    _check_seed(seed)
+    world = _remembered_world(scenario, int(seed))
+    return dataclasses.replace(world, metadata=dict(world.metadata))
+
+
+def simulate(scenario: Scenario, seed: int) -> Stream:
+    """Simulate ``scenario`` for ``seed`` (a non-negative integer)."""
+    _check_seed(seed)
     world_rng, odometry_rng, sensor_rng = (
         np.random.default_rng(s) for s in np.random.SeedSequence(int(seed)).spawn(3)
     )
@@ -255,6 +327,12 @@ def simulate(scenario: Scenario, seed: int) -> Stream:
     every = scenario.steps_per_scan
     empty_z, empty_ids = np.zeros((0, 2)), np.zeros(0, dtype=np.int64)
     steps = []
+    scan_indices = [0] * first + [k + 1 for k in range(n_moving) if (k + 1) % every == 0]
+    views = _true_views(poses[scan_indices], landmarks, sensor)
+
+    def scan_at_next_pose():
+        z_true, visible = next(views)
+        return _detect(z_true, visible, sensor, clutter, sensor_rng)
 
     def compass_at(pose):
         if scenario.compass_std_rad is None:
@@ -262,7 +340,7 @@ def simulate(scenario: Scenario, seed: int) -> Stream:
         return float(wrap_angle(pose[2] + scenario.compass_std_rad * sensor_rng.normal()))
 
     if first:
-        z, ids, visible = scan(poses[0], landmarks, sensor, clutter, sensor_rng)
+        z, ids, visible = scan_at_next_pose()
         steps.append(
             Step(
                 index=0,
@@ -278,7 +356,7 @@ def simulate(scenario: Scenario, seed: int) -> Stream:
         pose = poses[k + 1]
         scanned = (k + 1) % every == 0
         if scanned:
-            z, ids, visible = scan(pose, landmarks, sensor, clutter, sensor_rng)
+            z, ids, visible = scan_at_next_pose()
         else:
             z, ids, visible = empty_z, empty_ids, None
         steps.append(

@@ -1,5 +1,6 @@
 """``slam-gym speed``: iterations per second, ratio to real time, cost per particle-iteration,
-the env's decisions per second, and ESDF's per-update time as its state grows.
+the env's decisions per second (at 100 and 500 particles, resets included), the env's first
+reset in a fresh process, and ESDF's per-update time as its state grows.
 
 Times are CPU times of this process (``time.process_time``, one BLAS thread): the figures are
 one core's throughput even when other work shares the machine. A system's time covers the whole
@@ -9,8 +10,12 @@ run (filter, fusions and the episode's metrics), so it slightly overstates the f
 from __future__ import annotations
 
 import json
+import os
 import platform
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -34,8 +39,13 @@ def add_parser(subparsers) -> None:
     p.add_argument("--iterations", type=int, default=None,
                    help="iterations per measurement (default: the whole path)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--env-decisions", type=int, default=300,
-                   help="decisions for the env throughput (0 to skip)")
+    p.add_argument("--env-decisions", type=int, default=1000,
+                   help="decisions for the env throughput at each --env-particles count, over "
+                   "as many episodes as they take, resets included (0 to skip)")
+    p.add_argument("--env-particles", default="100,500",
+                   help="particle counts of the env throughput (default 100,500)")
+    p.add_argument("--skip-first-reset", action="store_true",
+                   help="skip timing the env's import and first reset in a fresh process")
     p.add_argument("--skip-paper-episode", action="store_true",
                    help="skip timing one whole env episode at the paper's 500 particles")
     p.add_argument("--skip-esdf", action="store_true")
@@ -75,14 +85,15 @@ def measure_system(name, level, n_particles, seed, iterations):
 
 
 def measure_env(decisions, seed, **config):
-    """Decisions per second of SlamGym/HybridSLAM-v0 (default: its training configuration),
-    resets included, fusing every 10 s; ``decisions=None`` runs exactly one whole episode."""
+    """Decisions per second of SlamGym/HybridSLAM-v0 (its defaults unless ``config`` says
+    otherwise), resets included, fusing every 10 s; ``decisions=None`` runs exactly one whole
+    episode. Resets draw new worlds (no world is replayed from the cache)."""
     from slam_gym.envs.hybrid_slam import HybridSLAMEnv
 
     env = HybridSLAMEnv(**config)
     start = time.process_time()
     env.reset(seed=seed)
-    done_decisions = 0
+    done_decisions, resets = 0, 1
     while decisions is None or done_decisions < decisions:
         fuse = int(env.episode.iteration % 100 == 0)
         _, _, terminated, truncated, _ = env.step(np.array([fuse, 0]))
@@ -91,6 +102,7 @@ def measure_env(decisions, seed, **config):
             if decisions is None:
                 break
             env.reset()
+            resets += 1
     cpu = time.process_time() - start
     return {
         "env": "SlamGym/HybridSLAM-v0",
@@ -98,10 +110,40 @@ def measure_env(decisions, seed, **config):
         "clutter_level": env.config.clutter_level,
         "decision_interval": env.config.decision_interval,
         "decisions": done_decisions,
+        "resets": resets,
         "iterations": env.episode.iteration,
         "cpu_time_s": cpu,
         "decisions_per_s": done_decisions / cpu,
     }
+
+
+FIRST_RESET_SCRIPT = """
+import json, time
+wall, cpu = time.perf_counter(), time.process_time()
+from slam_gym.envs.hybrid_slam import HybridSLAMEnv
+import_wall, import_cpu = time.perf_counter() - wall, time.process_time() - cpu
+env = HybridSLAMEnv(n_particles={n_particles})
+env.reset(seed={seed})
+print(json.dumps({{"import_wall_s": import_wall, "import_cpu_s": import_cpu,
+                  "first_reset_wall_s": time.perf_counter() - wall - import_wall,
+                  "first_reset_cpu_s": time.process_time() - cpu - import_cpu}}))
+"""
+
+
+def measure_first_reset(seed, n_particles=500):
+    """Import and first reset of the env in a fresh Python process (wall and CPU seconds): what
+    a new worker pays before its first decision. Compiled filter code comes from numba's cache
+    (``__pycache__``) when an earlier process wrote it; the very first run compiles it."""
+    import slam_gym
+
+    code = FIRST_RESET_SCRIPT.format(n_particles=int(n_particles), seed=int(seed))
+    root = str(Path(slam_gym.__file__).resolve().parents[1])  # this checkout, not another
+    path = os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH")) if p)
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          check=True, env={**os.environ, "PYTHONPATH": path})
+    row = json.loads(done.stdout.strip().splitlines()[-1])
+    row["n_particles"] = int(n_particles)
+    return row
 
 
 PAPER_ENV_CONFIG = {"n_particles": 500}
@@ -207,7 +249,13 @@ def run(args) -> int:
         "systems": rows,
     }
     if args.env_decisions > 0:
-        result["env"] = measure_env(args.env_decisions, args.seed)
+        result["env_runs"] = [
+            measure_env(args.env_decisions, args.seed, n_particles=n)
+            for n in int_list(args.env_particles)
+        ]
+        result["env"] = result["env_runs"][-1]
+    if not args.skip_first_reset:
+        result["env_first_reset"] = measure_first_reset(args.seed)
     if args.env_decisions > 0 and not args.skip_paper_episode:
         result["env_paper_episode"] = measure_env(None, args.seed, **PAPER_ENV_CONFIG)
     if not args.skip_esdf:
@@ -223,10 +271,15 @@ def run(args) -> int:
             f"{r['iterations_per_s']:>10.0f}{r['real_time_ratio']:>13.1f}"
             f"{r['ms_per_iteration']:>9.2f}{(f'{per:.2f}' if per else '-'):>16}"
         )
-    if "env" in result:
-        e = result["env"]
+    for e in result.get("env_runs", []):
         lines.append(f"env {e['env']} ({e['n_particles']} particles, interval "
-                     f"{e['decision_interval']}): {e['decisions_per_s']:.0f} decisions/s")
+                     f"{e['decision_interval']}): {e['decisions_per_s']:.0f} decisions/s "
+                     f"({e['decisions']} decisions, {e['resets']} resets included)")
+    if "env_first_reset" in result:
+        e = result["env_first_reset"]
+        lines.append(f"env in a fresh process: import {e['import_cpu_s']:.2f} s, first reset "
+                     f"{e['first_reset_cpu_s']:.2f} s CPU ({e['import_wall_s']:.2f} s and "
+                     f"{e['first_reset_wall_s']:.2f} s wall)")
     if "env_paper_episode" in result:
         e = result["env_paper_episode"]
         lines.append(f"env paper configuration ({e['n_particles']} particles): one whole episode "

@@ -409,3 +409,60 @@ def test_assign_ids_equals_the_entry_by_entry_rule_and_leaves_ids_unique(seed):
     assign_correspondence_ids(cids, active, obs, parts, slots, proposed)
     np.testing.assert_array_equal(cids, expected)
     assert _duplicates(cids, active) == []
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_compiled_scan_assignment_writes_the_ids_of_the_general_one(seed):
+    from filters.conversion import assign_scan_ids
+
+    rng = np.random.default_rng(seed)
+    K, P, C = 4, 30, 8
+    active = rng.random((P, C)) < 0.7
+    cids = np.where(active, rng.integers(0, 6, (P, C)), -1)
+    # each observation takes at most one slot per particle and each slot at most one observation
+    slots = np.full((K, P), -1, dtype=np.int64)
+    for p in range(P):
+        chosen = rng.permutation(C)[:K]
+        use = rng.random(K) < 0.6
+        slots[use, p] = chosen[use]
+    winners = rng.integers(-1, 6, K)
+    a, b = cids.copy(), cids.copy()
+    ks, ps = np.nonzero(slots >= 0)
+    kept_general = assign_correspondence_ids(a, active, ks, ps, slots[ks, ps], winners[ks])
+    kept_compiled = assign_scan_ids(b, active, slots, winners)
+    assert np.array_equal(a, b) and kept_general == kept_compiled
+
+
+def _lexsort_common_features(w, cids, active, existence, trace):
+    """The numpy definition of the common set (lexsort, unique, bincount), for comparison."""
+    w = w / w.sum()  # as common_features normalises
+    P = len(w)
+    p_idx, s_idx = np.nonzero(active & (cids >= 0))
+    c, e, tr = cids[p_idx, s_idx], existence[p_idx, s_idx], trace[p_idx, s_idx]
+    order = np.lexsort((tr, -e, c, p_idx))
+    p_sorted, c_sorted = p_idx[order], c[order]
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = (p_sorted[1:] != p_sorted[:-1]) | (c_sorted[1:] != c_sorted[:-1])
+    keep = order[first]
+    keep = keep[w[p_idx[keep]] > 0.0]
+    ids, column = np.unique(c[keep], return_inverse=True)
+    slots = np.full((P, len(ids)), -1, dtype=np.int64)
+    slots[p_idx[keep], column] = s_idx[keep]
+    weighted = np.bincount(column, weights=w[p_idx[keep]] * e[keep], minlength=len(ids))
+    return ids, slots, np.minimum(weighted, 1.0)
+
+
+@pytest.mark.parametrize("seed", range(30))
+def test_compiled_common_set_equals_the_lexsort_definition_bit_for_bit(seed):
+    rng = np.random.default_rng(seed)
+    P, C = 40, 12
+    w = rng.random(P) * (rng.random(P) < 0.9)  # some particles of zero weight
+    w = w / w.sum()
+    active = rng.random((P, C)) < 0.6
+    cids = np.where(rng.random((P, C)) < 0.9, rng.integers(0, 8, (P, C)), -1)  # duplicates
+    existence = rng.choice([0.2, 0.5, 0.9, 1.0], (P, C))  # ties between duplicates
+    trace = rng.choice([0.1, 0.3, np.nan], (P, C))
+    got = common_features(w, cids, active, existence, tie_break=trace)
+    ids, slots, existence_w = _lexsort_common_features(w, cids, active, existence, trace)
+    assert np.array_equal(got.ids, ids) and np.array_equal(got.slots, slots)
+    assert got.existence.tobytes() == existence_w.tobytes()

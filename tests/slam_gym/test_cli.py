@@ -134,15 +134,27 @@ def test_benchmark_rejects_unknown_envs_and_baselines(tmp_path):
 def test_speed_tiny(tmp_path, capsys):
     out = run_json(capsys, ["speed", "--systems", "hybrid", "--particles", "10,40",
                             "--clutter-levels", "1", "--iterations", "60", "--env-decisions",
-                            "5", "--skip-paper-episode", "--skip-esdf", "--out", str(tmp_path)])
+                            "5", "--env-particles", "10,20", "--skip-paper-episode",
+                            "--skip-first-reset", "--skip-esdf", "--out", str(tmp_path)])
     rows = out["systems"]
     assert [r["n_particles"] for r in rows] == [10, 40]
     for r in rows:
         assert r["iterations"] == 60 and r["iterations_per_s"] > 0
         assert r["real_time_ratio"] == pytest.approx(r["iterations_per_s"] * 0.1)
-    assert out["env"]["decisions"] == 5
+    assert [e["n_particles"] for e in out["env_runs"]] == [10, 20]
+    assert out["env"] == out["env_runs"][-1] and out["env"]["decisions"] == 5
+    assert all(e["resets"] >= 1 and e["decisions_per_s"] > 0 for e in out["env_runs"])
+    assert "env_first_reset" not in out
     assert "env_paper_episode" not in out
     assert json.loads((tmp_path / "speed.json").read_text())["systems"] == rows
+
+
+def test_speed_times_the_first_reset_in_a_fresh_process():
+    from slam_gym.commands.speed import measure_first_reset
+
+    row = measure_first_reset(0, n_particles=10)
+    assert row["n_particles"] == 10
+    assert row["first_reset_cpu_s"] > 0 and row["import_cpu_s"] > 0
 
 
 def test_speed_times_exactly_one_whole_env_episode():

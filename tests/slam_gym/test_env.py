@@ -476,3 +476,37 @@ def test_env_never_fusing_reproduces_pure_fastslam():
     a, b = env.system.landmarks(), reference.system.landmarks()
     assert len(a) == len(b) > 0
     np.testing.assert_allclose(np.sort(a.means, axis=0), np.sort(b.means, axis=0), atol=1e-9)
+
+
+def test_map_score_from_means_only_equals_the_score_of_the_full_landmarks():
+    from slam_gym.metrics import score_map
+
+    env = make("SlamGym/HybridSLAM-v0")
+    env.reset(seed=3)
+    ep = env.unwrapped.episode
+    for k in range(40):
+        env.step(np.array([int(k % 10 == 9), 0]))
+        lm = ep.confirmed_landmarks()
+        full = score_map(lm.ids, lm.means, ep.feature_truth, ep.stream.landmarks_true,
+                         ep.detected_landmarks)
+        assert repr(ep.map_score()) == repr(full)  # exact, NaN included
+
+
+def test_an_env_on_a_remembered_world_repeats_the_fresh_rollout():
+    from slam_gym.world import _remembered_world
+
+    def rollout():
+        env = make("SlamGym/HybridSLAM-Light-v0")
+        out = [env.reset(seed=4, options={"world_seed": 9})[0]]
+        for k in range(30):
+            obs, reward, *_ = env.step(np.array([int(k % 10 == 9), 0]))
+            out += [obs, reward]
+        return out
+
+    _remembered_world.cache_clear()
+    fresh = rollout()
+    assert _remembered_world.cache_info().currsize == 1
+    remembered = rollout()
+    assert _remembered_world.cache_info().hits >= 1
+    for a, b in zip(fresh, remembered, strict=True):
+        assert np.array_equal(a, b)

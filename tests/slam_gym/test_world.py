@@ -338,3 +338,60 @@ def test_unknown_association_confirms_the_landmarks_between_sparse_scans(system)
     metrics = episode.metrics()
     assert len(episode.detected_landmarks) >= 10
     assert metrics["map_completeness"] >= 0.8, metrics
+
+
+def _assert_same_stream(a, b):
+    assert len(a) == len(b) and np.array_equal(a.landmarks_true, b.landmarks_true)
+    assert np.array_equal(a.initial_pose, b.initial_pose)
+    for sa, sb in zip(a, b, strict=True):
+        assert (sa.index, sa.t_s, sa.dt_s, sa.compass_rad, sa.scanned) == (
+            sb.index, sb.t_s, sb.dt_s, sb.compass_rad, sb.scanned)
+        assert np.array_equal(sa.z, sb.z) and np.array_equal(sa.odometry, sb.odometry)
+        assert np.array_equal(sa.truth.pose, sb.truth.pose)
+        assert np.array_equal(sa.truth.landmark_ids, sb.truth.landmark_ids)
+        va, vb = sa.truth.visible_ids, sb.truth.visible_ids
+        assert (va is None and vb is None) or np.array_equal(va, vb)
+
+
+def test_a_remembered_world_equals_a_fresh_simulation_and_cannot_be_changed():
+    from slam_gym.world import simulate, simulate_cached
+
+    scenario = get_scenario("brooks-bailey", clutter_level=2, n_steps=300)
+    first = simulate_cached(scenario, 11)
+    first.metadata["seed"] = -5  # a caller's own stream and metadata: the next one is unaffected
+    step = next(iter(first))
+    for array in (step.z, step.odometry, step.truth.pose, first.landmarks_true,
+                  first.metadata["true_poses"]):
+        with pytest.raises(ValueError, match="read-only"):
+            array[...] = -1.0
+    again = simulate_cached(scenario, 11)
+    _assert_same_stream(again, simulate(scenario, 11))
+    assert again.metadata["seed"] == 11 and again is not first
+    with pytest.raises(ValueError, match="seed"):
+        simulate_cached(scenario, True)
+
+
+def test_the_world_cache_is_bounded():
+    from slam_gym.world import WORLD_CACHE_SIZE, _remembered_world, simulate_cached
+
+    scenario = get_scenario("brooks-bailey", clutter_level=0, n_steps=20)
+    for seed in range(WORLD_CACHE_SIZE + 3):
+        simulate_cached(scenario, seed)
+    assert _remembered_world.cache_info().currsize <= WORLD_CACHE_SIZE
+
+
+def test_true_views_of_pose_blocks_equal_the_views_pose_by_pose():
+    from slam_gym.world import OBSERVED_BLOCK_ELEMENTS, _true_views, sensor_of
+
+    rng = np.random.default_rng(0)
+    sensor = sensor_of(get_scenario("brooks-bailey"))
+    landmarks = rng.uniform(0.0, 120.0, (37, 2))
+    n = 2 * OBSERVED_BLOCK_ELEMENTS // len(landmarks) + 5  # three blocks, the last one short
+    poses = np.column_stack([rng.uniform(0.0, 120.0, (n, 2)), rng.uniform(-4.0, 4.0, n)])
+    views = list(_true_views(poses, landmarks, sensor))
+    assert len(views) == n
+    for pose, (z_true, visible) in zip(poses, views, strict=True):
+        expected = observe(pose, landmarks)
+        assert z_true.tobytes() == expected.tobytes()
+        assert np.array_equal(visible, np.flatnonzero(sensor.in_view(expected)))
+    assert [len(z) for z, _ in _true_views(poses[:3], np.zeros((0, 2)), sensor)] == [0, 0, 0]
