@@ -297,7 +297,7 @@ def get_scenario(name: str | Scenario, **overrides) -> Scenario:
 
 def make_stream(name: str | Scenario, seed: int, **overrides):
     """Simulate the scenario ``name`` (with overrides) for ``seed``, as a ``Stream`` (a world
-    simulated recently in this process is copied, not simulated again:
+    simulated recently in this process is shared read-only, not simulated again:
     :func:`slam_gym.world.simulate_cached`)."""
     from slam_gym.world import simulate_cached
 
