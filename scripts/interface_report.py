@@ -10,8 +10,10 @@ reckoning have no decisions and no return) and prints, per rule and clutter leve
   episode, map error of the runs that did not fail (mean [t 95 % interval]) and the CPU seconds
   of fusions + optimisations;
 * the returns: mean over all, failed and surviving runs;
-* paired against ``fixed-10s`` (BB's rule, never optimising) on the worlds where both survived:
-  the mean map error difference [t 95 % interval] and in how many of those worlds it was lower;
+* paired against ``fixed-10s`` (BB's rule, never optimising) by world, per level and pooled:
+  the success difference, the ANEES ratio (geometric mean of the per-world ratios) and, on the
+  worlds where both survived, the map error difference (mean [t 95 % interval]) and in how many
+  of those worlds it was lower;
 * which rules are dominated: per clutter level, the rules no other rule beats on both the map
   error of the runs that did not fail and the CPU of fusions + optimisations (the Pareto figure
   ``pareto_interface.png``), on the map error and the total CPU (``pareto.png``), and with the
@@ -90,27 +92,51 @@ def decisions_table(runs) -> str:
     return "\n".join(lines)
 
 
+def _paired(by, name, reference, levels):
+    """Per-world differences of ``name`` against ``reference`` over ``levels``: success (all
+    worlds), log ANEES (all worlds) and map error (worlds both survived)."""
+    success, log_anees, map_error = [], [], []
+    for (n, level, seed), r in by.items():
+        ref = by.get((reference, level, seed))
+        if n != name or level not in levels or ref is None:
+            continue
+        success.append(float(r["success"]) - float(ref["success"]))
+        log_anees.append(np.log(r["anees"]) - np.log(ref["anees"]))
+        if r["success"] and ref["success"] and None not in (r["map_error_m"], ref["map_error_m"]):
+            map_error.append(r["map_error_m"] - ref["map_error_m"])
+    return success, log_anees, map_error
+
+
+def _interval(values, fmt, scale=1.0):
+    if len(values) < 2:
+        return "–"
+    lo, hi = mean_interval(values) or (np.nan, np.nan)
+    return (f"{fmt.format(scale * np.mean(values))} "
+            f"[{fmt.format(scale * lo)}, {fmt.format(scale * hi)}]")
+
+
 def paired_table(runs, reference: str = "fixed-10s") -> str:
     by = {(r["policy"], r["clutter_level"], r["seed"]): r for r in runs}
     names = [n for n in dict.fromkeys(r["policy"] for r in runs) if n != reference]
     levels = sorted({r["clutter_level"] for r in runs})
-    lines = [f"| rule | clutter | worlds both survived | map error minus {reference}'s (m) | "
-             "lower in |", "|---|---:|---:|---:|---:|"]
+    lines = [f"| rule | clutter | success minus {reference}'s (pp) | ANEES / {reference}'s "
+             "(geometric mean) | worlds both survived | map error minus its (m) | lower in |",
+             "|---|---:|---:|---:|---:|---:|---:|"]
     for name in names:
-        for lv in levels:
-            diffs = []
-            for (n, level, seed), r in by.items():
-                ref = by.get((reference, level, seed))
-                if n != name or level != lv or ref is None:
-                    continue
-                if r["success"] and ref["success"] and None not in (r["map_error_m"],
-                                                                    ref["map_error_m"]):
-                    diffs.append(r["map_error_m"] - ref["map_error_m"])
-            if len(diffs) < 2:
+        for label, lvls in [(str(lv), [lv]) for lv in levels] + [("all", levels)]:
+            success, log_anees, map_error = _paired(by, name, reference, lvls)
+            if not success:
                 continue
-            ci = mean_interval(diffs)
-            lines.append(f"| {name} | {lv} | {len(diffs)} | {np.mean(diffs):+.2f} "
-                         f"[{ci[0]:+.2f}, {ci[1]:+.2f}] | {sum(d < 0 for d in diffs)} |")
+            if len(log_anees) > 1:
+                lo, hi = mean_interval(log_anees)
+                ratio = f"{np.exp(np.mean(log_anees)):.2f} [{np.exp(lo):.2f}, {np.exp(hi):.2f}]"
+            else:
+                ratio = "–"
+            lines.append(
+                f"| {name} | {label} | {_interval(success, '{:+.0f}', 100.0)} | {ratio} | "
+                f"{len(map_error)} | {_interval(map_error, '{:+.2f}')} | "
+                f"{sum(d < 0 for d in map_error)} |"
+            )
     return "\n".join(lines)
 
 
