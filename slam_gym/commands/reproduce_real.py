@@ -61,6 +61,7 @@ loading), and on Victoria Park ``real_time_factor`` = recording duration / filte
 
 from __future__ import annotations
 
+import argparse
 import logging
 import math
 import statistics
@@ -73,6 +74,7 @@ from filters.validation import require
 from slam_gym.commands.common import emit, out_dir
 from slam_gym.commands.runs import add_run_options, int_list, name_list
 from slam_gym.datasets.location import default_data_dir
+from slam_gym.datasets.mrclam import DEFAULT_CALIBRATION_S
 
 logger = logging.getLogger(__name__)
 
@@ -97,13 +99,18 @@ MRCLAM_OPTIONS = {
     "decision_interval": DECISION_INTERVAL,
     "model_path": None,
     "noise_window_s": None,
-    "sensor_bias_correction": False,
-    "motion_compensation": False,
+    "sensor_bias_correction": None,
+    "motion_compensation": None,
+    "corrections": True,
+    "calibration_s": DEFAULT_CALIBRATION_S,
     "landmark_density_per_m2": None,
     "gate_chi2": None,
 }
 #: MRCLAM options that change the stream (the loader's sensor calibration)
-MRCLAM_STREAM_OPTIONS = ("noise_window_s", "sensor_bias_correction", "motion_compensation")
+MRCLAM_STREAM_OPTIONS = (
+    "noise_window_s", "sensor_bias_correction", "motion_compensation", "corrections",
+    "calibration_s",
+)
 #: MRCLAM options of the FastSLAM filters (FASTSLAM, HYBRID's front-end) by filter keyword
 MRCLAM_FASTSLAM_OPTIONS = {
     "landmark_density_per_m2": "new_landmark_density_per_m2",
@@ -164,18 +171,29 @@ def add_parser(targets) -> None:
         help="factor on the calibrated range/bearing std (default 1)",
     )
     mr.add_argument(
+        "--calibration-s", type=float, default=DEFAULT_CALIBRATION_S, metavar="SECONDS",
+        help="the loader estimates every model and correction on this many first seconds of "
+        f"each recording, never on the rest (default {DEFAULT_CALIBRATION_S:g})",
+    )
+    mr.add_argument(
+        "--no-corrections", dest="corrections", action="store_false",
+        help="the plain stream: no odometry delay/gain, time stamp, motion, camera bias or "
+        "correlated-noise correction (the noise is the root mean square of the residuals)",
+    )
+    mr.add_argument(
         "--noise-window", type=float, default=None, metavar="SECONDS",
-        help="calibrate the range/bearing std by the white-noise rule over windows of this "
-        "many seconds, accounting for the time correlation of the camera's errors "
-        "(default: the root mean square of the residuals)",
+        help="window of the white-noise rule for the camera's time-correlated errors "
+        "(default: the median pass over a landmark, measured on the calibration part)",
     )
     mr.add_argument(
-        "--sensor-bias-correction", action="store_true",
-        help="subtract the camera's systematic range/bearing errors fitted against the truth",
+        "--sensor-bias-correction", action=argparse.BooleanOptionalAction, default=None,
+        help="subtract the camera's systematic range/bearing errors fitted against the truth "
+        "(default: as --no-corrections says)",
     )
     mr.add_argument(
-        "--motion-compensation", action="store_true",
-        help="move each measurement to the end of its filter step with the odometry",
+        "--motion-compensation", action=argparse.BooleanOptionalAction, default=None,
+        help="move each measurement to the end of its filter step with the odometry "
+        "(default: as --no-corrections says)",
     )
     mr.add_argument(
         "--landmark-density", type=float, default=None, metavar="PER_M2",
@@ -302,10 +320,13 @@ def run_mrclam(args) -> int:
 
     base = {"data": str(data), "max_steps": args.max_steps, "noise_scale": args.noise_scale}
     # calibration and filter options enter the job (and its resume key) only when given
+    require(args.calibration_s >= 10.0 and math.isfinite(args.calibration_s), "--calibration-s",
+            args.calibration_s, "a number of seconds >= 10")
+    base |= {"corrections": args.corrections, "calibration_s": args.calibration_s}
     given = {
         "noise_window_s": args.noise_window,
-        "sensor_bias_correction": args.sensor_bias_correction or None,
-        "motion_compensation": args.motion_compensation or None,
+        "sensor_bias_correction": args.sensor_bias_correction,
+        "motion_compensation": args.motion_compensation,
         "landmark_density_per_m2": args.landmark_density,
         "gate_chi2": args.gate_chi2,
     }
@@ -394,11 +415,16 @@ def _mrclam_notes(args, skipped, no_known_mode, known_capable) -> list[str]:
         f"Sub-map systems fuse every {FUSION_INTERVAL_S:g} s (BB); particles: {args.particles}; "
         f"sensor noise scale: {args.noise_scale:g}; runs go on after BB's failure criterion "
         "(success = never met).",
-        "Sensor noise: "
-        + ("root mean square of the residuals against the truth" if args.noise_window is None
-           else f"white-noise rule over {args.noise_window:g} s windows (correlated errors)")
-        + ("; camera bias corrected" if args.sensor_bias_correction else "")
-        + ("; measurements moved to the step end" if args.motion_compensation else "")
+        f"Calibration: every model estimated on the first {args.calibration_s:g} s of each "
+        "recording; corrections "
+        + ("on (odometry delay and gains, time stamps, motion, camera bias, correlated noise)"
+           if args.corrections else "off (plain stream, noise = RMS of the residuals)")
+        + ("" if args.noise_window is None
+           else f"; white-noise rule over {args.noise_window:g} s windows")
+        + {True: "; camera bias corrected", False: "; camera bias not corrected",
+           None: ""}[args.sensor_bias_correction]
+        + {True: "; measurements moved to the step end", False: "; no motion compensation",
+           None: ""}[args.motion_compensation]
         + ". FastSLAM (FASTSLAM, HYBRID): landmark density "
         + ("default" if args.landmark_density is None else f"{args.landmark_density:g} /m^2")
         + ", gate " + ("default" if args.gate_chi2 is None else f"chi2 {args.gate_chi2:g}")
@@ -496,8 +522,9 @@ def run_mrclam_system(
     name: str, robot: int, seed: int, *, data, known_association=False,
     n_particles=DEFAULT_PARTICLES, max_steps=None, noise_scale=1.0,
     fusion_interval_s=FUSION_INTERVAL_S, decision_interval=DECISION_INTERVAL, model_path=None,
-    noise_window_s=None, sensor_bias_correction=False, motion_compensation=False,
-    landmark_density_per_m2=None, gate_chi2=None,
+    noise_window_s=None, sensor_bias_correction=None, motion_compensation=None,
+    corrections=True, calibration_s=DEFAULT_CALIBRATION_S, landmark_density_per_m2=None,
+    gate_chi2=None,
 ) -> dict:
     """One system over one MRCLAM robot on BB's fixed schedule; the result row.
 
@@ -511,7 +538,8 @@ def run_mrclam_system(
     stream = mrclam_stream(
         data, robot, max_steps=max_steps, sensor_noise_scale=noise_scale,
         noise_window_s=noise_window_s, sensor_bias_correction=sensor_bias_correction,
-        motion_compensation=motion_compensation,
+        motion_compensation=motion_compensation, corrections=corrections,
+        calibration_s=calibration_s,
     )
     fs_options = fastslam_options(landmark_density_per_m2, gate_chi2)
     episode = run_system(
@@ -528,8 +556,9 @@ def run_mrclam_policy(
     name: str, robot: int, seed: int, *, data, n_particles=DEFAULT_PARTICLES, max_steps=None,
     noise_scale=1.0, decision_interval=DECISION_INTERVAL, model_path=None,
     known_association=False, fusion_interval_s=FUSION_INTERVAL_S,
-    noise_window_s=None, sensor_bias_correction=False, motion_compensation=False,
-    landmark_density_per_m2=None, gate_chi2=None,
+    noise_window_s=None, sensor_bias_correction=None, motion_compensation=None,
+    corrections=True, calibration_s=DEFAULT_CALIBRATION_S, landmark_density_per_m2=None,
+    gate_chi2=None,
 ) -> dict:
     """HYBRID driven by interface policy ``name`` in :class:`MRCLAMEnv` over one robot (the
     calibration and FastSLAM options as in :func:`run_mrclam_system`)."""
@@ -545,7 +574,8 @@ def run_mrclam_policy(
         decision_interval=decision_interval, n_steps=max_steps,
         sensor_noise_scale=noise_scale, terminate_on_failure=False,
         sensor_noise_window_s=noise_window_s, sensor_bias_correction=sensor_bias_correction,
-        motion_compensation=motion_compensation,
+        motion_compensation=motion_compensation, corrections=corrections,
+        calibration_s=calibration_s,
         front_end_options=fastslam_options(landmark_density_per_m2, gate_chi2),
     )
     policy.reset()

@@ -71,7 +71,7 @@ estimate is also in ``Stream.metadata["calibration"]``; an explicit keyword over
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -99,6 +99,13 @@ DEFAULT_ODOMETRY_WINDOW_S = 1.0
 DEFAULT_OUTLIER_GATE_PROBABILITY = 0.9999
 FIELD_QUANTILE = 0.995
 MIN_ODOMETRY_FLOOR = 1e-3
+#: the first seconds of a recording the calibration uses (the rest is held out)
+DEFAULT_CALIBRATION_S = 300.0
+#: timing offsets searched (+-) and their resolution
+MAX_DELAY_S = 0.5
+DELAY_STEP_S = 0.01
+#: a landmark not seen for longer ends a pass over it (sighting_pass_duration)
+PASS_GAP_S = 2.0
 
 
 # --------------------------------------------------------------------------- raw files
@@ -425,6 +432,121 @@ def estimate_odometry_noise(
     )
 
 
+# --------------------------------------------------------------------------- timing and scale
+@dataclass(frozen=True)
+class OdometryCorrection:
+    """Systematic odometry errors: a logged (v, omega) row stamped ``t`` describes the motion
+    from ``t + delay_s`` (the robot answers its commands late), and the true speeds are
+    ``v_gain v`` and ``omega_gain omega`` (see :func:`estimate_odometry_correction`)."""
+
+    delay_s: float
+    v_gain: float
+    omega_gain: float
+    n_windows: int
+
+    def apply(self, odometry_rows) -> np.ndarray:
+        """Rows (R, 3) t, v, omega with the times shifted and the speeds scaled."""
+        out = np.array(odometry_rows, dtype=float, copy=True)
+        out[:, 0] += self.delay_s
+        out[:, 1] *= self.v_gain
+        out[:, 2] *= self.omega_gain
+        return out
+
+
+def estimate_odometry_correction(
+    odometry_rows, groundtruth_rows, t_start: float, t_end: float, *,
+    window_s: float = DEFAULT_ODOMETRY_WINDOW_S, max_delay_s: float = MAX_DELAY_S,
+    delay_step_s: float = DELAY_STEP_S,
+) -> OdometryCorrection:
+    """Delay and gains of the odometry against the ground truth over [t_start, t_end].
+
+    The truth (v, omega) over consecutive windows of ``window_s`` (:func:`true_velocities`) is
+    compared with the window means of the odometry rows shifted by each delay on a grid of
+    ``delay_step_s`` in [-max_delay_s, max_delay_s]; the delay is the one with the smallest
+    squared omega error (the turn rate changes often and fast, the speed hardly: omega carries
+    the timing). With that delay, ``v_gain`` = true distance / odometry distance and
+    ``omega_gain`` the least-squares factor of the true on the logged turn rate.
+    """
+    check_range("window_s", window_s, 0.01, 1000.0)
+    check_range("max_delay_s", max_delay_s, 0.0, 10.0)
+    check_range("delay_step_s", delay_step_s, 1e-4, 10.0)
+    odo = np.asarray(odometry_rows, dtype=float)
+    gt = np.asarray(groundtruth_rows, dtype=float)
+    start = max(t_start, odo[0, 0] + max_delay_s)
+    n = int(np.floor((t_end - start) / window_s + 1e-9))
+    require(n >= 4, "t_end", t_end,
+            f"at least 4 windows of {window_s} s after {start} (odometry start + max delay)")
+    grid = start + window_s * np.arange(n + 1)
+    truth = true_velocities(gt[:, 0], gt[:, 1:4], grid)
+    ok = np.all(np.isfinite(truth), axis=1)
+    require(int(ok.sum()) >= 4, "groundtruth_rows", "too short", "covering at least 4 windows")
+    truth = truth[ok]
+    delays = delay_step_s * np.arange(-round(max_delay_s / delay_step_s),
+                                      round(max_delay_s / delay_step_s) + 1)
+    cost = [np.sum((hold_average(odo[:, 0] + d, odo[:, 1:3], grid)[ok, 1] - truth[:, 1]) ** 2)
+            for d in delays]
+    delay = float(delays[int(np.argmin(cost))])
+    measured = hold_average(odo[:, 0] + delay, odo[:, 1:3], grid)[ok]
+    distance = float(np.sum(measured[:, 0]))
+    turn = float(np.sum(measured[:, 1] ** 2))
+    v_gain = float(np.sum(truth[:, 0]) / distance) if abs(distance) > 0.0 else 1.0
+    omega_gain = float(np.sum(truth[:, 1] * measured[:, 1]) / turn) if turn > 0.0 else 1.0
+    return OdometryCorrection(delay, v_gain, omega_gain, int(ok.sum()))
+
+
+def estimate_measurement_delay(
+    times, z, landmarks_xy, groundtruth_rows, *, max_delay_s: float = MAX_DELAY_S,
+    delay_step_s: float = DELAY_STEP_S,
+) -> float:
+    """Delay ``d`` such that a measurement stamped ``t`` was taken at ``t + d``: the value on a
+    grid of ``delay_step_s`` in [-max_delay_s, max_delay_s] with the smallest squared bearing
+    residual against the truth at ``t + d`` (a late or early stamp turns every bearing by the
+    robot's rotation in between; the range hardly changes at MRCLAM's speeds). Rows whose
+    residual exceeds 5 robust std (1.4826 median |e|) at zero delay are left out. ``times``
+    (K,), ``z`` (K, 2), ``landmarks_xy`` (K, 2) the true position of each row's landmark."""
+    t = np.asarray(times, dtype=float).reshape(-1)
+    z = np.asarray(z, dtype=float)
+    m = np.asarray(landmarks_xy, dtype=float)
+    gt = np.asarray(groundtruth_rows, dtype=float)
+    require(z.shape == (t.size, 2) and m.shape == (t.size, 2), "z", z.shape,
+            f"({t.size}, 2) like landmarks_xy, one row per time")
+    check_range("max_delay_s", max_delay_s, 0.0, 10.0)
+    check_range("delay_step_s", delay_step_s, 1e-4, 10.0)
+    inside = (t - max_delay_s >= gt[0, 0]) & (t + max_delay_s <= gt[-1, 0])
+    t, z, m = t[inside], z[inside], m[inside]
+    require(t.size >= 8, "times", t.size, "at least 8 measurements inside the ground truth")
+
+    def bearing_error(d):
+        return innovation(z, observe(interpolate_poses(gt[:, 0], gt[:, 1:4], t + d), m))[:, 1]
+
+    e0 = bearing_error(0.0)
+    keep = np.abs(e0) <= 5.0 * 1.4826 * np.median(np.abs(e0))
+    delays = delay_step_s * np.arange(-round(max_delay_s / delay_step_s),
+                                      round(max_delay_s / delay_step_s) + 1)
+    cost = [np.sum(bearing_error(d)[keep] ** 2) for d in delays]
+    return float(delays[int(np.argmin(cost))])
+
+
+def sighting_pass_duration(times, groups, *, max_gap_s: float = PASS_GAP_S) -> float:
+    """Median duration of the passes over a landmark: runs of sightings of one group with no
+    gap longer than ``max_gap_s`` (passes of a single sighting last 0 s and are left out;
+    0.0 when there is none). Used as the window of :func:`correlated_noise_std`: a filter fuses
+    a whole pass, over which the camera's errors stay correlated."""
+    t = np.asarray(times, dtype=float).reshape(-1)
+    g = np.asarray(groups).reshape(-1)
+    require(t.size == g.size, "groups", g.shape, f"({t.size},) like times")
+    durations = []
+    for group in np.unique(g):
+        tg = np.sort(t[g == group])
+        cuts = np.flatnonzero(np.diff(tg) > max_gap_s)
+        starts = np.r_[0, cuts + 1]
+        ends = np.r_[cuts, tg.size - 1]
+        durations.extend(tg[ends] - tg[starts])
+    durations = np.asarray(durations)
+    durations = durations[durations > 0.0]
+    return float(np.median(durations)) if durations.size else 0.0
+
+
 def landmarks_in_view(step_poses, landmarks_xy, sensor: RangeBearingSensor) -> np.ndarray:
     """(S, N) bool: landmark n inside the sensor field (range and fov) from true pose s."""
     step_poses = np.asarray(step_poses, dtype=float)
@@ -487,6 +609,9 @@ class MrclamCalibration:
     noise_window_s: float | None = None
     filter_range_std_m: float | None = None
     filter_bearing_std_rad: float | None = None
+    calibration_s: float | None = None
+    odometry_correction: OdometryCorrection | None = None
+    measurement_delay_s: float | None = None
 
     def as_dict(self) -> dict:
         """Flat numbers (no arrays), for ``Stream.metadata`` and reports."""
@@ -495,9 +620,19 @@ class MrclamCalibration:
         if self.sensor_bias is not None:
             bias = {f"range_bias_c{i}": c for i, c in enumerate(self.sensor_bias.range_coef)}
             bias |= {f"bearing_bias_d{i}": d for i, d in enumerate(self.sensor_bias.bearing_coef)}
+        correction = {}
+        if self.odometry_correction is not None:
+            correction = {
+                "odometry_delay_s": self.odometry_correction.delay_s,
+                "odometry_v_gain": self.odometry_correction.v_gain,
+                "odometry_omega_gain": self.odometry_correction.omega_gain,
+            }
         return {
             **noise,
             **bias,
+            **correction,
+            "calibration_s": self.calibration_s,
+            "measurement_delay_s": self.measurement_delay_s,
             "noise_window_s": self.noise_window_s,
             "filter_range_std_m": self.filter_range_std_m,
             "filter_bearing_std_rad": self.filter_bearing_std_rad,
@@ -574,48 +709,113 @@ def _layout(rec: MrclamRecording, dt_s: float, motion_compensation: bool = False
     )
 
 
+def _corrected(rec: MrclamRecording, calibration_s, odometry_correction: bool,
+               timing_correction: bool):
+    """``rec`` with its odometry and measurement times corrected, the corrections estimated on
+    the first ``calibration_s`` seconds (None: all) after the raw start ``t0``; returns
+    (recording, OdometryCorrection or None, measurement delay or None, end of the calibration
+    part in Unix seconds)."""
+    odo_t, gt_t = rec.odometry[:, 0], rec.groundtruth[:, 0]
+    t0 = float(max(odo_t[0], gt_t[0]))
+    t_end = float(min(odo_t[-1], gt_t[-1]))
+    cal_end = t_end if calibration_s is None else min(t_end, t0 + float(calibration_s))
+    correction, delay = None, None
+    odometry, measurements = rec.odometry, rec.measurements
+    if odometry_correction:
+        correction = estimate_odometry_correction(rec.odometry, rec.groundtruth, t0, cal_end)
+        odometry = correction.apply(rec.odometry)
+    if timing_correction:
+        index = rec.measurement_landmark_index()
+        rows = (index >= 0) & (rec.measurements[:, 0] >= t0) & (rec.measurements[:, 0] <= cal_end)
+        delay = estimate_measurement_delay(
+            rec.measurements[rows, 0], rec.measurements[rows, 2:4],
+            rec.landmarks_xy[index[rows]], rec.groundtruth,
+        )
+        measurements = rec.measurements.copy()
+        measurements[:, 0] += delay
+    rec = replace(rec, odometry=odometry, measurements=measurements)
+    return rec, correction, delay, cal_end
+
+
 def calibrate_mrclam(
     rec: MrclamRecording,
     *,
     dt_s: float = DEFAULT_DT_S,
+    calibration_s: float | None = DEFAULT_CALIBRATION_S,
     odometry_window_s: float = DEFAULT_ODOMETRY_WINDOW_S,
     outlier_gate_probability: float = DEFAULT_OUTLIER_GATE_PROBABILITY,
     robot_sightings_as_clutter: bool = False,
     sensor: RangeBearingSensor | None = None,
-    motion_compensation: bool = False,
-    sensor_bias_correction: bool = False,
+    corrections: bool = True,
+    motion_compensation: bool | None = None,
+    sensor_bias_correction: bool | None = None,
+    odometry_correction: bool | None = None,
+    timing_correction: bool | None = None,
+    correlated_noise: bool | None = None,
     noise_window_s: float | None = None,
 ) -> MrclamCalibration:
-    """Estimate sensor noise, field of view, odometry noise and clutter rates for one robot.
-
-    The whole recording is used (on the ``dt_s`` grid of :func:`load_mrclam`). ``sensor``, when
-    given, replaces the estimated sensor for the in-view test of the clutter rates.
-    ``motion_compensation``, ``sensor_bias_correction`` and ``noise_window_s``: as in
-    :func:`load_mrclam`.
-    """
+    """Estimate the models of one robot from the first ``calibration_s`` seconds of its
+    recording (module docstring, "Calibration"); the options as in :func:`load_mrclam`.
+    ``sensor``, when given, replaces the estimated sensor for the in-view test of the clutter
+    rates."""
+    flags = _flags(corrections, motion_compensation, sensor_bias_correction,
+                   odometry_correction, timing_correction, correlated_noise)
+    _check_calibration_s(calibration_s)
+    rec, correction, delay, cal_end = _corrected(
+        rec, calibration_s, flags["odometry_correction"], flags["timing_correction"]
+    )
     return _calibrate(
         rec,
-        _layout(rec, dt_s, motion_compensation),
+        _layout(rec, dt_s, flags["motion_compensation"]),
         dt_s=dt_s,
+        cal_end=cal_end,
+        calibration_s=calibration_s,
         odometry_window_s=odometry_window_s,
         outlier_gate_probability=outlier_gate_probability,
         robot_sightings_as_clutter=robot_sightings_as_clutter,
         sensor=sensor,
-        sensor_bias_correction=sensor_bias_correction,
+        sensor_bias_correction=flags["sensor_bias_correction"],
+        correlated_noise=flags["correlated_noise"],
         noise_window_s=noise_window_s,
+        odometry_correction=correction,
+        measurement_delay_s=delay,
     )[0]
 
 
+def _check_calibration_s(calibration_s) -> None:
+    if calibration_s is not None:
+        check_range("calibration_s", calibration_s, 10.0, 1e7)
+
+
+def _flags(corrections, motion_compensation, sensor_bias_correction, odometry_correction,
+           timing_correction, correlated_noise) -> dict:
+    """The correction switches: each None follows ``corrections``."""
+    require(isinstance(corrections, bool), "corrections", corrections, "a bool")
+    given = {
+        "motion_compensation": motion_compensation,
+        "sensor_bias_correction": sensor_bias_correction,
+        "odometry_correction": odometry_correction,
+        "timing_correction": timing_correction,
+        "correlated_noise": correlated_noise,
+    }
+    for name, flag in given.items():
+        require(flag is None or isinstance(flag, bool), name, flag, "None or a bool")
+    return {name: corrections if flag is None else flag for name, flag in given.items()}
+
+
 def _calibrate(
-    rec, lay, *, dt_s, odometry_window_s, outlier_gate_probability, robot_sightings_as_clutter,
-    sensor=None, range_std_m=None, bearing_std_rad=None, max_range_m=None, fov_rad=None,
-    sensor_bias_correction=False, noise_window_s=None,
+    rec, lay, *, dt_s, cal_end, calibration_s, odometry_window_s, outlier_gate_probability,
+    robot_sightings_as_clutter, sensor=None, range_std_m=None, bearing_std_rad=None,
+    max_range_m=None, fov_rad=None, sensor_bias_correction=False, correlated_noise=False,
+    noise_window_s=None, odometry_correction=None, measurement_delay_s=None,
 ):
-    """Calibration plus the outlier mask over all rows, the stream's sensor and the rows'
-    observations (bias-corrected if asked)."""
+    """Calibration (on the rows and steps up to ``cal_end``) plus the outlier mask over all
+    rows, the stream's sensor and the rows' observations (bias-corrected if asked)."""
     if noise_window_s is not None:
         check_range("noise_window_s", noise_window_s, 0.0, 1e6, low_open=True)
-    usable = np.all(np.isfinite(lay.residuals), axis=1)
+    usable_all = np.all(np.isfinite(lay.residuals), axis=1)
+    part = rec.measurements[:, 0] <= cal_end
+    usable = usable_all & part
     residuals, row_z = lay.residuals, lay.row_z
     noise = estimate_sensor_noise(residuals[usable], gate_probability=outlier_gate_probability)
     bias = None
@@ -629,15 +829,26 @@ def _calibrate(
         noise = estimate_sensor_noise(
             residuals[usable], gate_probability=outlier_gate_probability
         )
+    inliers = np.flatnonzero(usable)[noise.inlier]
     filter_std = (noise.range_std_m, noise.bearing_std_rad)
-    if noise_window_s is not None:
-        rows = np.flatnonzero(usable)[noise.inlier]
-        filter_std = correlated_noise_std(
-            residuals[rows], rec.measurements[rows, 0], lay.row_landmark[rows], noise_window_s
-        )
+    if correlated_noise or noise_window_s is not None:
+        if noise_window_s is None:
+            noise_window_s = sighting_pass_duration(
+                rec.measurements[inliers, 0], lay.row_landmark[inliers]
+            )
+        if noise_window_s > 0.0:
+            filter_std = correlated_noise_std(
+                residuals[inliers], rec.measurements[inliers, 0], lay.row_landmark[inliers],
+                noise_window_s,
+            )
+    # outliers of every row (the labels of the truth ids) by the gate of the calibrated noise
+    sigma = np.array([noise.range_std_m, noise.bearing_std_rad])
+    gate2 = -2.0 * np.log1p(-outlier_gate_probability)
     outlier = np.zeros(lay.row_step.size, dtype=bool)
-    outlier[np.flatnonzero(usable)[~noise.inlier]] = True
-    good_z = rec.measurements[usable, 2:4][noise.inlier]
+    rows = np.flatnonzero(usable_all)
+    outlier[rows] = np.sum((residuals[rows] / sigma) ** 2, axis=1) > gate2
+    outlier[np.flatnonzero(usable)] = ~noise.inlier
+    good_z = rec.measurements[inliers, 2:4]
     est_range, est_fov = estimate_field_of_view(good_z)
     if sensor is None:
         sensor = RangeBearingSensor(
@@ -650,17 +861,19 @@ def _calibrate(
         rec.odometry,
         rec.groundtruth,
         lay.t0,
-        lay.t0 + lay.rel_t[-1],
+        min(lay.t0 + lay.rel_t[-1], cal_end),
         dt_s=dt_s,
         window_s=odometry_window_s,
     )
-    in_grid = lay.row_step >= 0
+    n_cal = int(np.searchsorted(lay.t0 + lay.rel_t[1:], cal_end, side="right"))
+    n_cal = max(n_cal, 1)
+    in_grid = (lay.row_step >= 0) & (lay.row_step < n_cal)
     hit = in_grid & (lay.row_landmark >= 0) & ~outlier
     false_alarm = in_grid & (lay.row_landmark >= 0) & outlier
     if robot_sightings_as_clutter:
         false_alarm |= in_grid & (lay.row_landmark < 0)
     detection = estimate_detection_rates(
-        lay.step_poses,
+        lay.step_poses[:n_cal],
         rec.landmarks_xy,
         sensor,
         lay.row_step[hit],
@@ -670,7 +883,8 @@ def _calibrate(
     calibration = MrclamCalibration(
         noise, odometry, detection, est_range, est_fov, sensor_bias=bias,
         noise_window_s=noise_window_s, filter_range_std_m=sensor.range_std_m,
-        filter_bearing_std_rad=sensor.bearing_std_rad,
+        filter_bearing_std_rad=sensor.bearing_std_rad, calibration_s=calibration_s,
+        odometry_correction=odometry_correction, measurement_delay_s=measurement_delay_s,
     )
     return calibration, outlier, sensor, row_z
 
@@ -692,8 +906,13 @@ def load_mrclam(
     odometry_noise=None,
     clutter: ClutterModel | None = None,
     max_steps: int | None = None,
-    motion_compensation: bool = False,
-    sensor_bias_correction: bool = False,
+    calibration_s: float | None = DEFAULT_CALIBRATION_S,
+    corrections: bool = True,
+    motion_compensation: bool | None = None,
+    sensor_bias_correction: bool | None = None,
+    odometry_correction: bool | None = None,
+    timing_correction: bool | None = None,
+    correlated_noise: bool | None = None,
     noise_window_s: float | None = None,
 ) -> Stream:
     """The stream of one robot of an MRCLAM data set (see the module docstring).
@@ -703,19 +922,24 @@ def load_mrclam(
     ``robot_sightings_as_clutter`` keeps robot sightings and unknown barcodes as clutter instead
     of dropping them. ``range_std_m``, ``bearing_std_rad``, ``max_range_m``, ``fov_rad``,
     ``odometry_noise`` and ``clutter`` override the estimates (None = estimated from the data);
-    ``max_steps`` truncates the stream (the estimates always use the whole recording).
+    ``max_steps`` truncates the stream (the estimates do not depend on it).
 
-    Sensor calibration options (all off by default; module docstring, "Sensor calibration"):
-    ``motion_compensation`` moves each measurement to its step's end with the odometry
-    (:func:`compensate_motion`); ``sensor_bias_correction`` fits the camera's systematic errors
-    against the truth (:func:`estimate_sensor_bias`) and subtracts them from every measurement,
-    the noise std then being that of the corrected residuals; ``noise_window_s`` sets the
-    filters' std by the white-noise rule over windows of that length
-    (:func:`correlated_noise_std`) instead of the root mean square of the residuals.
+    Calibration (module docstring, "Calibration"): every estimate uses the first
+    ``calibration_s`` seconds (default 300; None = the whole recording) and nothing after them.
+    ``corrections`` (default True) switches on, together, the corrections estimated there:
+    ``odometry_correction`` (delay and gains of the odometry, :func:`estimate_odometry_correction`),
+    ``timing_correction`` (the measurements' time stamp offset,
+    :func:`estimate_measurement_delay`), ``motion_compensation`` (each measurement moved to its
+    step's end with the odometry, :func:`compensate_motion`), ``sensor_bias_correction`` (the
+    camera's systematic errors, :func:`estimate_sensor_bias`, subtracted from every
+    measurement) and ``correlated_noise`` (the filters' std by the white-noise rule over one
+    pass over a landmark, :func:`correlated_noise_std`, :func:`sighting_pass_duration`); each of
+    them, when given as a bool, overrides ``corrections``. ``noise_window_s`` sets the window of
+    the white-noise rule instead of the measured pass duration (and switches the rule on).
     """
-    for name, flag in (("motion_compensation", motion_compensation),
-                       ("sensor_bias_correction", sensor_bias_correction)):
-        require(isinstance(flag, bool), name, flag, "a bool")
+    flags = _flags(corrections, motion_compensation, sensor_bias_correction,
+                   odometry_correction, timing_correction, correlated_noise)
+    _check_calibration_s(calibration_s)
     check_range("dt_s", dt_s, 0.001, 10.0)
     require(isinstance(known_association, bool), "known_association", known_association, "a bool")
     require(
@@ -732,12 +956,17 @@ def load_mrclam(
             max_steps,
             "None or an integer >= 1",
         )
-    rec = read_mrclam(directory, robot)
-    lay = _layout(rec, dt_s, motion_compensation)
+    rec, correction, delay, cal_end = _corrected(
+        read_mrclam(directory, robot), calibration_s, flags["odometry_correction"],
+        flags["timing_correction"],
+    )
+    lay = _layout(rec, dt_s, flags["motion_compensation"])
     calibration, outlier, sensor, row_z = _calibrate(
         rec,
         lay,
         dt_s=dt_s,
+        cal_end=cal_end,
+        calibration_s=calibration_s,
         odometry_window_s=odometry_window_s,
         outlier_gate_probability=outlier_gate_probability,
         robot_sightings_as_clutter=robot_sightings_as_clutter,
@@ -745,8 +974,11 @@ def load_mrclam(
         bearing_std_rad=bearing_std_rad,
         max_range_m=max_range_m,
         fov_rad=fov_rad,
-        sensor_bias_correction=sensor_bias_correction,
+        sensor_bias_correction=flags["sensor_bias_correction"],
+        correlated_noise=flags["correlated_noise"],
         noise_window_s=noise_window_s,
+        odometry_correction=correction,
+        measurement_delay_s=delay,
     )
     if odometry_noise is None:
         odometry_noise = calibration.odometry.model()
@@ -792,8 +1024,8 @@ def load_mrclam(
         "t0_unix_s": lay.t0,
         "known_association": known_association,
         "robot_sightings": "clutter" if robot_sightings_as_clutter else "dropped",
-        "motion_compensation": motion_compensation,
-        "sensor_bias_correction": sensor_bias_correction,
+        **flags,
+        "calibration_end_s": cal_end - lay.t0,
         "landmark_subjects": tuple(int(s) for s in rec.landmark_subjects),
         "calibration": calibration.as_dict(),
         "counts": counts,
