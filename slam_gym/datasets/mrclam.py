@@ -18,13 +18,12 @@ bit for bit):
 * **Odometry.** The logged (v, omega) rows are a zero-order-hold signal (a row holds until the
   next; rows sharing a time stamp: the last wins). A step's odometry is its time-weighted mean over
   the step (:func:`slam_gym.datasets.align.hold_average`).
-* **Observations.** The measurement rows whose time falls in the step, in file order, as
-  (range, bearing). A measurement taken up to ``dt`` before the step's end is used at the end:
-  at MRCLAM's speeds (< 0.09 m/s, < 0.6 rad/s) and dt = 0.1 s this moves it by < 1 cm and
-  < 0.06 rad. The noise estimate below compares each row with the true pose at its *step's end*,
-  so it includes this quantisation (in Dataset 7 it raises the bearing std from about 0.010 to
-  0.016 rad; a smaller ``dt_s`` lowers it). At dt = 0.1 s no landmark is seen twice within one
-  step in Dataset 7.
+* **Observations.** The measurement rows whose (corrected, below) time falls in the step, in
+  file order, as (range, bearing). A measurement taken up to ``dt`` before the step's end is used
+  at the end; by default it is first moved there with the odometry (motion compensation, below);
+  without that, at MRCLAM's speeds (< 0.09 m/s, < 0.6 rad/s) and dt = 0.1 s it is off by < 1 cm
+  and < 0.06 rad, which the noise estimate (against the true pose at the *step's end*) then
+  includes. At dt = 0.1 s no landmark is seen twice within one step in Dataset 7.
 * **Barcodes.** A row's barcode is mapped to a subject through ``Barcodes.dat`` (barcode and
   subject numbers overlap). Landmarks are the subjects listed in ``Landmark_Groundtruth.dat``
   (``Stream.landmarks_true`` holds them in subject order; ``truth.landmark_ids`` indexes it).
@@ -43,13 +42,49 @@ bit for bit):
   it means the runner passes ``step.truth.landmark_ids`` to a known-association filter
   (-1 = clutter, to be ignored). The observations are the same in both modes.
 
-Models estimated from the data against the ground truth (:func:`calibrate_mrclam`; every
-estimate is also in ``Stream.metadata["calibration"]``; an explicit keyword overrides it):
+Calibration (:func:`calibrate_mrclam`; every estimate is in
+``Stream.metadata["calibration"]``, an explicit keyword overrides it). **What is used:** the
+first ``calibration_s`` seconds (default 300 s, :data:`DEFAULT_CALIBRATION_S`) after the raw
+start of the robot's *own* recording: its ground truth, odometry and landmark measurements up to
+``t0 + calibration_s`` and nothing after (tested: a recording changed after 300 s gives the same
+calibration). **Why:** the collection's nine recordings share arena, robots and sensors but not
+their errors, so no number is carried from one recording to another and none is set by hand;
+the first minutes are what a user of a new recording can calibrate on, and the rest of the run
+stays held out (``reproduce mrclam`` reports the pose error over it). ``calibration_s=None``
+uses the whole recording (the behaviour before issue 16). The outlier labels (truth ids -1) of
+rows after the calibration part use the gate of the calibrated noise; they are truth for the
+evaluation, never filter input.
+
+With ``corrections=True`` (the default) the systematic errors measured on MRCLAM Dataset 7
+(issue 16; docs/RESULTS.md) are estimated there and removed from the whole stream:
+
+* **Odometry delay and gains** (:func:`estimate_odometry_correction`): the robots follow their
+  logged (v, omega) about 0.2-0.3 s late and cover 83-91 % of the logged distance (turn rate
+  92-97 %); the rows are shifted in time and scaled. On Dataset 7 this halves the map error of
+  EKF-SLAM with known association more than any other correction.
+* **Measurement time stamps** (:func:`estimate_measurement_delay`): sightings are stamped
+  0.02-0.04 s after they were taken; the stamps are moved back.
+* **Motion compensation** (:func:`compensate_motion`): a measurement taken before its step's
+  end is moved there with the (corrected) odometry.
+* **Camera bias** (:func:`estimate_sensor_bias`): ranges read 0.1-0.25 m long at the image
+  centre and 0.2-0.3 m short at its edges (range error ~ c0 - 1.6..2.1 b^2); fitted on the
+  calibration part's inliers and subtracted from every measurement (held out, the range residual
+  falls from 0.10-0.20 m to 0.04-0.09 m).
+* **Correlated noise** (:func:`correlated_noise_std`): the std the filters assume is the
+  white-noise rule over one pass over a landmark (:func:`sighting_pass_duration`, the median
+  run of sightings of one landmark with gaps under 2 s; 2-3 s on Dataset 7), since a filter
+  fuses a whole pass and the camera's errors stay correlated over it.
+
+Each can be switched alone (``odometry_correction``, ``timing_correction``,
+``motion_compensation``, ``sensor_bias_correction``, ``correlated_noise``);
+``corrections=False`` gives the plain stream (the file's rows, noise = root mean square).
+
+The models then estimated on the (corrected) calibration part:
 
 * **Sensor noise** (:func:`estimate_sensor_noise`): residuals z - h(x_true, m_true) of the
   landmark rows, the true pose interpolated at the step's end; the std of range and bearing is
-  the root mean square *about zero* (so a bias counts as noise: the filters assume zero mean) of
-  the inliers of an iterated chi-square gate.
+  the root mean square *about zero* (so a remaining bias counts as noise: the filters assume
+  zero mean) of the inliers of an iterated chi-square gate.
 * **Field of view** (:func:`estimate_field_of_view`): max range = 99.5 % quantile of the inlier
   ranges; fov = twice the 99.5 % quantile of |bearing| (the camera sees about +-0.6 rad).
 * **Odometry noise** (:func:`estimate_odometry_noise`): a :class:`ProportionalVelocityNoise`
@@ -61,11 +96,15 @@ estimate is also in ``Stream.metadata["calibration"]``; an explicit keyword over
   larger; differentiating the motion capture over 0.1 s would also add ~1 cm/s of noise). The
   fractions and floors are fitted by non-negative least squares to the squared errors; floors
   are at least 1e-3 so the covariance stays regular at rest.
-* **Clutter** (:func:`estimate_detection_rates`): alpha = (steps in which an in-view landmark is
-  detected) / (landmark-in-view events), per *filter step* (the camera delivers a frame about
-  every 0.24 s and rows only for frames with a detection, so alpha per 0.1 s step is well below
-  the per-frame rate); beta = false alarms in the stream (outliers, plus robot sightings and
-  unknown barcodes when kept) / in-view events.
+* **Clutter** (:func:`estimate_detection_rates`, over the calibration part's steps): alpha =
+  (steps in which an in-view landmark is detected) / (landmark-in-view events), per *filter step*
+  (the camera delivers a frame about every 0.24 s and rows only for frames with a detection, so
+  alpha per 0.1 s step is well below the per-frame rate); beta = false alarms (outliers, plus
+  robot sightings and unknown barcodes when kept) / in-view events.
+
+Not derived here: FastSLAM's new-landmark density and association gate (filter options; the
+filters' defaults apply unless ``reproduce mrclam`` is given ``--landmark-density`` /
+``--gate-chi2``).
 """
 
 from __future__ import annotations
