@@ -1063,6 +1063,7 @@ def load_mrclam(
         "t0_unix_s": lay.t0,
         "known_association": known_association,
         "robot_sightings": "clutter" if robot_sightings_as_clutter else "dropped",
+        "corrections": corrections,
         **flags,
         "calibration_end_s": cal_end - lay.t0,
         "landmark_subjects": tuple(int(s) for s in rec.landmark_subjects),

@@ -93,8 +93,8 @@ def test_mrclam_corrections_and_calibration_part_reach_the_stream():
     assert row["pose_rmse_held_out_m"] is None
     assert row["completeness"] is None or 0.0 <= row["completeness"] <= 1.0
     plain = rr.run_real_job(mrclam_job("ekf-slam", max_steps=200, corrections=False,
-                                       calibration_s=30.0))
-    ref = load_mrclam(MRCLAM_DIR, 1, max_steps=200, corrections=False, calibration_s=30.0)
+                                       calibration_s=10.0))
+    ref = load_mrclam(MRCLAM_DIR, 1, max_steps=200, corrections=False, calibration_s=10.0)
     assert plain["range_std_m"] == ref.sensor.range_std_m != row["range_std_m"]
     assert plain["pose_rmse_held_out_m"] is not None and plain["pose_rmse_held_out_m"] > 0.0
 
