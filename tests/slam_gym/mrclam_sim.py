@@ -5,7 +5,8 @@ small arena at MRCLAM-like speed, then writes what a robot of the UTIAS data set
 logged: ``Barcodes.dat``, ``Landmark_Groundtruth.dat`` and ``Robot1_{Groundtruth, Odometry,
 Measurement}.dat``. The systematic errors the loader is meant to find can be put in, each with a
 known value: a late odometry (a row stamped ``t`` describes the motion from ``t + delay``), odometry
-gains (the logged speeds are the true commands divided by the gain), a time stamp offset of the
+gains (the true speeds are ``v (v_gain - v_turn |omega|)`` and ``omega_gain omega`` of the logged
+``v``, ``omega``: the robot slows down in turns), a time stamp offset of the
 measurements and a camera bias (range error ``c0 + c3 b^2``, bearing error ``d0``, ``b`` the
 true bearing). ``bias_after_s`` changes the camera bias from that many seconds on, to check
 that the calibration never reads past its calibration part.
@@ -51,7 +52,7 @@ def _write(path: Path, header: str, rows: np.ndarray, formats: str) -> None:
 
 def write_simulated_mrclam(
     directory, *, seed: int = 3, odometry_delay_s: float = 0.0, v_gain: float = 1.0,
-    omega_gain: float = 1.0, measurement_delay_s: float = 0.0,
+    omega_gain: float = 1.0, v_turn_s_per_rad: float = 0.0, measurement_delay_s: float = 0.0,
     range_bias: tuple[float, float] = (0.0, 0.0), bearing_bias_rad: float = 0.0,
     bias_after_s: float | None = None, range_bias_after: tuple[float, float] = (0.0, 0.0),
 ) -> dict:
@@ -80,8 +81,9 @@ def write_simulated_mrclam(
     _write(directory / "Robot1_Groundtruth.dat", "Time [s]    x [m]    y [m]    orientation [rad]",
            np.column_stack([T0 + k * dt, poses]), "%.3f %.8f %.8f %.8f")
     u = np.array([s.odometry for s in steps])
-    odometry = np.column_stack([T0 + k[:-1] * dt - odometry_delay_s, u[:, 0] / v_gain,
-                                u[:, 1] / omega_gain])
+    omega = u[:, 1] / omega_gain
+    odometry = np.column_stack([T0 + k[:-1] * dt - odometry_delay_s,
+                                u[:, 0] / (v_gain - v_turn_s_per_rad * np.abs(omega)), omega])
     _write(directory / "Robot1_Odometry.dat",
            "Time [s]    forward velocity [m/s]    angular velocity[rad/s]", odometry,
            "%.3f %.6f %.6f")

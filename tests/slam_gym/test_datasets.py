@@ -617,19 +617,20 @@ def test_path_error_after_alignment():
 # --------------------------------------------------------------------------- MRCLAM calibration
 # A recording written by the simulator in MRCLAM's format (tests/slam_gym/mrclam_sim.py), with
 # known noise and known systematic errors of the size measured on Dataset 7 (odometry 0.2 s
-# late and reading 10 % fast, measurements stamped 0.05 s late, ranges 0.2 m long at the image
-# centre and short at its edges).
+# late and reading fast, more so in turns, measurements stamped 0.05 s late, ranges 0.2 m long
+# at the image centre and short at its edges).
 SIM_ERRORS = {
-    "odometry_delay_s": 0.2, "v_gain": 0.9, "omega_gain": 0.93, "measurement_delay_s": -0.05,
+    "odometry_delay_s": 0.2, "v_gain": 0.95, "v_turn_s_per_rad": 0.5, "omega_gain": 0.93,
+    "measurement_delay_s": -0.05,
     "range_bias": (0.2, -1.8), "bearing_bias_rad": 0.01,
 }
 
 
 def test_mrclam_calibration_recovers_simulated_noise_and_errors(tmp_path):
     """Tolerances: delays within 0.03 s (the simulated robot turns only now and then, and the
-    truth is logged at 10 Hz); gains within 3 %; camera bias within 0.04 m (c0), 0.15 m/rad^2
-    (c3), 0.003 rad (d0); the white noise std, once the bias is removed, within 10 %; the odometry
-    noise within 25 %."""
+    truth is logged at 10 Hz); gains within 3 %, the slow-down in turns within 0.15 s/rad;
+    camera bias within 0.04 m (c0), 0.15 m/rad^2 (c3), 0.003 rad (d0); the white noise std,
+    once the bias is removed, within 10 %; the odometry noise within 25 %."""
     from mrclam_sim import write_simulated_mrclam
 
     truth = write_simulated_mrclam(tmp_path, **SIM_ERRORS)
@@ -640,6 +641,7 @@ def test_mrclam_calibration_recovers_simulated_noise_and_errors(tmp_path):
     assert abs(cal["odometry_delay_s"] - SIM_ERRORS["odometry_delay_s"]) <= 0.03
     assert abs(cal["measurement_delay_s"] - SIM_ERRORS["measurement_delay_s"]) <= 0.03
     assert cal["odometry_v_gain"] == pytest.approx(SIM_ERRORS["v_gain"], rel=0.03)
+    assert cal["odometry_v_turn_s_per_rad"] == pytest.approx(0.5, abs=0.15)
     assert cal["odometry_omega_gain"] == pytest.approx(SIM_ERRORS["omega_gain"], rel=0.03)
     assert cal["range_bias_c0"] == pytest.approx(0.2, abs=0.04)
     assert cal["range_bias_c3"] == pytest.approx(-1.8, abs=0.15)
