@@ -17,12 +17,14 @@ from scipy.spatial import cKDTree
 from filters.models import motion
 from slam_gym.datasets import (
     UNKNOWN_LANDMARK_ID,
+    calibrate_mrclam,
     fit_se2,
     hold_average,
     interpolate_poses,
     load_mrclam,
     load_victoria_park,
     path_error_after_alignment,
+    read_mrclam,
 )
 from slam_gym.datasets.mrclam import (
     compensate_motion,
@@ -661,6 +663,8 @@ def test_mrclam_calibration_recovers_simulated_noise_and_errors(tmp_path):
     assert np.hypot(cal["odometry_v_fraction"] * v, cal["odometry_v_floor_mps"]) == (
         pytest.approx(truth["v_noise_fraction"] * v, rel=0.25))
     assert cal["odometry_omega_fraction"] == pytest.approx(truth["omega_noise_fraction"], rel=0.25)
+    # the public calibration entry point gives the stream's numbers
+    assert calibrate_mrclam(read_mrclam(tmp_path, 1)).as_dict() == cal
     # without corrections the bias stays in the noise (the filters would see 0.2 m range std)
     plain = load_mrclam(tmp_path, 1, corrections=False).metadata["calibration"]
     assert plain["range_std_m"] > 1.5 * truth["range_std_m"]
