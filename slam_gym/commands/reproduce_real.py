@@ -37,8 +37,8 @@ MRCLAM (UTIAS, Leung et al. IJRR 2011), one job per (system, robot, association 
 Calibration: the loader (:func:`slam_gym.datasets.load_mrclam`) estimates every model and
 correction on the first ``--calibration-s`` seconds (default 300) of each robot's own recording
 and nothing after; ``pose_rmse_held_out_m`` is the pose RMSE over the steps after that part.
-By default it removes the odometry's delay (0.2-0.3 s) and gains (the robots cover 83-91 % of
-the logged distance), the measurements' time stamp offset, the camera's range bias by bearing
+By default it removes the odometry's delay (0.2-0.3 s) and speed errors (the robots slow
+down in turns), the measurements' time stamp offset, the camera's range bias by bearing
 (+0.1-0.25 m at the image centre, -0.2-0.3 m at its edges) and sets the filters' std for the
 camera's time-correlated errors (white-noise rule over one pass over a landmark);
 ``--no-corrections`` gives the plain stream. ``completeness`` is the share of the landmarks the
