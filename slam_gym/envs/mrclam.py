@@ -22,13 +22,14 @@ Keyword arguments (besides those of :class:`~slam_gym.envs.hybrid_slam.HybridSLA
     frame to the next (and its range error depends on the bearing), so a filter that takes them
     as white noise with the measured std becomes over-confident; a factor > 1 is the usual
     remedy (see ``slam-gym reproduce mrclam --noise-scale``).
-``sensor_noise_window_s``, ``sensor_bias_correction``, ``motion_compensation``
-    The loader's sensor calibration options (:func:`slam_gym.datasets.load_mrclam`; default
-    None / False / False: the root mean square of the residuals, no correction).
-    ``sensor_noise_window_s`` sets the std by the white-noise rule over windows of that many
-    seconds, which accounts for the time correlation of the camera's errors
-    (:func:`slam_gym.datasets.mrclam.correlated_noise_std`); ``sensor_noise_scale`` multiplies
-    the result.
+``corrections``, ``calibration_s``, ``sensor_noise_window_s``, ``sensor_bias_correction``
+    and ``motion_compensation``: the loader's calibration options
+    (:func:`slam_gym.datasets.load_mrclam`). By default every correction the loader has is on,
+    estimated on the first 300 s of the recording; ``corrections=False`` gives the plain
+    stream (the noise the root mean square of the residuals). ``sensor_noise_window_s`` sets
+    the window of the white-noise rule for the camera's time-correlated errors
+    (:func:`slam_gym.datasets.mrclam.correlated_noise_std`; default: one pass over a landmark,
+    measured); ``sensor_noise_scale`` multiplies the result.
 ``front_end_options``
     Keyword options of the front-end filter (:class:`filters.fastslam.FastSLAM2` or
     :class:`filters.ekf_slam.EKFSLAM`), e.g. ``{"new_landmark_density_per_m2": 1e-4,
@@ -67,6 +68,7 @@ import numpy as np
 from filters.models import RangeBearingSensor
 from filters.validation import check_range, require
 from slam_gym.datasets.location import default_data_dir
+from slam_gym.datasets.mrclam import DEFAULT_CALIBRATION_S
 from slam_gym.envs.hybrid_slam import HybridSLAMEnv
 
 MRCLAM_ROBOTS = (1, 2, 3, 4, 5)
@@ -119,14 +121,16 @@ def check_mrclam_dir(data_dir, robot: int) -> Path:
 
 def mrclam_stream(
     data_dir, robot: int, *, max_steps=None, sensor_noise_scale: float = 1.0,
-    noise_window_s: float | None = None, sensor_bias_correction: bool = False,
-    motion_compensation: bool = False,
+    noise_window_s: float | None = None, sensor_bias_correction: bool | None = None,
+    motion_compensation: bool | None = None, corrections: bool = True,
+    calibration_s: float | None = DEFAULT_CALIBRATION_S,
 ):
     """The MRCLAM stream of ``robot`` with its range and bearing std scaled by
     ``sensor_noise_scale`` (the outlier labels, field of view and clutter rates stay those of
     the loader's calibration); shared by the env and ``reproduce mrclam`` so both play the same
-    stream. ``noise_window_s``, ``sensor_bias_correction`` and ``motion_compensation`` go to
-    :func:`slam_gym.datasets.load_mrclam`."""
+    stream. ``noise_window_s``, ``sensor_bias_correction``, ``motion_compensation``,
+    ``corrections`` and ``calibration_s`` go to :func:`slam_gym.datasets.load_mrclam` (its
+    defaults: every correction on, calibrated on the first 300 s)."""
     from slam_gym.datasets import load_mrclam
 
     robot = check_robot(robot)
@@ -134,7 +138,8 @@ def mrclam_stream(
     stream = load_mrclam(
         check_mrclam_dir(data_dir, robot), robot, max_steps=max_steps,
         noise_window_s=noise_window_s, sensor_bias_correction=sensor_bias_correction,
-        motion_compensation=motion_compensation,
+        motion_compensation=motion_compensation, corrections=corrections,
+        calibration_s=calibration_s,
     )
     if sensor_noise_scale == 1.0:
         return stream
@@ -162,8 +167,10 @@ class MRCLAMEnv(HybridSLAMEnv):
         robot: int = 1,
         sensor_noise_scale: float = 1.0,
         sensor_noise_window_s: float | None = None,
-        sensor_bias_correction: bool = False,
-        motion_compensation: bool = False,
+        sensor_bias_correction: bool | None = None,
+        motion_compensation: bool | None = None,
+        corrections: bool = True,
+        calibration_s: float | None = DEFAULT_CALIBRATION_S,
         front_end_options: dict | None = None,
         terminate_on_failure: bool = False,
         **config,
@@ -182,8 +189,13 @@ class MRCLAMEnv(HybridSLAMEnv):
             check_range("sensor_noise_window_s", sensor_noise_window_s, 0.0, 1e6, low_open=True)
         for name, flag in (("sensor_bias_correction", sensor_bias_correction),
                            ("motion_compensation", motion_compensation)):
-            require(isinstance(flag, bool), name, flag, "a bool")
+            require(flag is None or isinstance(flag, bool), name, flag, "None or a bool")
+        require(isinstance(corrections, bool), "corrections", corrections, "a bool")
+        if calibration_s is not None:
+            check_range("calibration_s", calibration_s, 10.0, 1e7)
         self.stream_options = {
+            "corrections": corrections,
+            "calibration_s": None if calibration_s is None else float(calibration_s),
             "noise_window_s": None if sensor_noise_window_s is None
             else float(sensor_noise_window_s),
             "sensor_bias_correction": sensor_bias_correction,

@@ -17,12 +17,14 @@ from scipy.spatial import cKDTree
 from filters.models import motion
 from slam_gym.datasets import (
     UNKNOWN_LANDMARK_ID,
+    calibrate_mrclam,
     fit_se2,
     hold_average,
     interpolate_poses,
     load_mrclam,
     load_victoria_park,
     path_error_after_alignment,
+    read_mrclam,
 )
 from slam_gym.datasets.mrclam import (
     compensate_motion,
@@ -84,7 +86,8 @@ def raw():
 
 @pytest.fixture(scope="module")
 def stream():
-    return load_mrclam(MRCLAM_DIR, ROBOT, dt_s=DT)
+    """The plain stream (no corrections): its rows are the file's rows."""
+    return load_mrclam(MRCLAM_DIR, ROBOT, dt_s=DT, corrections=False)
 
 
 @pytest.fixture(scope="module")
@@ -183,7 +186,8 @@ def test_mrclam_truth_ids_name_the_barcode_landmark_or_a_gated_outlier(raw, stre
 
 
 def test_mrclam_robot_sightings_as_clutter_have_truth_minus_one(raw, stream):
-    s = load_mrclam(MRCLAM_DIR, ROBOT, dt_s=DT, robot_sightings_as_clutter=True, max_steps=3000)
+    s = load_mrclam(MRCLAM_DIR, ROBOT, dt_s=DT, robot_sightings_as_clutter=True, max_steps=3000,
+                    corrections=False)
     landmark_subjects = set(raw["landmarks"][:, 0].astype(int))
     t0 = t0_of(raw)
     table = raw_rows_by_value(raw)
@@ -269,7 +273,9 @@ def test_mrclam_landmarks_and_visibility(raw, stream, steps):
         brg = wrap(np.arctan2(d[:, 1], d[:, 0]) - pose[2])
         expected = np.nonzero((rng <= sensor.max_range_m) & (np.abs(brg) <= sensor.fov_rad / 2))[0]
         np.testing.assert_array_equal(steps[k].truth.visible_ids, expected)
-    n_visible = sum(len(s.truth.visible_ids) for s in steps)
+    # the detection rates count the calibration part only
+    end = stream.metadata["calibration_end_s"]
+    n_visible = sum(len(s.truth.visible_ids) for s in steps if s.t_s <= end + 1e-9)
     assert n_visible == stream.metadata["calibration"]["n_in_view"]
 
 
@@ -292,7 +298,7 @@ def test_mrclam_models_come_from_the_data(stream):
 
 
 def test_mrclam_is_deterministic(steps):
-    again = list(load_mrclam(MRCLAM_DIR, ROBOT, dt_s=DT, max_steps=800))
+    again = list(load_mrclam(MRCLAM_DIR, ROBOT, dt_s=DT, max_steps=800, corrections=False))
     for a, b in zip(steps[:800], again, strict=True):
         np.testing.assert_array_equal(a.odometry, b.odometry)
         np.testing.assert_array_equal(a.z, b.z)
@@ -418,7 +424,7 @@ def test_mrclam_sensor_calibration_options(raw, stream):
     """Bias-corrected, motion-compensated stream: the noise is re-estimated on the corrected
     residuals (smaller), the observations are the raw rows moved and corrected, the truth ids
     and steps are those of the plain stream."""
-    cal = load_mrclam(MRCLAM_DIR, ROBOT, dt_s=DT, motion_compensation=True,
+    cal = load_mrclam(MRCLAM_DIR, ROBOT, dt_s=DT, corrections=False, motion_compensation=True,
                       sensor_bias_correction=True, noise_window_s=2.0, max_steps=3000)
     meta = cal.metadata["calibration"]
     plain = stream.metadata["calibration"]
@@ -436,7 +442,8 @@ def test_mrclam_sensor_calibration_options(raw, stream):
     # corrected by the fitted bias
     t0 = t0_of(raw)
     by_value = raw_rows_by_value(raw)
-    plain_steps = list(load_mrclam(MRCLAM_DIR, ROBOT, dt_s=DT, max_steps=3000))
+    plain_steps = list(load_mrclam(MRCLAM_DIR, ROBOT, dt_s=DT, max_steps=3000,
+                                   corrections=False))
     checked = 0
     for step, ref in zip(cal, plain_steps, strict=True):
         assert len(step.z) == len(ref.z)
@@ -607,3 +614,90 @@ def test_path_error_after_alignment():
     assert path_error_after_alignment(est_t, bent, ref_t, ref_xy).rmse_m > 0.1
     with pytest.raises(ValueError, match="ref_t"):
         path_error_after_alignment(est_t, est_xy, ref_t + 100.0, ref_xy)
+
+
+# --------------------------------------------------------------------------- MRCLAM calibration
+# A recording written by the simulator in MRCLAM's format (tests/slam_gym/mrclam_sim.py), with
+# known noise and known systematic errors of the size measured on Dataset 7 (odometry 0.2 s
+# late and reading fast, more so in turns, measurements stamped 0.05 s late, ranges 0.2 m long
+# at the image centre and short at its edges).
+SIM_ERRORS = {
+    "odometry_delay_s": 0.2, "v_gain": 0.95, "v_turn_s_per_rad": 0.5, "omega_gain": 0.93,
+    "measurement_delay_s": -0.05,
+    "range_bias": (0.2, -1.8), "bearing_bias_rad": 0.01,
+}
+
+
+def test_mrclam_calibration_recovers_simulated_noise_and_errors(tmp_path):
+    """Tolerances: delays within 0.03 s (the simulated robot turns only now and then, and the
+    truth is logged at 10 Hz); gains within 3 %, the slow-down in turns within 0.15 s/rad;
+    camera bias within 0.04 m (c0), 0.15 m/rad^2 (c3), 0.003 rad (d0); the white noise std,
+    once the bias is removed, within 10 %; the odometry noise within 25 %."""
+    from mrclam_sim import write_simulated_mrclam
+
+    truth = write_simulated_mrclam(tmp_path, **SIM_ERRORS)
+    stream = load_mrclam(tmp_path, 1)
+    cal = stream.metadata["calibration"]
+    assert cal["calibration_s"] == 300.0
+    assert stream.metadata["calibration_end_s"] == pytest.approx(300.0, abs=0.5)
+    assert abs(cal["odometry_delay_s"] - SIM_ERRORS["odometry_delay_s"]) <= 0.03
+    assert abs(cal["measurement_delay_s"] - SIM_ERRORS["measurement_delay_s"]) <= 0.03
+    assert cal["odometry_v_gain"] == pytest.approx(SIM_ERRORS["v_gain"], rel=0.03)
+    assert cal["odometry_v_turn_s_per_rad"] == pytest.approx(0.5, abs=0.15)
+    assert cal["odometry_omega_gain"] == pytest.approx(SIM_ERRORS["omega_gain"], rel=0.03)
+    assert cal["range_bias_c0"] == pytest.approx(0.2, abs=0.04)
+    assert cal["range_bias_c3"] == pytest.approx(-1.8, abs=0.15)
+    assert cal["bearing_bias_d0"] == pytest.approx(0.01, abs=0.003)
+    assert cal["range_std_m"] == pytest.approx(truth["range_std_m"], rel=0.1)
+    assert cal["bearing_std_rad"] == pytest.approx(truth["bearing_std_rad"], rel=0.1)
+    assert stream.sensor.range_std_m == cal["filter_range_std_m"]
+    # the filters' std (the white-noise rule over one pass, 15-40 s here: 100-400 sightings)
+    # is at least the white std and grows with any error shared by a pass: one pass's mean
+    # error of 1/sqrt(n) of the std doubles its variance; the simulated passes keep a few
+    # millimetres of such error (the camera bias fitted over 300 s does not match each pass)
+    for std, key in (("range_std_m", "filter_range_std_m"),
+                     ("bearing_std_rad", "filter_bearing_std_rad")):
+        assert 0.9 * truth[std] <= cal[key] <= 1.8 * truth[std]
+    # odometry noise at the simulated speed (constant: fraction and floor are not separable)
+    v = truth["speed_mps"]
+    assert np.hypot(cal["odometry_v_fraction"] * v, cal["odometry_v_floor_mps"]) == (
+        pytest.approx(truth["v_noise_fraction"] * v, rel=0.25))
+    assert cal["odometry_omega_fraction"] == pytest.approx(truth["omega_noise_fraction"], rel=0.25)
+    # the public calibration entry point gives the stream's numbers
+    assert calibrate_mrclam(read_mrclam(tmp_path, 1)).as_dict() == cal
+    # without corrections the bias stays in the noise (the filters would see 0.2 m range std)
+    plain = load_mrclam(tmp_path, 1, corrections=False).metadata["calibration"]
+    assert plain["range_std_m"] > 1.5 * truth["range_std_m"]
+    assert plain.get("odometry_delay_s") is None and plain["measurement_delay_s"] is None
+
+
+def test_mrclam_calibration_reads_nothing_after_its_part(tmp_path):
+    """A different camera bias after 300 s changes the stream but not one calibrated number;
+    calibrating on the whole recording does see it."""
+    from mrclam_sim import write_simulated_mrclam
+
+    same = write_simulated_mrclam(tmp_path / "a", **SIM_ERRORS)
+    write_simulated_mrclam(tmp_path / "b", **SIM_ERRORS, bias_after_s=300.0,
+                           range_bias_after=(-0.3, 1.0))
+    a, b = load_mrclam(tmp_path / "a", 1), load_mrclam(tmp_path / "b", 1)
+    assert a.metadata["calibration"] == b.metadata["calibration"]
+    assert a.sensor == b.sensor and a.odometry_noise == b.odometry_noise
+    assert len(a) == len(b) == same["n_steps"] - 1
+    late = [k for k in range(len(a)) if a.make_steps.t_s[k + 1] > 310.0]
+    assert not np.allclose(a.make_steps.z[a.make_steps.bounds[late[0]]:],
+                           b.make_steps.z[b.make_steps.bounds[late[0]]:])
+    whole_a = load_mrclam(tmp_path / "a", 1, calibration_s=None).metadata["calibration"]
+    whole_b = load_mrclam(tmp_path / "b", 1, calibration_s=None).metadata["calibration"]
+    assert whole_a["range_std_m"] < whole_b["range_std_m"]
+
+
+def test_mrclam_calibration_options_name_the_field(tmp_path):
+    from mrclam_sim import write_simulated_mrclam
+
+    write_simulated_mrclam(tmp_path)
+    for kwargs, field in (({"calibration_s": 5.0}, "calibration_s"),
+                          ({"corrections": 1}, "corrections"),
+                          ({"odometry_correction": "yes"}, "odometry_correction"),
+                          ({"noise_window_s": 0.0}, "noise_window_s")):
+        with pytest.raises(ValueError, match=field):
+            load_mrclam(tmp_path, 1, **kwargs)

@@ -136,6 +136,21 @@ def test_sensor_calibration_and_front_end_options_reach_stream_and_filter():
         make(front_end_options={"gate_chi2": -1.0}).reset(seed=0)
 
 
+def test_the_loader_corrections_are_the_env_default_and_can_be_switched_off():
+    env = make()
+    env.reset(seed=0)
+    assert env.stream.metadata["corrections"] is True
+    assert env.stream.metadata["calibration"]["calibration_s"] == 300.0
+    assert env.stream.sensor == load_mrclam(MRCLAM_DIR, 2, max_steps=80).sensor
+    env.close()
+    plain = make(corrections=False, calibration_s=40.0)
+    plain.reset(seed=0)
+    ref = load_mrclam(MRCLAM_DIR, 2, max_steps=80, corrections=False, calibration_s=40.0)
+    assert plain.stream.sensor == ref.sensor and plain.stream.odometry_noise == ref.odometry_noise
+    assert plain.stream.metadata["sensor_bias_correction"] is False
+    plain.close()
+
+
 def test_episodes_run_the_recording_after_a_failure_by_default():
     # a tiny sensor noise makes the filter over-confident: BB's failure criterion triggers early
     kwargs = {"n_steps": 600, "sensor_noise_scale": 0.02, "n_particles": 5}
@@ -204,6 +219,8 @@ def test_truncation_by_decision_limit():
         ({"sensor_noise_scale": 0.0}, "sensor_noise_scale"),
         ({"sensor_noise_window_s": 0.0}, "sensor_noise_window_s"),
         ({"sensor_bias_correction": 1}, "sensor_bias_correction"),
+        ({"corrections": "yes"}, "corrections"),
+        ({"calibration_s": 1.0}, "calibration_s"),
         ({"front_end_options": [("gate_chi2", 40.0)]}, "front_end_options"),
         ({"terminate_on_failure": "no"}, "terminate_on_failure"),
         ({"n_particles": 0}, "n_particles"),

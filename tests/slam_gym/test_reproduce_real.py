@@ -82,6 +82,23 @@ def test_known_association_only_where_the_system_has_it():
     assert row["association"] == "known" and row["n_spurious"] == 0
 
 
+def test_mrclam_corrections_and_calibration_part_reach_the_stream():
+    """By default the loader's corrections are on and calibrated on the first 300 s;
+    ``corrections=False`` and ``calibration_s`` reach the stream; the row reports the pose
+    RMSE over the held-out steps (none here: 20 s) and the map completeness."""
+    row = rr.run_real_job(mrclam_job("ekf-slam", max_steps=200))
+    stream = load_mrclam(MRCLAM_DIR, 1, max_steps=200)
+    assert row["corrections"] is True and row["calibration_s"] == 300.0
+    assert row["range_std_m"] == stream.sensor.range_std_m
+    assert row["pose_rmse_held_out_m"] is None
+    assert row["completeness"] is None or 0.0 <= row["completeness"] <= 1.0
+    plain = rr.run_real_job(mrclam_job("ekf-slam", max_steps=200, corrections=False,
+                                       calibration_s=10.0))
+    ref = load_mrclam(MRCLAM_DIR, 1, max_steps=200, corrections=False, calibration_s=10.0)
+    assert plain["range_std_m"] == ref.sensor.range_std_m != row["range_std_m"]
+    assert plain["pose_rmse_held_out_m"] is not None and plain["pose_rmse_held_out_m"] > 0.0
+
+
 def test_mrclam_calibration_and_fastslam_options_reach_stream_and_filters(monkeypatch):
     row = rr.run_real_job(mrclam_job("ekf-slam", noise_window_s=30.0, max_steps=50))
     stream = load_mrclam(MRCLAM_DIR, 1, max_steps=50, noise_window_s=30.0)
