@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import copy
 import dataclasses
+import logging
 
 import numpy as np
 
@@ -22,6 +23,8 @@ from slam_gym.commands.reproduce_real import _mrclam_result
 from slam_gym.datasets import load_mrclam, read_mrclam
 from slam_gym.datasets.mrclam import true_velocities
 from slam_gym.evaluation.core import run_system
+
+logger = logging.getLogger(__name__)
 
 CORRECTIONS = ("odometry_correction", "timing_correction", "motion_compensation",
                "sensor_bias_correction", "correlated_noise")
@@ -67,10 +70,10 @@ def main(argv=None) -> int:
     robots = [int(r) for r in args.robots.split(",")]
     part = {"calibration_s": args.calibration_s}
 
-    print(f"calibration on the first {args.calibration_s:g} s")
+    logger.info(f"calibration on the first {args.calibration_s:g} s")
     for robot in robots:
         cal = load_mrclam(args.data, robot, max_steps=1, **part).metadata["calibration"]
-        print(f"robot {robot}: " + ", ".join(f"{k} {cal[k]:.4g}" for k in CALIBRATION_KEYS))
+        logger.info(f"robot {robot}: " + ", ".join(f"{k} {cal[k]:.4g}" for k in CALIBRATION_KEYS))
 
     configs = [
         ("no corrections, whole recording", {"corrections": False, "calibration_s": None}, False),
@@ -81,14 +84,15 @@ def main(argv=None) -> int:
         ("no corrections, true odometry", {"corrections": False, **part}, True),
         ("all, true odometry", part, True),
     ]
-    print("\nEKF-SLAM, known association, mean over robots "
+    logger.info("\nEKF-SLAM, known association, mean over robots "
           f"{args.robots}: map error, pose RMSE, pose RMSE after {args.calibration_s:g} s (m), "
           "ANEES")
     for name, options, true_odometry in configs:
         m = run(args.data, robots, options, args.calibration_s, true_odometry)
-        print(f"{name:40s} {m[0]:6.3f} {m[1]:6.3f} {m[2]:6.3f} {m[3]:8.1f}")
+        logger.info(f"{name:40s} {m[0]:6.3f} {m[1]:6.3f} {m[2]:6.3f} {m[3]:8.1f}")
     return 0
 
 
 if __name__ == "__main__":
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
     raise SystemExit(main())

@@ -15,6 +15,7 @@ that the calibration never reads past its calibration part.
 from __future__ import annotations
 
 from pathlib import Path
+from types import MappingProxyType
 
 import numpy as np
 
@@ -28,7 +29,7 @@ FIRST_LANDMARK_BARCODE = 100
 
 #: the simulated arena: a 10 m loop at 0.07 m/s (about 570 s), 15 landmarks, a camera-like
 #: field of view; noise known
-SCENARIO = {
+SCENARIO = MappingProxyType({
     "world_size_m": 12.0,
     "n_landmarks": 15,
     "path_length_m": 40.0,
@@ -43,7 +44,7 @@ SCENARIO = {
     "fov_rad": 1.2,
     "v_noise_fraction": 0.1,
     "omega_noise_fraction": 0.1,
-}
+})
 
 
 def _write(path: Path, header: str, rows: np.ndarray, formats: str) -> None:
