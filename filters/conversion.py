@@ -190,65 +190,36 @@ def _vote_all(log_weights, votes):
     return winners, margins, clutter_shares
 
 
-def assign_correspondence_ids(cids, active, observations, particles, slots, proposed) -> int:
+def assign_correspondence_ids(cids, active, slots, winners) -> int:
     """Write the voted ids of one scan into ``cids`` (P, C) in place, unique within a particle.
 
-    ``observations``, ``particles``, ``slots`` (n,): the features modified or created by the
-    scan, each with the index of its observation and ``proposed`` (n,), the winning id of that
-    observation (< 0: clutter won, the feature keeps its id). ``active`` (P, C) must already
-    include created features, whose ``cids`` entry must be -1. A particle has at most one
-    feature per observation and a feature belongs to at most one observation (as in
-    :class:`filters.fastslam.FastSLAM2`, where a feature taken by an observation of the scan is
-    excluded for the others). Observations are processed in increasing index, so later ones see
-    the ids written by earlier ones. A feature takes its proposed id unless its particle holds
-    another active feature with that id; then it keeps its id (module docstring). Returns the
-    number of features that kept their id for that reason.
+    ``slots`` (K, P): the slot that observation k modified or created in particle p (-1: none),
+    so a particle has at most one feature per observation; a feature belongs to at most one
+    observation (as in :class:`filters.fastslam.FastSLAM2`, where a feature taken by an
+    observation of the scan is excluded for the others). ``winners`` (K,): the winning id of
+    each observation (< 0: clutter won, its features keep their ids). ``active`` (P, C) must
+    already include created features, whose ``cids`` entry must be -1. Each particle's changes
+    are applied in observation order, so later observations see the ids written by earlier ones.
+    A feature takes the winning id unless its particle holds another active feature with that
+    id; then it keeps its id (module docstring). Returns the number of features that kept their
+    id for that reason.
     """
-    cids = np.asarray(cids)
+    require(isinstance(cids, np.ndarray), "cids", type(cids).__name__,
+            "a numpy array (written in place)")
     active = np.asarray(active, dtype=bool)
-    observations = np.asarray(observations, dtype=np.int64).reshape(-1)
-    particles = np.asarray(particles, dtype=np.int64).reshape(-1)
-    slots = np.asarray(slots, dtype=np.int64).reshape(-1)
-    proposed = np.asarray(proposed, dtype=np.int64).reshape(-1)
-    n = len(observations)
-    require(
-        particles.shape == slots.shape == proposed.shape == (n,),
-        "particles", particles.shape, f"({n},) like observations, slots and proposed",
-    )
-    require(cids.shape == active.shape, "cids", cids.shape, f"{active.shape} like active")
-    # Only features whose id would change can clash (ids are unique before the scan); in a
-    # unanimous vote that is none of them. The changes are applied in rounds: round r holds
-    # each particle's r-th change in observation order, so a particle's changes are sequential
-    # and each round is one vectorised check (one round unless a particle changes twice).
-    take = proposed >= 0
-    take[take] = cids[particles[take], slots[take]] != proposed[take]
-    observations, particles, slots, proposed = (
-        observations[take], particles[take], slots[take], proposed[take]
-    )
-    if len(particles) == 0:
-        return 0
-    order = np.lexsort((observations, particles))
-    p_sorted, o_sorted = particles[order], observations[order]
-    twice = (p_sorted[1:] == p_sorted[:-1]) & (o_sorted[1:] == o_sorted[:-1])
-    require(not twice.any(), "particles", p_sorted[1:][twice][:3],
-            "one feature per particle and observation")
-    starts = np.flatnonzero(np.concatenate([[True], p_sorted[1:] != p_sorted[:-1]]))
-    rank = np.arange(len(order)) - np.repeat(starts, np.diff(np.append(starts, len(order))))
-    kept = 0
-    for r in range(int(rank.max()) + 1):
-        sel = order[rank == r]
-        kept += _assign_if_free(cids, active, particles[sel], slots[sel], proposed[sel])
-    return kept
+    slots = np.asarray(slots, dtype=np.int64)
+    winners = np.asarray(winners, dtype=np.int64).reshape(-1)
+    require(slots.ndim == 2, "slots", slots.shape, "a (K, P) array")
+    require(winners.shape == (slots.shape[0],), "winners", winners.shape,
+            f"({slots.shape[0]},): one id per observation of slots")
+    require(cids.shape == active.shape and cids.shape[0] == slots.shape[1], "cids", cids.shape,
+            f"(P, C) like active {active.shape}, P = {slots.shape[1]} as in slots")
+    return _assign_scan_ids(cids, active, slots, winners)
 
 
 @njit(cache=True)
-def assign_scan_ids(cids, active, slots, winners) -> int:
-    """:func:`assign_correspondence_ids` for one scan as :class:`filters.fastslam.FastSLAM2`
-    holds it: ``slots`` (K, P) the slot observation k modified or created in particle p (-1:
-    none), ``winners`` (K,) the voted ids. Integer work only, so it writes exactly the ids the
-    general function writes: each particle's changes in observation order, a change skipped
-    where the particle holds the id in another active slot. Returns the number so skipped.
-    """
+def _assign_scan_ids(cids, active, slots, winners) -> int:
+    """The loop of :func:`assign_correspondence_ids` (integer work only)."""
     K, P = slots.shape
     C = cids.shape[1]
     kept = 0
@@ -267,18 +238,6 @@ def assign_scan_ids(cids, active, slots, winners) -> int:
             else:
                 cids[p, s] = w
     return kept
-
-
-def _assign_if_free(cids, active, p, s, w) -> int:
-    """``cids[p, s] = w`` where particle ``p`` (distinct) holds ``w`` in no other active slot;
-    returns the number of clashes (left unchanged)."""
-    if len(p) == 0:
-        return 0
-    others = active[p] & (cids[p] == w[:, None])
-    others[np.arange(len(p)), s] = False
-    clash = others.any(axis=1)
-    cids[p[~clash], s[~clash]] = w[~clash]
-    return int(clash.sum())
 
 
 # --------------------------------------------------------------------------- common set (BB 3.2)

@@ -109,7 +109,7 @@ import numpy as np
 
 from filters.conversion import (
     NEW_VOTE,
-    assign_scan_ids,
+    assign_correspondence_ids,
     common_features,
     feature_means,
     feature_moments,
@@ -479,9 +479,8 @@ class FastSLAM2:
             winners, margins = known_cids, np.ones(K)
         # every feature modified or created by an observation takes its winner's id, unless its
         # particle holds another feature with that id (clutter winning leaves modified features
-        # their id and created ones without one): filters.conversion.assign_correspondence_ids,
-        # compiled for the scan's (K, P) slots
-        assign_scan_ids(self._cid, self._active, slots, np.asarray(winners, dtype=np.int64))
+        # their id and created ones without one): filters.conversion.assign_correspondence_ids
+        assign_correspondence_ids(self._cid, self._active, slots, winners)
 
         self._outputs = {}
         self._steps += 1

@@ -91,11 +91,9 @@ def test_assign_ids_keeps_them_unique_within_a_particle():
     # particle 0's new slot 1 may now take it. Observation 2 went to clutter (-1): ids unchanged.
     cids = np.array([[3, -1, -1], [4, 7, -1], [5, 7, -1]])
     active = np.array([[True, True, False], [True, True, False], [True, True, True]])
-    kept = assign_correspondence_ids(
-        cids, active,
-        observations=[0, 0, 0, 1, 2], particles=[0, 1, 2, 0, 1], slots=[0, 0, 2, 1, 1],
-        proposed=[7, 7, 7, 3, -1],
-    )
+    # slots[k, p]: the slot observation k modified or created in particle p (-1: none)
+    slots = np.array([[0, 0, 2], [1, -1, -1], [-1, 1, -1]])
+    kept = assign_correspondence_ids(cids, active, slots, winners=[7, 3, -1])
     np.testing.assert_array_equal(cids, [[7, 3, -1], [4, 7, -1], [5, 7, -1]])
     assert kept == 2
     assert _duplicates(cids, active) == []
@@ -104,27 +102,32 @@ def test_assign_ids_keeps_them_unique_within_a_particle():
 def test_assign_ids_without_conflict_is_bb_rule_and_inactive_slots_do_not_count():
     cids = np.array([[1, 9], [2, -1]])
     active = np.array([[True, False], [True, True]])  # particle 0's id 9 sits in an empty slot
-    kept = assign_correspondence_ids(cids, active, [0, 0], [0, 1], [0, 1], [9, 9])
+    kept = assign_correspondence_ids(cids, active, [[0, 1]], [9])  # observation 0, both particles
     np.testing.assert_array_equal(cids, [[9, 9], [2, 9]])
     assert kept == 0
 
 
-def test_assign_ids_processes_observations_in_order_regardless_of_input_order():
+def test_assign_ids_processes_observations_in_order():
     # Particle 0: observation 0 moves slot 0 from id 1 to id 2, freeing 1; observation 1 then
-    # gives slot 1 (id 2 before) the id 1. Given in reverse order, the result is the same.
-    for order in ([0, 1], [1, 0]):
-        cids = np.array([[1, 5]])
-        active = np.ones((1, 2), dtype=bool)
-        obs, slots, proposed = np.array([0, 1]), np.array([0, 1]), np.array([2, 1])
-        assign_correspondence_ids(cids, active, obs[order], [0, 0], slots[order],
-                                  proposed[order])
-        np.testing.assert_array_equal(cids, [[2, 1]])
+    # gives slot 1 (id 5 before) the id 1, which it could not take before observation 0.
+    cids = np.array([[1, 5]])
+    active = np.ones((1, 2), dtype=bool)
+    assign_correspondence_ids(cids, active, [[0], [1]], [2, 1])
+    np.testing.assert_array_equal(cids, [[2, 1]])
 
 
-def test_assign_ids_rejects_two_features_of_one_particle_for_one_observation():
-    cids = np.full((1, 2), -1)
-    with pytest.raises(ValueError, match="particles"):
-        assign_correspondence_ids(cids, np.ones((1, 2), bool), [0, 0], [0, 0], [0, 1], [4, 4])
+@pytest.mark.parametrize(
+    ("cids", "slots", "winners", "field"),
+    [
+        (np.full((1, 2), -1), [0, 1], [4], "slots"),  # not (K, P)
+        (np.full((1, 2), -1), [[0]], [4, 4], "winners"),  # not one id per observation
+        (np.full((2, 2), -1), [[0]], [4], "cids"),  # P differs from slots'
+        ([[-1, -1]], [[0]], [4], "cids"),  # not an array to write into
+    ],
+)
+def test_assign_ids_rejects_bad_input_naming_the_field(cids, slots, winners, field):
+    with pytest.raises(ValueError, match=field):
+        assign_correspondence_ids(cids, np.ones((1, 2), bool), slots, winners)
 
 
 # --------------------------------------------------------------------------- common set
@@ -375,62 +378,45 @@ def test_vote_all_equals_one_vote_per_observation():
     assert winners[4] == 3 and margins[4] == pytest.approx(0.0, abs=1e-12)
 
 
-def _assign_reference(cids, active, observations, particles, slots, proposed):
+def _assign_reference(cids, active, slots, winners):
     """The rule entry by entry, in observation order (a plain loop)."""
-    for i in np.argsort(observations, kind="stable"):
-        p, s, w = particles[i], slots[i], proposed[i]
-        if w < 0:
-            continue
-        held = [j for j in range(cids.shape[1]) if j != s and active[p, j] and cids[p, j] == w]
-        if not held:
-            cids[p, s] = w
+    for k in range(slots.shape[0]):
+        for p in range(slots.shape[1]):
+            s, w = slots[k, p], winners[k]
+            if s < 0 or w < 0:
+                continue
+            held = [j for j in range(cids.shape[1])
+                    if j != s and active[p, j] and cids[p, j] == w]
+            if not held:
+                cids[p, s] = w
 
 
 @pytest.mark.parametrize("seed", range(20))
 def test_assign_ids_equals_the_entry_by_entry_rule_and_leaves_ids_unique(seed):
     rng = np.random.default_rng(seed)
-    P, C, K = 12, 8, 4
+    P, C, K = 30, 8, 4
     active = rng.random((P, C)) < 0.8
     cids = np.full((P, C), -1)
     for p in range(P):  # unique ids per particle before the scan
         cids[p] = np.where(rng.random(C) < 0.7, rng.permutation(10)[:C], -1)
     # as in the filter: a particle has at most one feature per observation and a feature is
     # modified or created by at most one observation of the scan
-    obs, parts, slots = [], [], []
-    free = [list(rng.permutation(C)) for _ in range(P)]
-    for k in range(K):
-        for p in rng.choice(P, size=rng.integers(1, P + 1), replace=False):
-            obs.append(k), parts.append(p), slots.append(free[p].pop())
-    obs, parts, slots = np.array(obs), np.array(parts), np.array(slots)
-    proposed = rng.integers(-1, 10, len(obs))
-    active[parts, slots] = True
-    expected = cids.copy()
-    _assign_reference(expected, active, obs, parts, slots, proposed)
-    assign_correspondence_ids(cids, active, obs, parts, slots, proposed)
-    np.testing.assert_array_equal(cids, expected)
-    assert _duplicates(cids, active) == []
-
-
-@pytest.mark.parametrize("seed", range(20))
-def test_compiled_scan_assignment_writes_the_ids_of_the_general_one(seed):
-    from filters.conversion import assign_scan_ids
-
-    rng = np.random.default_rng(seed)
-    K, P, C = 4, 30, 8
-    active = rng.random((P, C)) < 0.7
-    cids = np.where(active, rng.integers(0, 6, (P, C)), -1)
-    # each observation takes at most one slot per particle and each slot at most one observation
     slots = np.full((K, P), -1, dtype=np.int64)
     for p in range(P):
         chosen = rng.permutation(C)[:K]
         use = rng.random(K) < 0.6
         slots[use, p] = chosen[use]
-    winners = rng.integers(-1, 6, K)
-    a, b = cids.copy(), cids.copy()
-    ks, ps = np.nonzero(slots >= 0)
-    kept_general = assign_correspondence_ids(a, active, ks, ps, slots[ks, ps], winners[ks])
-    kept_compiled = assign_scan_ids(b, active, slots, winners)
-    assert np.array_equal(a, b) and kept_general == kept_compiled
+    active[np.nonzero(slots >= 0)[1], slots[slots >= 0]] = True
+    winners = rng.integers(-1, 10, K)
+    expected = cids.copy()
+    _assign_reference(expected, active, slots, winners)
+    kept = assign_correspondence_ids(cids, active, slots, winners)
+    np.testing.assert_array_equal(cids, expected)
+    changed = (slots >= 0) & (winners[:, None] >= 0)
+    assert kept == int(np.sum(changed)) - int(np.sum(
+        [cids[p, slots[k, p]] == winners[k] for k, p in zip(*np.nonzero(changed), strict=True)]
+    ))
+    assert _duplicates(cids, active) == []
 
 
 def _lexsort_common_features(w, cids, active, existence, trace):
