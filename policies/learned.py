@@ -106,6 +106,24 @@ def _configured(model_path: Path, key: str, default: Any) -> Any:
         raise ValueError(f"config {config} is invalid: must be a JSON object ({exc})") from exc
 
 
+def _normalisation(stats: Any) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """(mean, std, clip) of the config's ``observation_normalisation`` (VecNormalize's running
+    statistics, saved by ``slam-gym train``), or None."""
+    if stats is None:
+        return None
+    require(
+        isinstance(stats, dict) and {"mean", "var", "clip", "epsilon"} <= set(stats),
+        "observation_normalisation", stats,
+        "a mapping with mean, var, clip and epsilon (written by slam-gym train)",
+    )
+    mean = np.asarray(stats["mean"], dtype=np.float64)
+    var = np.asarray(stats["var"], dtype=np.float64)
+    require(mean.shape == var.shape and mean.ndim == 1 and np.all(var >= 0),
+            "observation_normalisation", {"mean": mean.shape, "var": var.shape},
+            "1-D mean and non-negative var of the same length")
+    return mean, np.sqrt(var + float(stats["epsilon"])), float(stats["clip"])
+
+
 def _algorithm_class(algo: str):
     """The stable-baselines3 class for ``algo`` (imported here, lazily)."""
     import stable_baselines3
@@ -130,7 +148,10 @@ class LearnedPolicy(Policy):
     mode of the policy's action distribution / the greedy Q action), ``device`` (default
     ``"cpu"``), ``observation_transform`` (``"none"`` or ``"log1p"``, the transform the model was
     trained behind; default: the ``observation_transform`` of the config JSON that ``slam-gym
-    train`` saves beside the zip with the same stem, else ``"none"``). The model is loaded on
+    train`` saves beside the zip with the same stem, else ``"none"``). After the transform, the
+    config's ``observation_normalisation`` (the ``VecNormalize`` statistics the model was trained
+    with: ``clip((x - mean) / sqrt(var + epsilon), -clip, clip)``) is applied when present. The
+    model is loaded on
     construction, so a missing file or a model with the wrong spaces fails at ``policies.make``
     rather than mid-episode.
     """
@@ -185,6 +206,9 @@ class LearnedPolicy(Policy):
             f"one of {OBSERVATION_TRANSFORMS}",
         )
         self.observation_transform = observation_transform
+        self.normalisation = _normalisation(
+            _configured(model_path, "observation_normalisation", None)
+        )
         self.path = model_path
         self.algo = algo
         self.deterministic = deterministic
@@ -250,6 +274,9 @@ class LearnedPolicy(Policy):
         )
         if self.observation_transform == "log1p":
             x = np.log1p(x).astype(np.float32)
+        if self.normalisation is not None:
+            mean, std, clip = self.normalisation
+            x = np.clip((x - mean) / std, -clip, clip).astype(np.float32)
         action, _ = self.model.predict(x, deterministic=self.deterministic)
         if self.discrete:
             return discrete_to_multi(action)

@@ -1,202 +1,121 @@
-"""``slam-gym train``: train an interface policy with stable-baselines3 (PPO by default).
+"""``slam-gym train``: train interface policies with stable-baselines3, several seeds, resumable.
 
-Training runs ``n_envs`` copies of ``SlamGym/HybridSLAM-v0`` in ``SubprocVecEnv`` workers (one per
-core by default), each episode in a random clutter level and a fresh training world (seeds
->= 1e6, never used by evaluations), with observations passed through ``log1p``
-(:class:`~slam_gym.envs.wrappers.LogFeatures`). DQN trains through the ``Discrete(4)`` wrapper.
-An evaluation callback runs the current policy deterministically on fixed evaluation worlds with
-the benchmark's evaluation code and logs success rate, ANEES and map error.
+Hyper-parameters come from a YAML file per algorithm in rl-zoo3's layout
+(``slam_gym/training/hyperparams/<algo>.yml``, or ``--hyperparams FILE``; ``--hp key=value``
+overrides one entry), see :mod:`slam_gym.training.hyperparams`. Each seed trains in
+``OUT/seed-<s>/`` (:mod:`slam_gym.training.run`: ``n_envs`` ``SubprocVecEnv`` workers, each
+episode in a random clutter level and a fresh training world with seed >= 1e6, observations
+through ``log1p`` and ``VecNormalize``, checkpoints, SB3's CSV/TensorBoard logs, a CSV of every
+training episode, periodic evaluation on held-out worlds with the benchmark's code). ``--resume``
+continues every unfinished seed from its newest checkpoint and skips finished ones.
 
-Writes ``model.zip``, ``model.json`` (every setting, the command line, versions: enough to repeat
-the run) and ``eval_log.jsonl``.
+At the end ``OUT/summary.{json,md}`` gives the spread of the seeds' final evaluations and the
+seed chosen on those training-time evaluation worlds, ``OUT/training_curves.png`` the curves, and
+``OUT/model.zip`` / ``model.json`` is a copy of the chosen seed's model, loadable with
+``policies.make("learned", path="OUT/model.zip")``.
 """
 
 from __future__ import annotations
 
 import json
 import logging
-import os
-import platform
 import sys
-import time
-
-import numpy as np
+from pathlib import Path
 
 from slam_gym.commands.common import add_common_options, emit, out_dir
 from slam_gym.commands.runs import int_list
+from slam_gym.training.hyperparams import ALGOS, load_hyperparams, parse_overrides
 
 logger = logging.getLogger(__name__)
 
-ALGOS = ("ppo", "dqn", "a2c")
+DEFAULT_EVAL_SEEDS = "900000,900001,900002,900003,900004"
+"""Training-time evaluation worlds (5 per level): below the training worlds and far from the
+benchmark's reported worlds (0-199)."""
 
 
 def add_parser(subparsers) -> None:
-    p = subparsers.add_parser("train", help="train a learned interface policy (SB3)")
+    p = subparsers.add_parser("train", help="train learned interface policies (SB3), resumable")
     p.add_argument("--algo", choices=ALGOS, default="ppo")
-    p.add_argument("--timesteps", type=int, default=100_000, help="env decisions to train on")
-    p.add_argument("--n-envs", type=int, default=None, help="parallel envs (default: cores)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--particles", type=int, default=100)
-    p.add_argument("--clutter-levels", default="0,1,2,3")
-    p.add_argument("--eval-every", type=int, default=20_000, help="decisions between evaluations")
-    p.add_argument("--eval-seeds", default="0", help="evaluation worlds (seeds < 1e6)")
-    p.add_argument("--eval-particles", type=int, default=None,
-                   help="particles in evaluation (default: --particles)")
+    p.add_argument("--env", default="SlamGym/HybridSLAM-v0", help="env id to train on")
+    p.add_argument("--hyperparams", default=None,
+                   help="YAML file (rl-zoo3 layout; default: the packaged <algo>.yml)")
+    p.add_argument("--hp", action="append", default=[], metavar="KEY=VALUE",
+                   help="override one hyper-parameter (value parsed as YAML); repeatable")
+    p.add_argument("--timesteps", type=int, default=None,
+                   help="decisions per seed (default: the YAML's n_timesteps)")
+    p.add_argument("--n-envs", type=int, default=None,
+                   help="parallel envs (default: the YAML's n_envs)")
+    p.add_argument("--seeds", default="0,1,2", help="training seeds, each its own run")
+    p.add_argument("--particles", type=int, default=None,
+                   help="FastSLAM particles (default: the YAML's env_kwargs)")
     p.add_argument("--n-steps", type=int, default=None,
                    help="cut every training and evaluation path to this many iterations")
-    p.add_argument("--learning-rate", type=float, default=3e-4)
-    p.add_argument("--rollout-steps", type=int, default=256,
-                   help="PPO/A2C steps per env per update")
+    p.add_argument("--clutter-levels", default="0,1,2,3")
+    p.add_argument("--eval-every", type=int, default=25_000, help="decisions between evaluations")
+    p.add_argument("--eval-seeds", default=DEFAULT_EVAL_SEEDS,
+                   help="evaluation worlds per level (seeds < 1e6, never trained on)")
+    p.add_argument("--eval-workers", type=int, default=None,
+                   help="processes for evaluation (default: n_envs)")
+    p.add_argument("--checkpoint-every", type=int, default=25_000)
+    p.add_argument("--resume", action="store_true",
+                   help="continue unfinished seeds from their newest checkpoints")
     add_common_options(p, default_out="out/train")
     p.set_defaults(run=run)
 
 
-class ModelPolicy:
-    """An in-memory SB3 model as a policy object (log1p observations), for evaluation."""
-
-    def __init__(self, model, discrete: bool):
-        self.model = model
-        self.discrete = discrete
-
-    def reset(self):
-        pass
-
-    def act(self, obs, info=None):
-        action, _ = self.model.predict(np.log1p(obs).astype(np.float32), deterministic=True)
-        if self.discrete:
-            from slam_gym.envs.wrappers import discrete_to_multi
-
-            return discrete_to_multi(int(action))
-        return np.asarray(action, dtype=np.int64).reshape(2)
-
-
-def make_env_fn(rank: int, seed: int, levels, particles: int, n_steps, discrete: bool):
-    def make():
-        import gymnasium as gym
-
-        from slam_gym.envs.wrappers import DiscreteActions, LogFeatures, RandomClutterLevel
-
-        env = gym.make("slam_gym:SlamGym/HybridSLAM-v0", n_particles=particles, n_steps=n_steps)
-        env = RandomClutterLevel(env, levels)
-        env = LogFeatures(env)
-        if discrete:
-            env = DiscreteActions(env)
-        env.reset(seed=seed + 1000 * rank)
-        return env
-
-    return make
+def build_hyperparams(args) -> dict:
+    overrides = parse_overrides(args.hp)
+    if args.timesteps is not None:
+        overrides["n_timesteps"] = args.timesteps
+    if args.n_envs is not None:
+        overrides["n_envs"] = args.n_envs
+    env_kwargs = {}
+    if args.particles is not None:
+        env_kwargs["n_particles"] = args.particles
+    if args.n_steps is not None:
+        env_kwargs["n_steps"] = args.n_steps
+    if env_kwargs:
+        overrides["env_kwargs"] = {**overrides.get("env_kwargs", {}), **env_kwargs}
+    return load_hyperparams(args.algo, args.env, args.hyperparams, overrides)
 
 
 def run(args) -> int:
-    from stable_baselines3 import A2C, DQN, PPO
-    from stable_baselines3.common.callbacks import BaseCallback
-    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecMonitor
+    from slam_gym.training.report import plot_curves, write_summary
+    from slam_gym.training.run import TrainingSetup, copy_model, train_run
 
-    from slam_gym.evaluation.core import evaluate_policy
-    from slam_gym.evaluation.summary import summarise
-
-    if args.timesteps < 1:
-        raise ValueError(f"timesteps={args.timesteps} is invalid: must be >= 1")
-    n_envs = args.n_envs or (os.cpu_count() or 1)
-    if n_envs < 1:
-        raise ValueError(f"n_envs={n_envs} is invalid: must be >= 1")
-    levels = int_list(args.clutter_levels)
-    eval_seeds = int_list(args.eval_seeds)
-    if any(s >= 1_000_000 for s in eval_seeds):
-        raise ValueError(f"eval_seeds={eval_seeds} is invalid: must be < 1000000 (training worlds)")
-    discrete = args.algo == "dqn"
+    params = build_hyperparams(args)
+    seeds = int_list(args.seeds)
+    if not seeds or len(set(seeds)) != len(seeds):
+        raise ValueError(f"seeds={args.seeds!r} is invalid: must be distinct integers")
     out = out_dir(args)
-    fns = [make_env_fn(i, args.seed, levels, args.particles, args.n_steps, discrete)
-           for i in range(n_envs)]
-    vec = SubprocVecEnv(fns, start_method="spawn") if n_envs > 1 else DummyVecEnv(fns)
-    vec = VecMonitor(vec)
-    common = {"seed": args.seed, "verbose": 0, "device": "cpu", "learning_rate": args.learning_rate}
-    if args.algo == "ppo":
-        model = PPO("MlpPolicy", vec, n_steps=args.rollout_steps, batch_size=64, **common)
-    elif args.algo == "a2c":
-        model = A2C("MlpPolicy", vec, n_steps=args.rollout_steps, **common)
-    else:
-        model = DQN("MlpPolicy", vec, buffer_size=50_000, learning_starts=1000, **common)
-    eval_particles = args.eval_particles or args.particles
-    log_path = out / "eval_log.jsonl"
-    log_path.write_text("")
-
-    class EvalCallback(BaseCallback):
-        def __init__(self):
-            super().__init__()
-            self.next_eval = args.eval_every
-
-        def _evaluate(self):
-            start = time.perf_counter()
-            rows = evaluate_policy(ModelPolicy(self.model, discrete), "brooks-bailey", levels,
-                                   eval_seeds, n_particles=eval_particles,
-                                   n_steps=args.n_steps)
-            groups = summarise(rows)
-            record = {
-                "timesteps": int(self.num_timesteps),
-                "success_rate": float(np.mean([r["success"] for r in rows])),
-                "anees": float(np.nanmean([r["anees"] for r in rows])),
-                "map_error_m": float(np.nanmean([r["map_error_m"] for r in rows])),
-                "n_fusions": float(np.mean([r["n_fusions"] for r in rows])),
-                "n_optimisations": float(np.mean([r["n_optimisations"] for r in rows])),
-                "per_level": [{k: g.get(k) for k in ("clutter_level", "success_rate", "anees")}
-                              for g in groups],
-                "eval_time_s": time.perf_counter() - start,
-            }
-            with log_path.open("a") as fh:
-                fh.write(json.dumps(record) + "\n")
-            logger.warning(
-                "eval at %d: success %.2f, ANEES %.2f, map error %.2f m, fusions %.0f",
-                record["timesteps"], record["success_rate"], record["anees"],
-                record["map_error_m"], record["n_fusions"],
-            )
-            return record
-
-        def _on_step(self) -> bool:
-            if self.num_timesteps >= self.next_eval:
-                self.next_eval += args.eval_every
-                self._evaluate()
-            return True
-
-    callback = EvalCallback()
-    start = time.perf_counter()
-    model.learn(total_timesteps=args.timesteps, callback=callback,
-                progress_bar=not args.quiet and not args.json)
-    train_time = time.perf_counter() - start
-    final = callback._evaluate()
-    vec.close()
-    model.save(out / "model.zip")
-    config = {
-        "command": "slam-gym " + " ".join(sys.argv[1:]),
-        "algo": args.algo,
-        "timesteps": args.timesteps,
-        "n_envs": n_envs,
-        "seed": args.seed,
-        "particles": args.particles,
-        "clutter_levels": levels,
-        "n_steps": args.n_steps,
-        "learning_rate": args.learning_rate,
-        "rollout_steps": args.rollout_steps,
-        "eval_seeds": eval_seeds,
-        "env_id": "SlamGym/HybridSLAM-v0",
-        "observation_transform": "log1p",
-        "training_world_seeds": ">= 1000000",
-        "train_time_s": train_time,
-        "final_evaluation": final,
-        "versions": {"python": platform.python_version(), **_versions()},
-    }
-    (out / "model.json").write_text(json.dumps(config, indent=2) + "\n")
-    emit(args, config, [
-        f"trained {args.algo.upper()} for {args.timesteps} decisions in {train_time:.0f} s "
-        f"on {n_envs} envs",
-        f"final evaluation: success {final['success_rate']:.2f}, ANEES {final['anees']:.2f}, "
-        f"map error {final['map_error_m']:.2f} m",
-        f"wrote {out / 'model.zip'}, model.json, eval_log.jsonl",
+    runs = {}
+    for seed in seeds:
+        setup = TrainingSetup(
+            algo=args.algo, env_id=args.env, seed=seed, hyperparams=params,
+            clutter_levels=tuple(int_list(args.clutter_levels)),
+            eval_seeds=tuple(int_list(args.eval_seeds)), eval_every=args.eval_every,
+            eval_workers=args.eval_workers or params["n_envs"],
+            checkpoint_every=args.checkpoint_every,
+            command="slam-gym " + " ".join(sys.argv[1:]),
+        )
+        run_dir = out / f"seed-{seed}"
+        logger.warning("training %s seed %d for %d decisions into %s", args.algo.upper(), seed,
+                       params["n_timesteps"], run_dir)
+        train_run(setup, run_dir, resume=args.resume, progress=not args.quiet and not args.json)
+        runs[seed] = run_dir
+    doc = write_summary(out, args.algo, runs)
+    curves = plot_curves(out / "training_curves.png", runs,
+                         title=f"{args.algo.upper()} on {args.env}, seeds {seeds}")
+    chosen = copy_model(runs[doc["chosen_seed"]], out / "model.zip")
+    chosen_config = json.loads(chosen.with_suffix(".json").read_text())
+    chosen_config["chosen_among_seeds"] = doc["seeds"]
+    chosen_config["chosen_by"] = doc["chosen_by"]
+    chosen.with_suffix(".json").write_text(json.dumps(chosen_config, indent=2) + "\n")
+    spread = doc["spread"]
+    emit(args, {"summary": doc, "model": str(chosen), "curves": str(curves)}, [
+        (Path(out) / "summary.md").read_text().rstrip(),
+        f"success over seeds {spread['success_rate']['mean']:.2f} ± "
+        f"{spread['success_rate']['std']:.2f}; chosen seed {doc['chosen_seed']}",
+        f"wrote {chosen} (+ .json), {curves}, summary.json, summary.md",
     ])
     return 0
-
-
-def _versions() -> dict:
-    from importlib.metadata import version
-
-    return {pkg: version(pkg) for pkg in ("stable-baselines3", "torch", "gymnasium", "numpy")}

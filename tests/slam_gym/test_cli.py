@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 
 from slam_gym.cli import main
-from slam_gym.envs.hybrid_slam import FEATURE_NAMES
 from slam_gym.evaluation import read_results
 
 
@@ -165,20 +164,6 @@ def test_speed_times_exactly_one_whole_env_episode():
     # the first interval, every decision one more (the last one possibly cut short)
     assert 10 < e["iterations"] <= 95 and e["decisions"] == -(-(e["iterations"] - 10) // 10)
     assert e["cpu_time_s"] > 0 and e["n_particles"] == 10
-
-
-def test_train_smoke_and_the_model_loads_and_acts(tmp_path, capsys):
-    import policies
-
-    out = run_json(capsys, ["train", "--timesteps", "256", "--n-envs", "1", "--particles", "5",
-                            "--n-steps", "200", "--rollout-steps", "64", "--eval-every", "100000",
-                            "--eval-seeds", "0", "--clutter-levels", "0", "--out", str(tmp_path)])
-    assert out["algo"] == "ppo" and out["observation_transform"] == "log1p"
-    assert (tmp_path / "model.zip").exists() and (tmp_path / "eval_log.jsonl").exists()
-    policy = policies.make("learned", path=str(tmp_path / "model.zip"))
-    assert policy.observation_transform == "log1p"
-    action = policy.act(np.ones(len(FEATURE_NAMES), dtype=np.float32), {})
-    assert action.shape == (2,) and action.dtype == np.int64 and set(action) <= {0, 1}
 
 
 def test_benchmark_where_every_run_fails_still_writes_its_table(tmp_path, capsys):

@@ -1,0 +1,1 @@
+"""Training learned interface policies: hyper-parameters, runs, seeds (``slam-gym train``)."""

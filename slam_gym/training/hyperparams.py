@@ -1,0 +1,151 @@
+"""Hyper-parameters per algorithm and env id, read from YAML files in rl-zoo3's layout.
+
+A file maps env ids to settings; the packaged ones are ``slam_gym/training/hyperparams/<algo>.yml``.
+An entry holds two kinds of keys:
+
+* the training run's own (:data:`RUN_KEYS`): ``n_timesteps`` (env decisions), ``n_envs``
+  (``SubprocVecEnv`` workers), ``policy`` (SB3 policy name), ``normalize`` / ``norm_reward`` /
+  ``clip_obs`` (``VecNormalize``, saved with the model), ``env_kwargs`` (options of the env,
+  restricted to :data:`ENV_KWARGS`, the ones the evaluation code forwards too),
+  ``initial_fuse_probability`` / ``initial_optimise_probability`` (PPO and A2C: the untrained
+  policy's chance of each action per decision, set through the action head's bias; default 0.5,
+  SB3's uniform start);
+* the algorithm's constructor arguments (:data:`ALGO_KEYS`), e.g. PPO's ``n_steps``.
+
+``policy_kwargs`` is a YAML mapping (rl-zoo3 writes a Python string; a mapping needs no ``eval``).
+Unknown keys raise ``ValueError`` naming the key, so a typo never trains silently with a default.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+ALGOS: tuple[str, ...] = ("ppo", "a2c", "dqn")
+
+HYPERPARAMS_DIR = Path(__file__).resolve().parent / "hyperparams"
+"""The packaged YAML files, one per algorithm."""
+
+RUN_KEYS: tuple[str, ...] = (
+    "n_timesteps", "n_envs", "policy", "normalize", "norm_reward", "clip_obs", "env_kwargs",
+    "initial_fuse_probability", "initial_optimise_probability",
+)
+ENV_KWARGS: tuple[str, ...] = ("n_particles", "decision_interval", "front_end", "back_end",
+                               "n_steps")
+"""The env options a training entry may set: the ones evaluation runs with the same values."""
+
+_ON_POLICY = ("learning_rate", "n_steps", "gamma", "gae_lambda", "ent_coef", "vf_coef",
+              "max_grad_norm", "policy_kwargs", "normalize_advantage")
+ALGO_KEYS: dict[str, tuple[str, ...]] = {
+    "ppo": _ON_POLICY + ("batch_size", "n_epochs", "clip_range", "clip_range_vf", "target_kl"),
+    "a2c": _ON_POLICY + ("rms_prop_eps", "use_rms_prop"),
+    "dqn": ("learning_rate", "buffer_size", "learning_starts", "batch_size", "tau", "gamma",
+            "train_freq", "gradient_steps", "target_update_interval", "exploration_fraction",
+            "exploration_initial_eps", "exploration_final_eps", "max_grad_norm",
+            "policy_kwargs"),
+}
+
+
+def hyperparams_path(algo: str) -> Path:
+    """The packaged YAML file of ``algo``."""
+    if algo not in ALGOS:
+        raise ValueError(f"algo={algo!r} is invalid: must be one of {ALGOS}")
+    return HYPERPARAMS_DIR / f"{algo}.yml"
+
+
+def parse_overrides(items: Iterable[str]) -> dict[str, Any]:
+    """``["key=value", ...]`` (values parsed as YAML, as rl-zoo3's ``--hyperparams``)."""
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"hp={item!r} is invalid: must be key=value")
+        out[key.strip()] = _number_if_numeric(yaml.safe_load(text))
+    return out
+
+
+def _number_if_numeric(value: Any) -> Any:
+    """YAML 1.1 reads ``1e-3`` (no dot) as a string: read it as the number it means."""
+    if isinstance(value, str):
+        try:
+            return float(value)
+        except ValueError:
+            return value
+    return value
+
+
+def load_hyperparams(
+    algo: str,
+    env_id: str,
+    path: str | Path | None = None,
+    overrides: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """The validated settings of ``algo`` for ``env_id`` from ``path`` (default: packaged file).
+
+    ``overrides`` replace entries (``env_kwargs`` is merged key by key).
+    """
+    file = Path(path) if path is not None else hyperparams_path(algo)
+    if not file.is_file():
+        raise ValueError(f"hyperparams={str(file)!r} is invalid: no such file")
+    try:
+        doc = yaml.safe_load(file.read_text())
+    except yaml.YAMLError as exc:
+        raise ValueError(f"hyperparams={str(file)!r} is invalid: not YAML ({exc})") from exc
+    if not isinstance(doc, dict) or env_id not in doc:
+        ids = sorted(doc) if isinstance(doc, dict) else []
+        raise ValueError(f"env_id={env_id!r} is invalid: {file} has entries for {ids}")
+    params = copy.deepcopy(doc[env_id])
+    if not isinstance(params, dict):
+        raise ValueError(f"hyperparams[{env_id!r}] in {file} is invalid: must be a mapping")
+    for key, value in (overrides or {}).items():
+        if key == "env_kwargs" and isinstance(value, dict):
+            params["env_kwargs"] = {**params.get("env_kwargs", {}), **value}
+        else:
+            params[key] = value
+    return validate_hyperparams(algo, params, where=f"{file}[{env_id}]")
+
+
+def validate_hyperparams(algo: str, params: dict[str, Any], where: str = "hyperparams") -> dict:
+    """Check the keys and the run settings' values; returns ``params`` with defaults filled."""
+    allowed = set(RUN_KEYS) | set(ALGO_KEYS[algo])
+    unknown = sorted(set(params) - allowed)
+    if unknown:
+        raise ValueError(
+            f"{where}: keys {unknown} are invalid for {algo}: must be among {sorted(allowed)}"
+        )
+    params.setdefault("policy", "MlpPolicy")
+    params.setdefault("normalize", True)
+    params.setdefault("norm_reward", params["normalize"])
+    params.setdefault("clip_obs", 10.0)
+    params.setdefault("env_kwargs", {})
+    for key in ("n_timesteps", "n_envs"):
+        value = params.get(key)
+        if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+            raise ValueError(f"{where}: {key}={value!r} is invalid: must be an integer >= 1")
+    for key in ("normalize", "norm_reward"):
+        if not isinstance(params[key], bool):
+            raise ValueError(f"{where}: {key}={params[key]!r} is invalid: must be true or false")
+    if not isinstance(params["env_kwargs"], dict):
+        raise ValueError(f"{where}: env_kwargs={params['env_kwargs']!r} is invalid: "
+                         "must be a mapping")
+    bad = sorted(set(params["env_kwargs"]) - set(ENV_KWARGS))
+    if bad:
+        raise ValueError(f"{where}: env_kwargs keys {bad} are invalid: must be among "
+                         f"{list(ENV_KWARGS)} (the options evaluation forwards)")
+    for key in ("initial_fuse_probability", "initial_optimise_probability"):
+        if key not in params:
+            continue
+        if algo == "dqn":
+            raise ValueError(f"{where}: {key} is invalid for dqn (its exploration is "
+                             "epsilon-greedy over the four actions)")
+        value = params[key]
+        if not isinstance(value, (int, float)) or isinstance(value, bool) or not 0 < value < 1:
+            raise ValueError(f"{where}: {key}={value!r} is invalid: must be in (0, 1)")
+    if "policy_kwargs" in params and not isinstance(params["policy_kwargs"], dict):
+        raise ValueError(f"{where}: policy_kwargs={params['policy_kwargs']!r} is invalid: "
+                         "must be a mapping")
+    return params

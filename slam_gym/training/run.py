@@ -1,0 +1,448 @@
+"""One training run of an interface policy: one algorithm, one env id, one seed, resumable.
+
+The run lives in its own directory::
+
+    model.zip, model.json        the final model and everything needed to repeat and load it
+    checkpoints/                 model_<t>.zip + vecnormalize_<t>.pkl (+ replay_<t>.pkl for DQN)
+    logs/progress_<t0>.csv       SB3's logger (losses, rollout returns), one file per segment
+    logs/monitor_<t0>.monitor.csv  every training episode: return, length, failed, fusions, ...
+    logs/tensorboard/            when tensorboard is installed
+    eval.csv                     one row per periodic evaluation on held-out worlds
+    evals/t<t>/                  the evaluated snapshot and its results.jsonl (benchmark rows)
+
+A segment starts at ``t0`` decisions: 0 for a fresh run, the checkpoint's count for a resumed
+one. Resuming loads the newest checkpoint (model, ``VecNormalize`` statistics, DQN's replay buffer)
+and trains the remaining decisions; the training worlds continue from a seed derived from the
+checkpoint, so a resumed run is deterministic given its checkpoint, though not bit-identical to
+an uninterrupted one.
+
+Observations pass through ``log1p`` (:class:`~slam_gym.envs.wrappers.LogFeatures`) and then, with
+``normalize``, through ``VecNormalize``; the statistics are written into ``model.json``
+(``observation_normalisation``) so :class:`policies.learned.LearnedPolicy` applies the same
+transform without SB3's pickles. Evaluation runs the snapshot through the benchmark's own code
+(:func:`slam_gym.evaluation.run_jobs`, policy ``learned``) on worlds below
+:data:`~slam_gym.envs.wrappers.TRAINING_WORLD_SEED_OFFSET`, never trained on.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+import platform
+import re
+import shutil
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from slam_gym.training.hyperparams import ALGO_KEYS
+
+logger = logging.getLogger(__name__)
+
+EVAL_FIELDS: tuple[str, ...] = (
+    "timesteps", "success_rate", "mean_return", "anees", "map_error_m", "map_completeness",
+    "n_fusions", "n_optimisations", "interface_cpu_s", "n_episodes", "eval_time_s",
+)
+"""Columns of ``eval.csv`` (then ``success_level_<L>`` per clutter level)."""
+
+EPISODE_INFO_KEYS: tuple[str, ...] = ("failed", "n_fusions", "n_optimisations", "map_error_m",
+                                      "map_completeness")
+"""``info`` entries written per training episode into the monitor CSV."""
+
+
+@dataclass(frozen=True)
+class TrainingSetup:
+    """Everything one training run needs; written into ``model.json``."""
+
+    algo: str
+    env_id: str
+    seed: int
+    hyperparams: dict[str, Any]
+    clutter_levels: tuple[int, ...] = (0, 1, 2, 3)
+    eval_seeds: tuple[int, ...] = (900_000, 900_001, 900_002, 900_003, 900_004)
+    eval_every: int = 25_000
+    eval_workers: int = 2
+    checkpoint_every: int = 25_000
+    command: str = ""
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self):
+        from slam_gym.envs.wrappers import TRAINING_WORLD_SEED_OFFSET
+
+        if self.algo not in ALGO_KEYS:
+            raise ValueError(f"algo={self.algo!r} is invalid: must be one of {tuple(ALGO_KEYS)}")
+        if not self.clutter_levels:
+            raise ValueError("clutter_levels=() is invalid: must name at least one level")
+        bad = [s for s in self.eval_seeds if not 0 <= s < TRAINING_WORLD_SEED_OFFSET]
+        if bad:
+            raise ValueError(f"eval_seeds={bad} is invalid: must be in [0, "
+                             f"{TRAINING_WORLD_SEED_OFFSET}) (higher seeds are training worlds)")
+        for name in ("eval_every", "eval_workers", "checkpoint_every"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name}={getattr(self, name)} is invalid: must be >= 1")
+
+    @property
+    def discrete(self) -> bool:
+        return self.algo == "dqn"
+
+    def env_options(self) -> dict[str, Any]:
+        """The env's options: the id's registered keyword arguments, then ``env_kwargs``."""
+        return {**registered_kwargs(self.env_id), **self.hyperparams.get("env_kwargs", {})}
+
+
+def registered_kwargs(env_id: str) -> dict[str, Any]:
+    """The keyword arguments ``env_id`` is registered with (a trainable simulated id)."""
+    from slam_gym.envs import ENV_VARIANTS
+
+    if env_id not in ENV_VARIANTS:
+        raise ValueError(f"env_id={env_id!r} is invalid: must be one of {list(ENV_VARIANTS)}")
+    kwargs = dict(ENV_VARIANTS[env_id])
+    if "clutter_level" in kwargs or "scenario" in kwargs:
+        trainable = [i for i, k in ENV_VARIANTS.items()
+                     if "clutter_level" not in k and "scenario" not in k]
+        raise ValueError(f"env_id={env_id!r} is invalid for training (its clutter level or "
+                         f"scenario is fixed; training draws the level): must be one of "
+                         f"{trainable}")
+    return kwargs
+
+
+def make_env_fn(setup: TrainingSetup, rank: int):
+    """A picklable constructor of training env ``rank`` (for ``SubprocVecEnv``)."""
+    env_id, options = setup.env_id, setup.hyperparams.get("env_kwargs", {})
+    levels, discrete = setup.clutter_levels, setup.discrete
+
+    def make():
+        import gymnasium as gym
+
+        from slam_gym.envs.wrappers import DiscreteActions, LogFeatures, RandomClutterLevel
+
+        env = gym.make(f"slam_gym:{env_id}", **options)
+        env = RandomClutterLevel(env, levels)
+        env = LogFeatures(env)
+        if discrete:
+            env = DiscreteActions(env)
+        return env
+
+    return make
+
+
+def _newest_checkpoint(run_dir: Path) -> int | None:
+    steps = [int(m.group(1)) for p in (run_dir / "checkpoints").glob("model_*.zip")
+             if (m := re.fullmatch(r"model_(\d+)\.zip", p.name))]
+    return max(steps) if steps else None
+
+
+def observation_normalisation(vec) -> dict[str, Any] | None:
+    """The ``VecNormalize`` observation statistics as plain JSON (None without it)."""
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    if not isinstance(vec, VecNormalize) or not vec.norm_obs:
+        return None
+    return {
+        "mean": [float(v) for v in vec.obs_rms.mean],
+        "var": [float(v) for v in vec.obs_rms.var],
+        "clip": float(vec.clip_obs),
+        "epsilon": float(vec.epsilon),
+    }
+
+
+def model_config(setup: TrainingSetup, vec, timesteps: int, **extra) -> dict[str, Any]:
+    """The JSON written beside a model: how to load it and how it was made."""
+    from slam_gym.envs.hybrid_slam import FEATURE_NAMES
+
+    return {
+        "command": setup.command,
+        "algo": setup.algo,
+        "env_id": setup.env_id,
+        "env_options": setup.env_options(),
+        "seed": setup.seed,
+        "timesteps": int(timesteps),
+        "hyperparams": setup.hyperparams,
+        "clutter_levels": list(setup.clutter_levels),
+        "eval_seeds": list(setup.eval_seeds),
+        "training_world_seeds": ">= 1000000",
+        "feature_names": list(FEATURE_NAMES),
+        "observation_transform": "log1p",
+        "observation_normalisation": observation_normalisation(vec),
+        "versions": {"python": platform.python_version(), **_versions()},
+        **extra,
+    }
+
+
+def _versions() -> dict[str, str]:
+    from importlib.metadata import version
+
+    return {pkg: version(pkg) for pkg in ("stable-baselines3", "torch", "gymnasium", "numpy")}
+
+
+def save_model(model, vec, setup: TrainingSetup, path: Path, timesteps: int, **extra) -> Path:
+    """``path`` (a .zip) and its config JSON (same stem)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    model.save(path)
+    config = model_config(setup, vec, timesteps, **extra)
+    path.with_suffix(".json").write_text(json.dumps(config, indent=2) + "\n")
+    return path
+
+
+def evaluate_snapshot(model_path: Path, setup: TrainingSetup, out: Path,
+                      progress: bool = False) -> dict[str, Any]:
+    """Run the saved model on the evaluation worlds with the benchmark's code; one summary row."""
+    from slam_gym.evaluation import Job, run_jobs
+    from slam_gym.evaluation.core import POLICY_OPTIONS, run_job
+
+    env_options = {k: v for k, v in setup.env_options().items() if k in POLICY_OPTIONS}
+    options = {**env_options, "model_path": str(model_path)}
+    jobs = [Job("policy", "learned", "brooks-bailey", level, seed, options)
+            for level in setup.clutter_levels for seed in setup.eval_seeds]
+    start = time.perf_counter()
+    rows = run_jobs(jobs, run_job, out, workers=min(setup.eval_workers, len(jobs)),
+                    executor="process" if setup.eval_workers > 1 else "serial",
+                    progress=progress)
+    failed = [r for r in rows if r.get("status") != "ok"]
+    if failed:
+        raise RuntimeError(f"evaluation of {model_path} failed in {len(failed)} runs: "
+                           f"{failed[0].get('error')}")
+    survived = [r for r in rows if r["success"]]
+
+    def mean(key, subset=rows):
+        values = [r[key] for r in subset if r.get(key) is not None]
+        values = [v for v in values if np.isfinite(v)]
+        return float(np.mean(values)) if values else math.nan
+
+    record = {
+        "success_rate": mean("success"),
+        "mean_return": mean("return"),
+        "anees": mean("anees"),
+        "map_error_m": mean("map_error_m", survived),
+        "map_completeness": mean("map_completeness"),
+        "n_fusions": mean("n_fusions"),
+        "n_optimisations": mean("n_optimisations"),
+        "interface_cpu_s": float(np.mean([(r.get("fusion_cpu_s") or 0.0)
+                                          + (r.get("optimise_cpu_s") or 0.0) for r in rows])),
+        "n_episodes": len(rows),
+        "eval_time_s": time.perf_counter() - start,
+    }
+    for level in setup.clutter_levels:
+        record[f"success_level_{level}"] = float(
+            np.mean([r["success"] for r in rows if r["clutter_level"] == level]))
+    return record
+
+
+def read_eval_log(run_dir: Path) -> list[dict[str, float]]:
+    """The rows of ``eval.csv`` (numbers as floats), oldest first."""
+    path = Path(run_dir) / "eval.csv"
+    if not path.is_file():
+        return []
+    with path.open() as fh:
+        return [{k: float(v) if v not in ("", None) else math.nan for k, v in row.items()}
+                for row in csv.DictReader(fh)]
+
+
+def _append_eval(run_dir: Path, record: dict[str, Any]) -> None:
+    path = run_dir / "eval.csv"
+    fields = list(EVAL_FIELDS) + sorted(k for k in record if k.startswith("success_level_"))
+    new = not path.is_file()
+    with path.open("a", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=fields, extrasaction="ignore")
+        if new:
+            writer.writeheader()
+        writer.writerow(record)
+
+
+def _forget_after(run_dir: Path, checkpoint: int) -> None:
+    """Drop the evaluations a resumed run will redo (those after its checkpoint)."""
+    kept = [r for r in read_eval_log(run_dir) if r["timesteps"] <= checkpoint]
+    if (run_dir / "eval.csv").is_file():
+        (run_dir / "eval.csv").unlink()
+        for record in kept:
+            _append_eval(run_dir, {k: (int(v) if k == "timesteps" else v)
+                                   for k, v in record.items()})
+    for folder in (run_dir / "evals").glob("t*"):
+        if folder.name[1:].isdigit() and int(folder.name[1:]) > checkpoint:
+            shutil.rmtree(folder)
+
+
+def _build_vec_env(setup: TrainingSetup, run_dir: Path, t0: int, checkpoint: int | None):
+    from stable_baselines3.common.vec_env import (
+        DummyVecEnv,
+        SubprocVecEnv,
+        VecMonitor,
+        VecNormalize,
+    )
+
+    params = setup.hyperparams
+    fns = [make_env_fn(setup, rank) for rank in range(params["n_envs"])]
+    vec = (SubprocVecEnv(fns, start_method="spawn") if len(fns) > 1 else DummyVecEnv(fns))
+    (run_dir / "logs").mkdir(parents=True, exist_ok=True)
+    vec = VecMonitor(vec, filename=str(run_dir / "logs" / f"monitor_{t0}"),
+                     info_keywords=EPISODE_INFO_KEYS)
+    if checkpoint is not None and params["normalize"]:
+        vec = VecNormalize.load(str(run_dir / "checkpoints" / f"vecnormalize_{checkpoint}.pkl"),
+                                vec)
+        vec.training = True
+    elif params["normalize"]:
+        vec = VecNormalize(vec, norm_obs=True, norm_reward=params["norm_reward"],
+                           clip_obs=params["clip_obs"], gamma=params.get("gamma", 0.99))
+    # each segment draws its own training worlds, deterministically from seed and start
+    vec.seed(setup.seed + 7919 * t0)
+    return vec
+
+
+def set_initial_action_probabilities(model, params: dict[str, Any]) -> None:
+    """Start an actor-critic policy at the given chance of fusing and of optimising.
+
+    SB3 initialises the action head with weights of gain 0.01 and zero bias, so the untrained
+    policy picks each action with probability ~0.5 whatever it observes. Setting the bias of
+    each ``Discrete(2)`` head to ``(0, logit p)`` starts it at probability ~p instead; the
+    weights, and so what the policy learns from the features, are untouched.
+    """
+    import torch
+
+    probabilities = [params.get("initial_fuse_probability"),
+                     params.get("initial_optimise_probability")]
+    if all(p is None for p in probabilities):
+        return
+    bias = model.policy.action_net.bias
+    with torch.no_grad():
+        for head, p in enumerate(probabilities):
+            if p is not None:
+                bias[2 * head] = 0.0
+                bias[2 * head + 1] = math.log(p / (1.0 - p))
+
+
+def _algorithm(algo: str):
+    import stable_baselines3
+
+    return {"ppo": stable_baselines3.PPO, "a2c": stable_baselines3.A2C,
+            "dqn": stable_baselines3.DQN}[algo]
+
+
+def train_run(setup: TrainingSetup, run_dir: Path, *, resume: bool = False,
+              progress: bool = True) -> dict[str, Any]:
+    """Train (or resume) one run into ``run_dir``; returns its final ``model.json`` content.
+
+    A finished run (``model.zip`` and ``model.json`` present) is not trained again.
+    """
+    from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.logger import configure
+
+    run_dir = Path(run_dir)
+    final_zip = run_dir / "model.zip"
+    if final_zip.is_file() and final_zip.with_suffix(".json").is_file():
+        logger.info("%s is finished: skipping (delete it to train again)", run_dir)
+        return json.loads(final_zip.with_suffix(".json").read_text())
+    checkpoint = _newest_checkpoint(run_dir) if resume else None
+    if not resume and run_dir.exists() and any(run_dir.iterdir()):
+        raise ValueError(f"out={str(run_dir)!r} is invalid: it holds an unfinished run; pass "
+                         "--resume to continue it or choose an empty directory")
+    run_dir.mkdir(parents=True, exist_ok=True)
+    if resume:
+        _forget_after(run_dir, checkpoint or 0)
+    t0 = checkpoint or 0
+    params = setup.hyperparams
+    total = int(params["n_timesteps"])
+    vec = _build_vec_env(setup, run_dir, t0, checkpoint)
+    algo_cls = _algorithm(setup.algo)
+    kwargs = {k: v for k, v in params.items() if k in ALGO_KEYS[setup.algo]}
+    if checkpoint is None:
+        model = algo_cls(params["policy"], vec, seed=setup.seed, device="cpu", verbose=0,
+                         **kwargs)
+        set_initial_action_probabilities(model, params)
+    else:
+        model = algo_cls.load(str(run_dir / "checkpoints" / f"model_{checkpoint}.zip"),
+                              env=vec, device="cpu")
+        replay = run_dir / "checkpoints" / f"replay_{checkpoint}.pkl"
+        if replay.is_file():
+            model.load_replay_buffer(str(replay))
+        logger.warning("resuming %s from its checkpoint at %d decisions", run_dir, checkpoint)
+    formats = ["csv"] + (["tensorboard"] if _has_tensorboard() else [])
+    sb3_logger = configure(str(run_dir / "logs"), formats)
+    for fmt in sb3_logger.output_formats:  # one CSV per segment: SB3 truncates its file
+        if fmt.__class__.__name__ == "CSVOutputFormat":
+            fmt.file.close()
+            (run_dir / "logs" / "progress.csv").unlink(missing_ok=True)
+            target = run_dir / "logs" / f"progress_{t0}.csv"
+            fmt.file = target.open("w+t")
+    model.set_logger(sb3_logger)
+
+    class Periodic(BaseCallback):
+        """Checkpoints and evaluations at fixed decision counts (resume-safe)."""
+
+        def __init__(self):
+            super().__init__()
+            self.next_eval = (t0 // setup.eval_every + 1) * setup.eval_every
+            self.next_checkpoint = (t0 // setup.checkpoint_every + 1) * setup.checkpoint_every
+
+        def _on_step(self) -> bool:
+            t = self.num_timesteps
+            if t >= self.next_checkpoint:
+                self.next_checkpoint += setup.checkpoint_every
+                save_checkpoint(self.model, t)
+            if t >= self.next_eval and t < total:
+                self.next_eval += setup.eval_every
+                evaluate(self.model, t)
+            return True
+
+    def save_checkpoint(model, t: int) -> None:
+        folder = run_dir / "checkpoints"
+        folder.mkdir(exist_ok=True)
+        if params["normalize"]:
+            model.get_vec_normalize_env().save(str(folder / f"vecnormalize_{t}.pkl"))
+        if setup.discrete:
+            model.save_replay_buffer(str(folder / f"replay_{t}.pkl"))
+        model.save(folder / f"model_{t}.zip")  # last: its presence marks a whole checkpoint
+        for old in folder.glob("*.*"):  # keep the newest two checkpoints
+            m = re.search(r"_(\d+)\.", old.name)
+            if m and int(m.group(1)) < t - setup.checkpoint_every:
+                old.unlink()
+
+    def evaluate(model, t: int) -> dict[str, Any]:
+        snapshot = save_model(model, model.get_env(), setup,
+                              run_dir / "evals" / f"t{t}" / "model.zip", t)
+        record = {"timesteps": t, **evaluate_snapshot(snapshot, setup, snapshot.parent)}
+        _append_eval(run_dir, record)
+        logger.warning(
+            "%s at %d decisions: success %.2f, return %.0f, map error %.2f m, "
+            "%.1f optimisations/episode (%.0f s)", run_dir.name, t, record["success_rate"],
+            record["mean_return"], record["map_error_m"], record["n_optimisations"],
+            record["eval_time_s"])
+        return record
+
+    start = time.perf_counter()
+    remaining = total - t0
+    if remaining > 0:
+        model.learn(total_timesteps=remaining, callback=Periodic(),
+                    reset_num_timesteps=checkpoint is None, progress_bar=progress)
+    train_time = time.perf_counter() - start
+    done = int(model.num_timesteps)
+    final = evaluate(model, done)
+    save_checkpoint(model, done)
+    config = save_model(model, model.get_env(), setup, final_zip, done,
+                        final_evaluation=final, train_time_s=train_time,
+                        training_setup={k: v for k, v in asdict(setup).items()
+                                        if k != "hyperparams"})
+    vec.close()
+    sb3_logger.close()
+    return json.loads(config.with_suffix(".json").read_text())
+
+
+def _has_tensorboard() -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec("tensorboard") is not None
+
+
+def copy_model(run_dir: Path, dest_zip: Path) -> Path:
+    """Copy a finished run's ``model.zip`` and ``model.json`` to ``dest_zip`` (+ .json)."""
+    src = Path(run_dir) / "model.zip"
+    if not src.is_file():
+        raise ValueError(f"run_dir={str(run_dir)!r} is invalid: no finished model.zip")
+    dest_zip.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(src, dest_zip)
+    shutil.copyfile(src.with_suffix(".json"), dest_zip.with_suffix(".json"))
+    return dest_zip

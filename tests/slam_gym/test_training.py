@@ -1,0 +1,189 @@
+"""Training: hyper-parameter files, a run's outputs, resuming, seeds' summary, the saved model's
+observation transform."""
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from slam_gym.cli import main
+from slam_gym.envs import ENV_VARIANTS
+from slam_gym.envs.hybrid_slam import FEATURE_NAMES
+from slam_gym.training.hyperparams import (
+    ALGOS,
+    load_hyperparams,
+    parse_overrides,
+    validate_hyperparams,
+)
+from slam_gym.training.run import TrainingSetup, read_eval_log, registered_kwargs, train_run
+
+TRAINABLE = [i for i, k in ENV_VARIANTS.items() if "clutter_level" not in k and "scenario" not in k]
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+@pytest.mark.parametrize("env_id", ["SlamGym/HybridSLAM-v0", "SlamGym/HybridSLAM-Light-v0"])
+def test_packaged_hyperparams_load_and_name_the_papers_particles(algo, env_id):
+    params = load_hyperparams(algo, env_id)
+    want = 500 if env_id == "SlamGym/HybridSLAM-v0" else 100
+    assert params["env_kwargs"]["n_particles"] == want
+    assert params["n_timesteps"] >= 1 and params["n_envs"] >= 1 and params["normalize"] is True
+
+
+def test_overrides_parse_as_yaml_and_merge_env_kwargs():
+    over = parse_overrides(["learning_rate=1e-3", "policy_kwargs={net_arch: [8, 8]}",
+                            "env_kwargs={n_steps: 50}"])
+    params = load_hyperparams("ppo", "SlamGym/HybridSLAM-v0", overrides=over)
+    assert params["learning_rate"] == pytest.approx(1e-3)
+    assert params["policy_kwargs"] == {"net_arch": [8, 8]}
+    assert params["env_kwargs"] == {"n_particles": 500, "n_steps": 50}
+
+
+@pytest.mark.parametrize("params, field", [
+    ({"n_timesteps": 10, "n_envs": 1, "learning_rat": 1e-3}, "learning_rat"),
+    ({"n_timesteps": 0, "n_envs": 1}, "n_timesteps"),
+    ({"n_timesteps": 10, "n_envs": 1.5}, "n_envs"),
+    ({"n_timesteps": 10, "n_envs": 1, "normalize": "yes"}, "normalize"),
+    ({"n_timesteps": 10, "n_envs": 1, "env_kwargs": {"w_map": 2.0}}, "w_map"),
+    ({"n_timesteps": 10, "n_envs": 1, "buffer_size": 10}, "buffer_size"),  # a DQN key for PPO
+])
+def test_bad_hyperparams_raise_naming_the_field(params, field):
+    with pytest.raises(ValueError, match=field):
+        validate_hyperparams("ppo", params)
+
+
+def test_bad_files_ids_and_override_syntax_raise(tmp_path):
+    with pytest.raises(ValueError, match="no such file"):
+        load_hyperparams("ppo", "SlamGym/HybridSLAM-v0", tmp_path / "missing.yml")
+    (tmp_path / "h.yml").write_text("SlamGym/Other-v0: {n_timesteps: 5, n_envs: 1}\n")
+    with pytest.raises(ValueError, match="env_id"):
+        load_hyperparams("ppo", "SlamGym/HybridSLAM-v0", tmp_path / "h.yml")
+    with pytest.raises(ValueError, match="key=value"):
+        parse_overrides(["learning_rate"])
+    with pytest.raises(ValueError, match="algo"):
+        load_hyperparams("sac", "SlamGym/HybridSLAM-v0")
+
+
+def test_only_ids_that_leave_the_clutter_level_free_train():
+    for env_id in TRAINABLE:
+        registered_kwargs(env_id)
+    with pytest.raises(ValueError, match="env_id"):
+        registered_kwargs("SlamGym/HybridSLAM-Clutter2-v0")
+    with pytest.raises(ValueError, match="eval_seeds"):
+        TrainingSetup("ppo", "SlamGym/HybridSLAM-v0", 0, {}, eval_seeds=(1_000_000,))
+
+
+def tiny_setup(seed=0, n_timesteps=96, algo="ppo"):
+    params = validate_hyperparams(algo, {
+        "n_timesteps": n_timesteps, "n_envs": 1, "normalize": True,
+        "env_kwargs": {"n_particles": 5, "n_steps": 120},
+        **({"n_steps": 32, "batch_size": 32, "n_epochs": 1} if algo == "ppo" else
+           {"learning_starts": 16, "buffer_size": 500}),
+    })
+    return TrainingSetup(algo, "SlamGym/HybridSLAM-v0", seed, params, clutter_levels=(0, 2),
+                         eval_seeds=(7,), eval_every=64, eval_workers=1, checkpoint_every=32)
+
+
+def test_a_run_writes_logs_evaluations_and_a_loadable_model(tmp_path):
+    import policies
+
+    config = train_run(tiny_setup(), tmp_path / "run", progress=False)
+    run = tmp_path / "run"
+    log = read_eval_log(run)
+    assert [r["timesteps"] for r in log] == [64, 96]  # periodic, then final
+    assert all(r["n_episodes"] == 2 and 0 <= r["success_rate"] <= 1 for r in log)
+    with (run / "logs" / "monitor_0.monitor.csv").open() as fh:
+        fh.readline()
+        episodes = list(csv.DictReader(fh))
+    assert episodes and {"r", "l", "failed", "n_fusions", "n_optimisations"} <= set(episodes[0])
+    assert (run / "logs" / "progress_0.csv").stat().st_size > 0
+    assert config["timesteps"] == 96 and config["feature_names"] == list(FEATURE_NAMES)
+    stats = config["observation_normalisation"]
+    assert len(stats["mean"]) == len(FEATURE_NAMES) and min(stats["var"]) >= 0
+    policy = policies.make("learned", path=str(run / "model.zip"))
+    action = policy.act(np.ones(len(FEATURE_NAMES)), {"features": dict.fromkeys(FEATURE_NAMES,
+                                                                             1.0)})
+    assert action.shape == (2,) and set(action) <= {0, 1}
+
+
+def test_the_policy_normalises_observations_as_vecnormalize_did(tmp_path):
+    """The model acts on the same input at evaluation as in training: log1p, then VecNormalize's
+    running statistics (read from model.json, not from SB3's pickle)."""
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+    import policies
+    from slam_gym.training.run import make_env_fn
+
+    setup = tiny_setup()
+    train_run(setup, tmp_path / "run", progress=False)
+    vec = VecNormalize.load(str(tmp_path / "run" / "checkpoints" / "vecnormalize_96.pkl"),
+                            DummyVecEnv([make_env_fn(setup, 0)]))
+    policy = policies.make("learned", path=str(tmp_path / "run" / "model.zip"))
+    raw = np.random.default_rng(0).uniform(0, 50, len(FEATURE_NAMES))
+    seen = []
+    policy.model.predict = lambda x, deterministic: (seen.append(x), (np.zeros(2), None))[1]
+    policy.act(raw, {"features": dict(zip(FEATURE_NAMES, raw, strict=True))})
+    want = vec.normalize_obs(np.log1p(raw).astype(np.float32))
+    np.testing.assert_allclose(seen[0], want, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("algo", ["ppo", "dqn"])
+def test_resume_continues_from_the_newest_checkpoint(tmp_path, algo):
+    run = tmp_path / "run"
+    train_run(tiny_setup(n_timesteps=64, algo=algo), run, progress=False)
+    if algo == "dqn":
+        assert (run / "checkpoints" / "replay_64.pkl").is_file()
+    # an interrupted longer run: the final model is gone, the checkpoints are there
+    (run / "model.zip").unlink()
+    (run / "model.json").unlink()
+    with pytest.raises(ValueError, match="resume"):
+        train_run(tiny_setup(n_timesteps=128, algo=algo), run, progress=False)
+    config = train_run(tiny_setup(n_timesteps=128, algo=algo), run, resume=True, progress=False)
+    assert config["timesteps"] == 128
+    assert [r["timesteps"] for r in read_eval_log(run)] == [64, 128]
+    assert (run / "logs" / "monitor_64.monitor.csv").is_file()
+    # a finished run is not trained again
+    assert train_run(tiny_setup(n_timesteps=128, algo=algo), run, resume=True)["timesteps"] == 128
+
+
+def test_train_command_trains_seeds_summarises_and_copies_the_chosen_model(tmp_path, capsys):
+    import policies
+
+    assert main(["train", "--timesteps", "64", "--n-envs", "1", "--particles", "5",
+                 "--n-steps", "120", "--hp", "n_steps=32", "--hp", "batch_size=32",
+                 "--hp", "n_epochs=1", "--seeds", "0,1", "--eval-every", "1000",
+                 "--eval-seeds", "3", "--eval-workers", "1", "--clutter-levels", "1",
+                 "--out", str(tmp_path), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    summary = doc["summary"]
+    assert summary["seeds"] == [0, 1] and summary["chosen_seed"] in (0, 1)
+    finals = summary["final_evaluation"]
+    best = max(finals.values(), key=lambda f: f["mean_return"])
+    assert finals[str(summary["chosen_seed"])]["mean_return"] == best["mean_return"]
+    config = json.loads((tmp_path / "model.json").read_text())
+    assert config["seed"] == summary["chosen_seed"] and config["chosen_among_seeds"] == [0, 1]
+    assert (tmp_path / "training_curves.png").stat().st_size > 10_000
+    assert policies.make("learned", path=str(tmp_path / "model.zip")).algo == "ppo"
+
+
+@pytest.mark.parametrize("algo", ["ppo", "a2c"])
+def test_the_untrained_policy_starts_at_the_configured_action_probabilities(tmp_path, algo):
+    from slam_gym.training.run import _algorithm, _build_vec_env, set_initial_action_probabilities
+
+    params = validate_hyperparams(algo, {"n_timesteps": 8, "n_envs": 1, "normalize": False,
+                                         "initial_fuse_probability": 0.1,
+                                         "initial_optimise_probability": 0.03,
+                                         "env_kwargs": {"n_particles": 5, "n_steps": 60}})
+    setup = TrainingSetup(algo, "SlamGym/HybridSLAM-v0", 0, params)
+    vec = _build_vec_env(setup, tmp_path, 0, None)
+    model = _algorithm(algo)("MlpPolicy", vec, seed=0, device="cpu")
+    set_initial_action_probabilities(model, params)
+    obs = np.random.default_rng(1).uniform(0, 5, (64, len(FEATURE_NAMES))).astype(np.float32)
+    dist = model.policy.get_distribution(model.policy.obs_to_tensor(obs)[0])
+    fuse, optimise = (d.probs[:, 1].detach().numpy() for d in dist.distribution)
+    np.testing.assert_allclose(fuse, 0.1, atol=0.02)
+    np.testing.assert_allclose(optimise, 0.03, atol=0.01)
+    vec.close()
+    with pytest.raises(ValueError, match="initial_optimise_probability"):
+        validate_hyperparams("ppo", {"n_timesteps": 8, "n_envs": 1,
+                                     "initial_optimise_probability": 1.5})
