@@ -142,19 +142,23 @@ def apply_env_id(args) -> None:
 
 
 def episode_figures(names, args, level, out) -> dict:
-    """Uncertainty and NEES traces of every policy on one seed, and that seed's map."""
+    """Uncertainty and NEES traces of every policy on one seed, that seed's map, and when each
+    policy fused and optimised against the loop closure."""
+    import policies
     from slam_gym.evaluation import plot_nees, plot_uncertainty_traces
-    from slam_gym.evaluation.core import run_policy
+    from slam_gym.evaluation.timeline import decision_timeline, plot_decision_timelines
 
-    traces, nees, runs = {}, {}, []
+    traces, nees, runs, timelines = {}, {}, [], {}
     for name in names:
-        episode, env = run_policy(
-            name, args.scenario, level, args.seed_start, n_particles=args.particles,
-            decision_interval=args.decision_interval, front_end=args.front_end,
-            back_end=args.back_end, model_path=args.model,
+        kwargs = {"path": args.model} if (name == "learned" and args.model) else {}
+        timeline, episode, env = decision_timeline(
+            policies.make(name, **kwargs), args.scenario, level, args.seed_start,
+            n_particles=args.particles, decision_interval=args.decision_interval,
+            front_end=args.front_end, back_end=args.back_end,
         )
         traces[name] = np.array(episode.trace.cov_trace)
         nees[name] = np.array(episode.trace.nees)
+        timelines[name] = timeline
         runs.append((name, episode, env))
     dt = runs[0][2].stream.dt_s
     figures = {
@@ -165,6 +169,9 @@ def episode_figures(names, args, level, out) -> dict:
             nees, out / "nees.png", dt_s=dt,
             title=f"Vehicle NEES, clutter level {level}, seed {args.seed_start}")),
     }
+    figures["decisions"] = str(plot_decision_timelines(
+        timelines, out / "decisions.png",
+        title=f"Fusions and optimisations, clutter level {level}, seed {args.seed_start}"))
     name, episode, _ = runs[0]  # the map of the first policy named
     figures["map"] = plot_episode_map(
         episode, out / "map.png", f"{name}, clutter level {level}, seed {args.seed_start}"

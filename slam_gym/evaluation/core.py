@@ -162,11 +162,13 @@ def run_policy_object(
     front_end="fastslam",
     back_end="ekf",
     n_steps=None,
+    on_step=None,
 ):
     """Run a policy object (``act(obs, info)``, ``reset()``) for one episode; (episode, env).
 
     The world is the scenario's world for ``seed`` (the same as a system run with that seed);
-    the episode ends at the end of the path or at BB's failure.
+    the episode ends at the end of the path or at BB's failure. ``on_step(action, info)``, if
+    given, sees every decision and the info that followed it.
     """
     from slam_gym.envs.hybrid_slam import HybridSLAMEnv
 
@@ -184,6 +186,8 @@ def run_policy_object(
     while True:
         action = policy.act(obs, info)
         obs, _, terminated, truncated, info = env.step(action)
+        if on_step is not None:
+            on_step(action, info)
         if terminated or truncated:
             return env.episode, env
 

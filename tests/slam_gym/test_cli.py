@@ -119,6 +119,7 @@ def test_benchmark_reports_accuracy_against_compute_with_a_pareto_figure(tmp_pat
     assert doc["figures"]["pareto"].endswith("pareto.png")
     assert (tmp_path / "pareto.png").stat().st_size > 10_000
     assert (tmp_path / "pareto_interface.png").stat().st_size > 10_000
+    assert (tmp_path / "decisions.png").stat().st_size > 10_000
     assert opt["interface_cpu_s"] == pytest.approx(opt["fusion_cpu_s"] + opt["optimise_cpu_s"])
     table = (tmp_path / "table.md").read_text()
     assert "CPU fusion / optimise / total (s)" in table and "completeness" in table

@@ -574,3 +574,28 @@ def test_map_error_of_successful_runs_leaves_failed_runs_out():
     assert group["map_error_m_succeeded"] == pytest.approx(0.5)
     lo, hi = group["ci95"]["map_error_m_succeeded"]
     assert lo < 0.5 < hi
+
+
+def test_decision_timeline_records_what_the_system_did():
+    import policies
+    from slam_gym.evaluation.timeline import decision_timeline, true_loop_closure_s
+
+    # with BB's compass (Fig. 3) the run survives the cut path
+    tl, episode, env = decision_timeline(policies.make("fixed-10s-optimise"),
+                                         "brooks-bailey-compass", 0, 3, n_particles=100,
+                                         n_steps=400)
+    assert not tl["failed"]
+    t = tl["t_s"]
+    assert np.all(np.diff(t) > 0) and t[-1] == pytest.approx(tl["end_s"])
+    assert tl["fused"].sum() == episode.n_fusions == tl["n_fusions"] > 0
+    assert tl["optimised"].sum() == episode.n_optimisations > 0
+    # the rule fuses every 10 s and optimises right after each fusion
+    np.testing.assert_array_equal(tl["fused"], tl["optimised"])
+    assert np.allclose(np.diff(t[tl["fused"]]), 10.0)
+    # BB's whole path returns over its start once, in its second half
+    from slam_gym.scenarios import make_stream
+
+    stream = make_stream("brooks-bailey", seed=3, clutter_level=0)
+    closure = true_loop_closure_s(stream)
+    end_s = max(step.t_s for step in stream)
+    assert end_s / 2 < closure < end_s
