@@ -144,8 +144,11 @@ class LearnedPolicy(Policy):
     a model keeps working when the env's observation gains features.
 
     Options: ``path`` (model zip; default :data:`DEFAULT_MODEL_PATH`), ``algo`` (one of
-    :data:`ALGORITHMS`; default: detected from the zip), ``deterministic`` (default True: the
-    mode of the policy's action distribution / the greedy Q action), ``device`` (default
+    :data:`ALGORITHMS`; default: detected from the zip), ``deterministic`` (True: the mode of
+    the policy's action distribution / the greedy Q action; False (PPO, A2C): a draw from the
+    distribution with the policy's own generator, seeded with ``sample_seed`` (default 0) at every
+    ``reset()``, so an episode repeats bit for bit; default: the config JSON's ``deterministic``,
+    else True), ``device`` (default
     ``"cpu"``), ``observation_transform`` (``"none"`` or ``"log1p"``, the transform the model was
     trained behind; default: the ``observation_transform`` of the config JSON that ``slam-gym
     train`` saves beside the zip with the same stem, else ``"none"``). After the transform, the
@@ -163,12 +166,16 @@ class LearnedPolicy(Policy):
         *,
         path: str | Path | None = None,
         algo: str | None = None,
-        deterministic: bool = True,
+        deterministic: bool | None = None,
+        sample_seed: int = 0,
         device: str = "cpu",
         observation_transform: str | None = None,
     ) -> None:
         super().__init__()
-        require(isinstance(deterministic, bool), "deterministic", deterministic, "True or False")
+        require(
+            isinstance(sample_seed, int) and not isinstance(sample_seed, bool) and sample_seed >= 0,
+            "sample_seed", sample_seed, "a non-negative integer",
+        )
         require(isinstance(device, str) and device != "", "device", device, "a torch device name")
         model_path = _resolve_path(path)
         detected = detect_algorithm(model_path)
@@ -211,13 +218,21 @@ class LearnedPolicy(Policy):
         )
         self.path = model_path
         self.algo = algo
+        if deterministic is None:
+            deterministic = _configured(model_path, "deterministic", True)
+        require(isinstance(deterministic, bool), "deterministic", deterministic, "True or False")
+        require(deterministic or algo != "dqn", "deterministic", deterministic,
+                "True for a DQN model (its only stochastic mode is epsilon-greedy exploration)")
         self.deterministic = deterministic
+        self.sample_seed = sample_seed
+        self._rng = np.random.default_rng(sample_seed)
         self.model = _algorithm_class(algo).load(str(model_path), device=device)
         self._check_spaces()
         self.options = {
             "path": str(model_path),
             "algo": algo,
             "deterministic": deterministic,
+            "sample_seed": sample_seed,
             "device": device,
             "observation_transform": observation_transform,
         }
@@ -229,6 +244,23 @@ class LearnedPolicy(Policy):
                 f"{self.observation_shape[0]} names, the model's observation size",
             )
         logger.info("loaded %s model from %s", algo.upper(), model_path)
+
+    def reset(self) -> None:
+        self._rng = np.random.default_rng(self.sample_seed)
+
+    def _sample(self, x: np.ndarray) -> np.ndarray:
+        """A draw of (fuse, optimise) from the policy's distribution with the own generator."""
+        import torch
+
+        with torch.no_grad():
+            obs, _ = self.model.policy.obs_to_tensor(x)
+            heads = self.model.policy.get_distribution(obs).distribution
+        heads = heads if isinstance(heads, list) else [heads]
+        draws = [self._rng.choice(len(p), p=p / p.sum())
+                 for p in (h.probs[0].numpy().astype(np.float64) for h in heads)]
+        if self.discrete:
+            return discrete_to_multi(draws[0])
+        return np.asarray(draws, dtype=np.int64).reshape(2)
 
     def _check_spaces(self) -> None:
         from gymnasium import spaces
@@ -277,7 +309,9 @@ class LearnedPolicy(Policy):
         if self.normalisation is not None:
             mean, std, clip = self.normalisation
             x = np.clip((x - mean) / std, -clip, clip).astype(np.float32)
-        action, _ = self.model.predict(x, deterministic=self.deterministic)
+        if not self.deterministic:
+            return self._sample(x)
+        action, _ = self.model.predict(x, deterministic=True)
         if self.discrete:
             return discrete_to_multi(action)
         return np.asarray(action, dtype=np.int64).reshape(2)

@@ -14,7 +14,7 @@ fusion had touched for 60 s),
 ``stop_on_failure`` (True: stop at BB's failure, the outcome is known), ``n_steps`` (cut the path),
 ``existence_model`` (``"gate"``/``"bb"``: the reading of BB (11), :mod:`filters.existence`).
 Policy jobs take ``n_particles`` (500), ``decision_interval`` (10), ``front_end``, ``back_end``,
-``model_path`` (for ``learned``); the env ends an episode at BB's failure.
+``model_path`` and ``deterministic`` (for ``learned``); the env ends an episode at BB's failure.
 """
 
 from __future__ import annotations
@@ -43,6 +43,7 @@ POLICY_OPTIONS = {
     "front_end": "fastslam",
     "back_end": "ekf",
     "model_path": None,
+    "deterministic": None,
     "n_steps": None,
 }
 OPTIMISE_MODES = ("never", "at-end", "every-fusion", "after-loop-closure")
@@ -140,12 +141,18 @@ def run_policy(
     seed: int,
     *,
     model_path=None,
+    deterministic=None,
     **env_options,
 ):
-    """Run the named interface policy in the env for one episode; (episode, env)."""
+    """Run the named interface policy in the env for one episode; (episode, env).
+
+    ``model_path`` and ``deterministic`` are options of ``learned`` (None: its defaults)."""
     import policies
 
-    kwargs = {"path": model_path} if (policy_name == "learned" and model_path) else {}
+    kwargs = {}
+    if policy_name == "learned":
+        kwargs = {k: v for k, v in (("path", model_path), ("deterministic", deterministic))
+                  if v is not None}
     return run_policy_object(
         policies.make(policy_name, **kwargs), scenario, clutter_level, seed, **env_options
     )

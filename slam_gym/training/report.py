@@ -3,7 +3,9 @@
 The seed to ship is chosen on the *training-time* evaluation worlds (``eval.csv``, seeds below
 the training worlds and disjoint from the benchmark's reported worlds), by the mean return of
 its final evaluation (the objective the agent optimised), success rate breaking ties. Nothing
-here reads the reported worlds.
+here reads the reported worlds. Each seed is represented by the evaluation mode (deterministic
+or sampled actions, :data:`slam_gym.training.run.EVAL_MODES`) with the higher mean return on
+those same worlds; that mode ships with its model (``deterministic`` in ``model.json``).
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from slam_gym.training.run import read_eval_log
+from slam_gym.training.run import chosen_mode, mode_record, read_eval_log
 
 SUMMARY_KEYS: tuple[str, ...] = ("success_rate", "mean_return", "map_error_m", "anees",
                                  "n_fusions", "n_optimisations", "interface_cpu_s")
@@ -52,7 +54,8 @@ def summarise_seeds(runs: dict[int, Path]) -> dict[str, Any]:
     for seed, run_dir in runs.items():
         log = read_eval_log(run_dir)
         if log:
-            finals[seed] = log[-1]
+            mode = chosen_mode(log[-1])
+            finals[seed] = {**mode_record(log[-1], mode), "mode": mode}
     if not finals:
         raise ValueError("runs are invalid: no run has an evaluation yet (eval.csv)")
     spread = {}
@@ -78,10 +81,10 @@ def write_summary(out: Path, algo: str, runs: dict[int, Path]) -> dict[str, Any]
     doc = {"algo": algo, **summarise_seeds(runs)}
     (out / "summary.json").write_text(json.dumps(doc, indent=2) + "\n")
     lines = [f"# {algo.upper()}: final training-time evaluation per seed", "",
-             "| seed | decisions | success | mean return | map error (m) | ANEES | "
-             "fusions | optimisations |", "|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "| seed | mode | decisions | success | mean return | map error (m) | ANEES | "
+             "fusions | optimisations |", "|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
     for seed, f in doc["final_evaluation"].items():
-        lines.append(f"| {seed} | {f['timesteps']:.0f} | {f['success_rate']:.2f} | "
+        lines.append(f"| {seed} | {f['mode']} | {f['timesteps']:.0f} | {f['success_rate']:.2f} | "
                      f"{f['mean_return']:.0f} | {f['map_error_m']:.2f} | {f['anees']:.2f} | "
                      f"{f['n_fusions']:.0f} | {f['n_optimisations']:.1f} |")
     s = doc["spread"]
@@ -115,10 +118,16 @@ def plot_curves(out_png: Path, runs: dict[int, Path], title: str) -> Path:
         log = read_eval_log(run_dir)
         if log:
             t = [row["timesteps"] for row in log]
-            axes[0, 1].plot(t, [row["mean_return"] for row in log], "o-", label=f"seed {seed}")
-            axes[1, 0].plot(t, [row["success_rate"] for row in log], "o-", label=f"seed {seed}")
-            axes[1, 1].plot(t, [row["n_optimisations"] for row in log], "o-",
-                            label=f"seed {seed}")
+            for prefix, style, what in (("", "o-", "deterministic"), ("sampled_", "s--",
+                                                                      "sampled")):
+                if prefix and not any(np.isfinite(r.get(prefix + "mean_return", np.nan))
+                                      for r in log):
+                    continue
+                colour = {} if not prefix else {"color": axes[0, 1].lines[-1].get_color()}
+                for ax, key in ((axes[0, 1], "mean_return"), (axes[1, 0], "success_rate"),
+                                (axes[1, 1], "n_optimisations")):
+                    ax.plot(t, [r.get(prefix + key, np.nan) for r in log], style,
+                            label=f"seed {seed}, {what}", **colour)
     axes[0, 0].set_title("training episodes: return (rolling mean of 20)")
     axes[0, 1].set_title("evaluation worlds: mean return")
     axes[1, 0].set_title("evaluation worlds: success rate")

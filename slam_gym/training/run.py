@@ -48,7 +48,8 @@ EVAL_FIELDS: tuple[str, ...] = (
     "timesteps", "success_rate", "mean_return", "anees", "map_error_m", "map_completeness",
     "n_fusions", "n_optimisations", "interface_cpu_s", "n_episodes", "eval_time_s",
 )
-"""Columns of ``eval.csv`` (then ``success_level_<L>`` per clutter level)."""
+"""Columns of ``eval.csv`` (then ``success_level_<L>`` per clutter level, and all of them but
+``timesteps`` and ``eval_time_s`` again prefixed ``sampled_``)."""
 
 EPISODE_INFO_KEYS: tuple[str, ...] = ("failed", "n_fusions", "n_optimisations", "map_error_m",
                                       "map_completeness")
@@ -189,24 +190,45 @@ def save_model(model, vec, setup: TrainingSetup, path: Path, timesteps: int, **e
     return path
 
 
+EVAL_MODES: tuple[str, ...] = ("deterministic", "sampled")
+"""How a snapshot acts in evaluation: the mode of its action distribution, and draws from it
+with the policy's own seeded generator (:class:`policies.learned.LearnedPolicy`). ``eval.csv``
+holds the deterministic figures under their names and the sampled ones prefixed ``sampled_``."""
+
+
 def evaluate_snapshot(model_path: Path, setup: TrainingSetup, out: Path,
                       progress: bool = False) -> dict[str, Any]:
-    """Run the saved model on the evaluation worlds with the benchmark's code; one summary row."""
+    """Run the saved model on the evaluation worlds with the benchmark's code, in both
+    :data:`EVAL_MODES` (DQN: deterministic only); one summary row."""
     from slam_gym.evaluation import Job, run_jobs
     from slam_gym.evaluation.core import POLICY_OPTIONS, run_job
 
     env_options = {k: v for k, v in setup.env_options().items() if k in POLICY_OPTIONS}
     options = {**env_options, "model_path": str(model_path)}
-    jobs = [Job("policy", "learned", "brooks-bailey", level, seed, options)
-            for level in setup.clutter_levels for seed in setup.eval_seeds]
+    modes = EVAL_MODES[:1] if setup.discrete else EVAL_MODES
+    jobs = {mode: [Job("policy", "learned", "brooks-bailey", level, seed,
+                       options if mode == "deterministic" else {**options, "deterministic": False})
+                   for level in setup.clutter_levels for seed in setup.eval_seeds]
+            for mode in modes}
+    every = [job for mode in modes for job in jobs[mode]]
     start = time.perf_counter()
-    rows = run_jobs(jobs, run_job, out, workers=min(setup.eval_workers, len(jobs)),
+    rows = run_jobs(every, run_job, out, workers=min(setup.eval_workers, len(every)),
                     executor="process" if setup.eval_workers > 1 else "serial",
                     progress=progress)
     failed = [r for r in rows if r.get("status") != "ok"]
     if failed:
         raise RuntimeError(f"evaluation of {model_path} failed in {len(failed)} runs: "
                            f"{failed[0].get('error')}")
+    by_key = {row["key"]: row for row in rows}
+    record: dict[str, Any] = {"eval_time_s": time.perf_counter() - start}
+    for mode in modes:
+        prefix = "" if mode == "deterministic" else "sampled_"
+        summary = _summarise_rows([by_key[job.key] for job in jobs[mode]], setup.clutter_levels)
+        record.update({prefix + k: v for k, v in summary.items()})
+    return record
+
+
+def _summarise_rows(rows: list[dict], levels) -> dict[str, float]:
     survived = [r for r in rows if r["success"]]
 
     def mean(key, subset=rows):
@@ -225,12 +247,43 @@ def evaluate_snapshot(model_path: Path, setup: TrainingSetup, out: Path,
         "interface_cpu_s": float(np.mean([(r.get("fusion_cpu_s") or 0.0)
                                           + (r.get("optimise_cpu_s") or 0.0) for r in rows])),
         "n_episodes": len(rows),
-        "eval_time_s": time.perf_counter() - start,
     }
-    for level in setup.clutter_levels:
+    for level in levels:
         record[f"success_level_{level}"] = float(
             np.mean([r["success"] for r in rows if r["clutter_level"] == level]))
     return record
+
+
+def chosen_mode(record: dict[str, float]) -> str:
+    """The evaluation mode with the higher mean return in ``record`` (deterministic on ties or
+    when the sampled mode was not evaluated)."""
+    sampled = record.get("sampled_mean_return", math.nan)
+    if np.isfinite(sampled) and sampled > record["mean_return"]:
+        return "sampled"
+    return "deterministic"
+
+
+def mode_record(record: dict[str, float], mode: str) -> dict[str, float]:
+    """The figures of one mode of an ``eval.csv`` row, under the unprefixed names."""
+    if mode == "deterministic":
+        return {k: v for k, v in record.items() if not k.startswith("sampled_")}
+    return {"timesteps": record["timesteps"],
+            **{k[len("sampled_"):]: v for k, v in record.items() if k.startswith("sampled_")}}
+
+
+def complete_evaluations(run_dir: Path, setup: TrainingSetup) -> list[dict[str, float]]:
+    """Evaluate every snapshot of ``eval.csv`` in the modes it lacks (runs trained before the
+    sampled mode existed); the rows already there are reused (``run_jobs`` resumes)."""
+    log = read_eval_log(run_dir)
+    if setup.discrete or all(np.isfinite(r.get("sampled_mean_return", math.nan)) for r in log):
+        return log
+    (run_dir / "eval.csv").unlink()
+    for row in log:
+        t = int(row["timesteps"])
+        snapshot = run_dir / "evals" / f"t{t}" / "model.zip"
+        _append_eval(run_dir, {"timesteps": t,
+                               **evaluate_snapshot(snapshot, setup, snapshot.parent)})
+    return read_eval_log(run_dir)
 
 
 def read_eval_log(run_dir: Path) -> list[dict[str, float]]:
@@ -245,7 +298,11 @@ def read_eval_log(run_dir: Path) -> list[dict[str, float]]:
 
 def _append_eval(run_dir: Path, record: dict[str, Any]) -> None:
     path = run_dir / "eval.csv"
-    fields = list(EVAL_FIELDS) + sorted(k for k in record if k.startswith("success_level_"))
+    levels = sorted(k for k in record if k.startswith("success_level_"))
+    fields = list(EVAL_FIELDS) + levels
+    if any(k.startswith("sampled_") for k in record):
+        fields += ["sampled_" + k for k in EVAL_FIELDS[1:] if k != "eval_time_s"]
+        fields += ["sampled_" + k for k in levels]
     new = not path.is_file()
     with path.open("a", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=fields, extrasaction="ignore")
@@ -335,7 +392,11 @@ def train_run(setup: TrainingSetup, run_dir: Path, *, resume: bool = False,
     final_zip = run_dir / "model.zip"
     if final_zip.is_file() and final_zip.with_suffix(".json").is_file():
         logger.info("%s is finished: skipping (delete it to train again)", run_dir)
-        return json.loads(final_zip.with_suffix(".json").read_text())
+        final = complete_evaluations(run_dir, setup)[-1]
+        config = json.loads(final_zip.with_suffix(".json").read_text())
+        config.update(final_evaluation=final, deterministic=chosen_mode(final) == "deterministic")
+        final_zip.with_suffix(".json").write_text(json.dumps(config, indent=2) + "\n")
+        return config
     checkpoint = _newest_checkpoint(run_dir) if resume else None
     if not resume and run_dir.exists() and any(run_dir.iterdir()):
         raise ValueError(f"out={str(run_dir)!r} is invalid: it holds an unfinished run; pass "
@@ -343,6 +404,7 @@ def train_run(setup: TrainingSetup, run_dir: Path, *, resume: bool = False,
     run_dir.mkdir(parents=True, exist_ok=True)
     if resume:
         _forget_after(run_dir, checkpoint or 0)
+        complete_evaluations(run_dir, setup)  # eval.csv's columns stay those of every row
     t0 = checkpoint or 0
     params = setup.hyperparams
     total = int(params["n_timesteps"])
@@ -407,10 +469,12 @@ def train_run(setup: TrainingSetup, run_dir: Path, *, resume: bool = False,
         record = {"timesteps": t, **evaluate_snapshot(snapshot, setup, snapshot.parent)}
         _append_eval(run_dir, record)
         logger.warning(
-            "%s at %d decisions: success %.2f, return %.0f, map error %.2f m, "
-            "%.1f optimisations/episode (%.0f s)", run_dir.name, t, record["success_rate"],
-            record["mean_return"], record["map_error_m"], record["n_optimisations"],
-            record["eval_time_s"])
+            "%s at %d decisions: success %.2f (sampled %.2f), return %.0f (%.0f), map error "
+            "%.2f m, %.1f optimisations/episode (%.1f) [%.0f s]", run_dir.name, t,
+            record["success_rate"], record.get("sampled_success_rate", math.nan),
+            record["mean_return"], record.get("sampled_mean_return", math.nan),
+            record["map_error_m"], record["n_optimisations"],
+            record.get("sampled_n_optimisations", math.nan), record["eval_time_s"])
         return record
 
     start = time.perf_counter()
@@ -424,6 +488,7 @@ def train_run(setup: TrainingSetup, run_dir: Path, *, resume: bool = False,
     save_checkpoint(model, done)
     config = save_model(model, model.get_env(), setup, final_zip, done,
                         final_evaluation=final, train_time_s=train_time,
+                        deterministic=chosen_mode(final) == "deterministic",
                         training_setup={k: v for k, v in asdict(setup).items()
                                         if k != "hyperparams"})
     vec.close()

@@ -173,6 +173,11 @@ def test_ppo_zip_acts_deterministically_with_the_env_action_shape(ppo_zip):
     assert policy.act(obs.astype(np.float64).tolist(), {}).tolist() == policy.act(obs, {}).tolist()
 
 
+def test_dqn_has_no_sampled_mode(dqn_zip):
+    with pytest.raises(ValueError, match="deterministic"):
+        policies.make("learned", path=str(dqn_zip), deterministic=False)
+
+
 def test_dqn_zip_maps_discrete_actions_to_pairs(dqn_zip):
     from stable_baselines3 import DQN
 
@@ -224,7 +229,7 @@ def test_bad_options_raise(ppo_zip):
         policies.make("learned", path=ppo_zip, deterministic=1)
     with pytest.raises(ValueError, match="path=.*must be a file path"):
         policies.make("learned", path=3)
-    with pytest.raises(ValueError, match="temperature.*path, algo, deterministic, device"):
+    with pytest.raises(ValueError, match="temperature.*deterministic, sample_seed, device"):
         policies.make("learned", path=ppo_zip, temperature=1.0)
 
 

@@ -16,7 +16,13 @@ from slam_gym.training.hyperparams import (
     parse_overrides,
     validate_hyperparams,
 )
-from slam_gym.training.run import TrainingSetup, read_eval_log, registered_kwargs, train_run
+from slam_gym.training.run import (
+    TrainingSetup,
+    chosen_mode,
+    read_eval_log,
+    registered_kwargs,
+    train_run,
+)
 
 TRAINABLE = [i for i, k in ENV_VARIANTS.items() if "clutter_level" not in k and "scenario" not in k]
 
@@ -92,6 +98,8 @@ def test_a_run_writes_logs_evaluations_and_a_loadable_model(tmp_path):
     log = read_eval_log(run)
     assert [r["timesteps"] for r in log] == [64, 96]  # periodic, then final
     assert all(r["n_episodes"] == 2 and 0 <= r["success_rate"] <= 1 for r in log)
+    assert all(r["sampled_n_episodes"] == 2 and 0 <= r["sampled_success_rate"] <= 1 for r in log)
+    assert config["deterministic"] == (chosen_mode(log[-1]) == "deterministic")
     with (run / "logs" / "monitor_0.monitor.csv").open() as fh:
         fh.readline()
         episodes = list(csv.DictReader(fh))
@@ -187,3 +195,44 @@ def test_the_untrained_policy_starts_at_the_configured_action_probabilities(tmp_
     with pytest.raises(ValueError, match="initial_optimise_probability"):
         validate_hyperparams("ppo", {"n_timesteps": 8, "n_envs": 1,
                                      "initial_optimise_probability": 1.5})
+
+
+def test_sampled_actions_follow_the_policy_and_repeat_after_reset(tmp_path):
+    """deterministic=False draws from the policy's distribution with its own seeded generator:
+    an untrained model started at probabilities 0.1 / 0.03 fuses and optimises at those rates,
+    and every reset() replays the same draws."""
+    import policies
+    from slam_gym.training.run import _algorithm, _build_vec_env, save_model
+
+    params = validate_hyperparams("ppo", {"n_timesteps": 8, "n_envs": 1, "normalize": False,
+                                          "initial_fuse_probability": 0.1,
+                                          "initial_optimise_probability": 0.03,
+                                          "env_kwargs": {"n_particles": 5, "n_steps": 60}})
+    setup = TrainingSetup("ppo", "SlamGym/HybridSLAM-v0", 0, params)
+    vec = _build_vec_env(setup, tmp_path, 0, None)
+    model = _algorithm("ppo")("MlpPolicy", vec, seed=0, device="cpu")
+    from slam_gym.training.run import set_initial_action_probabilities
+
+    set_initial_action_probabilities(model, params)
+    path = save_model(model, vec, setup, tmp_path / "m" / "model.zip", 0)
+    vec.close()
+    policy = policies.make("learned", path=str(path), deterministic=False, sample_seed=4)
+    obs = np.random.default_rng(2).uniform(0, 5, (3000, len(FEATURE_NAMES)))
+    def info(o):
+        return {"features": dict(zip(FEATURE_NAMES, o, strict=True))}
+
+    first = np.array([policy.act(o, info(o)) for o in obs])
+    assert first[:, 0].mean() == pytest.approx(0.1, abs=0.02)
+    assert first[:, 1].mean() == pytest.approx(0.03, abs=0.01)
+    policy.reset()
+    again = np.array([policy.act(o, info(o)) for o in obs[:200]])
+    np.testing.assert_array_equal(again, first[:200])
+    # the mode of these distributions is (0, 0) everywhere
+    greedy = policies.make("learned", path=str(path), deterministic=True)
+    assert not np.any([greedy.act(o, info(o)) for o in obs[:50]])
+
+
+def test_chosen_mode_is_the_higher_mean_return():
+    assert chosen_mode({"mean_return": -10.0, "sampled_mean_return": -5.0}) == "sampled"
+    assert chosen_mode({"mean_return": -5.0, "sampled_mean_return": -5.0}) == "deterministic"
+    assert chosen_mode({"mean_return": -5.0}) == "deterministic"
