@@ -33,6 +33,27 @@ Two minimisers (:meth:`RelativeProblem.optimise`):
   damping switched on only when a step fails to decrease the cost (``"gauss-newton"`` starts
   undamped).
 
+Robust kernels (``robust="huber"`` or ``"cauchy"``, Gauss-Newton / Levenberg-Marquardt only, for
+problems stacked by :meth:`RelativeProblem.from_constraints`): CM (12) is a sum of one quadratic
+form per constraint, and a constraint with a dense information matrix (a sub-map) cannot be
+down-weighted per quantity as it stands. Its Gaussian is therefore factorised exactly into a chain
+of conditionals, quantity by quantity in the stacked order (the end pose, then each feature given
+the end pose and the features before it): with ``W`` lower triangular and ``W^T W = Lambda_c``
+(a Cholesky factor of the constraint's covariance, inverted), ``e^T Lambda_c e = sum_q
+||(W e)_q||^2`` where ``(W e)_q``, the rows of quantity ``q``, is its whitened conditional residual.
+The robust cost replaces each term ``s_q = ||(W e)_q||^2`` by ``rho(s_q)``,
+
+    c_rho(tau) = sum_q rho(s_q),    Huber: rho(s) = s if s <= d^2 else 2 d sqrt(s) - d^2,
+                                    Cauchy: rho(s) = d^2 log(1 + s / d^2),
+
+with ``d^2`` the 95 % chi-square quantile of the quantity's dimension (5.99 for a point, 7.81
+for a pose, 3.84 for a heading: the usual SLAM choice, e.g. ORB-SLAM's Huber thresholds), so a
+quantity that fits its Gaussian at the 95 % level keeps its least-squares weight and ``rho(s) = s``
+gives CM (12) exactly. It is minimised by iteratively re-weighted Gauss-Newton (the weights
+``rho'(s_q)`` on the rows of ``W``: ``Lambda_w = W^T diag(rho') W`` in place of ``Lambda``), the
+steps accepted on the robust cost; the covariance of the optimum is ``(J^T Lambda_w J)^-1``
+(:attr:`OptimiserResult.information`).
+
 ``r_hat`` is obtained once by a sparse solve (never a dense inverse). It puts the angle
 components of ``psi`` on the 2-pi branch nearest to ``r_hat`` (so the cost is smooth in the
 headings), and the minimisers evaluate the cost in the equivalent residual form CM (12) =
@@ -77,6 +98,26 @@ QUANTITY_DIM = {POSE: 3, POINT: 2, HEADING: 1}
 ENTITY_KINDS = (POSE, POINT)
 METHODS = ("reduced", "gauss-newton", "levenberg-marquardt")
 QUASI_NEWTON = ("L-BFGS-B", "BFGS")
+ROBUST_KERNELS = (None, "huber", "cauchy")
+ROBUST_PROBABILITY = 0.95
+"""Chi-square probability of a quantity's kernel threshold (module docstring)."""
+
+
+def robust_rho(kernel, s, threshold2):
+    """``(rho(s), rho'(s))`` of ``kernel`` (None, ``"huber"``, ``"cauchy"``) for squared whitened
+    residuals ``s`` (>= 0) with squared thresholds ``threshold2`` (module docstring)."""
+    s = np.asarray(s, dtype=float)
+    d2 = np.asarray(threshold2, dtype=float)
+    if kernel is None:
+        return s.copy(), np.ones_like(s)
+    if kernel == "huber":
+        root = np.sqrt(np.maximum(s, d2))
+        inside = s <= d2
+        d = np.sqrt(d2)
+        return np.where(inside, s, 2.0 * d * root - d2), np.where(inside, 1.0, d / root)
+    if kernel == "cauchy":
+        return d2 * np.log1p(s / d2), 1.0 / (1.0 + s / d2)
+    raise ValueError(f"robust={kernel!r} is invalid: must be one of {ROBUST_KERNELS}")
 
 
 @dataclass(frozen=True)
@@ -123,13 +164,25 @@ class OptimiserResult:
     method: str
     message: str = ""
     problem: RelativeProblem | None = field(default=None, repr=False)
+    robust: str | None = None
+    robust_cost: float | None = None
+    weights: np.ndarray | None = field(default=None, repr=False)
     _factor: object = field(default=None, repr=False)
+
+    @property
+    def information(self):
+        """The information of the relative quantities the optimum was weighted with: ``Lambda``,
+        or with a robust kernel ``W^T diag(rho') W`` at the optimum (module docstring)."""
+        p = self.problem
+        if self.robust is None or self.weights is None:
+            return p.Lambda
+        return p.weighted_information(self.weights)
 
     def _gn_factor(self):
         if self._factor is None:
             p = self.problem
             J = p.psi_jacobian(self.tau)
-            H = (J.T @ p.Lambda @ J).tocsc()
+            H = (J.T @ self.information @ J).tocsc()
             self._factor = sparse_spd_factor(H)
         return self._factor
 
@@ -226,6 +279,8 @@ class RelativeProblem:
         )
         self.eta = eta
         self.Lambda = Lambda
+        self._constraint_information = None  # the dense blocks, when stacked from constraints
+        self._robust_cache = None
 
         # Variable layout: [x, y of every non-gauge entity ; theta of every non-gauge pose].
         free = [e for e in range(n_ent) if e != self.gauge]
@@ -281,7 +336,7 @@ class RelativeProblem:
             quantities.extend(qs)
             etas.append(L @ m)
             blocks.append(sp.csc_matrix(0.5 * (L + L.T)))
-        return cls(
+        problem = cls(
             entity_kinds,
             quantities,
             np.concatenate(etas),
@@ -289,6 +344,57 @@ class RelativeProblem:
             gauge=gauge,
             gauge_pose=gauge_pose,
         )
+        problem._constraint_information = [b.toarray() for b in blocks]
+        return problem
+
+    # ----------------------------------------------------------------- robust kernels
+    def _robust_structure(self):
+        """``(W, rows of each quantity's factor, its squared threshold)`` (module docstring);
+        built once, for problems stacked from constraints."""
+        if self._robust_cache is None:
+            from scipy.stats import chi2
+
+            infos = self._constraint_information
+            require(
+                infos is not None, "robust", "a kernel",
+                "None for a problem not stacked from constraints (from_constraints)",
+            )
+            Ws = []
+            for L in infos:
+                # W lower triangular with W^T W = L: the Cholesky factor of the reversed matrix
+                rev = np.linalg.cholesky(L[::-1, ::-1])
+                Ws.append(sp.csr_matrix(rev.T[::-1, ::-1]))
+            dims = np.array([q.dim for q in self.quantities])
+            factor = np.repeat(np.arange(len(dims)), dims)
+            thresholds = chi2.ppf(ROBUST_PROBABILITY, dims)
+            self._robust_cache = (sp.block_diag(Ws, format="csr"), factor, thresholds)
+        return self._robust_cache
+
+    def factor_residuals(self, tau) -> np.ndarray:
+        """``s_q = ||(W e)_q||^2`` of every quantity at ``tau`` (``e = psi - r_hat``): its
+        whitened conditional residual; they sum to CM (12)."""
+        W, factor, _ = self._robust_structure()
+        w = W @ (self.psi(tau) - self.r_hat)
+        return np.bincount(factor, weights=w * w, minlength=len(self.quantities))
+
+    def robust_cost(self, tau, robust) -> float:
+        """``sum_q rho(s_q)`` (module docstring); CM (12) for ``robust=None``."""
+        require(robust in ROBUST_KERNELS, "robust", robust, f"one of {ROBUST_KERNELS}")
+        _, _, thresholds = self._robust_structure()
+        return float(robust_rho(robust, self.factor_residuals(tau), thresholds)[0].sum())
+
+    def robust_gradient(self, tau, robust) -> np.ndarray:
+        """Gradient of :meth:`robust_cost`: ``2 J^T W^T diag(rho'(s)) W e``."""
+        _, _, thresholds = self._robust_structure()
+        weights = robust_rho(robust, self.factor_residuals(tau), thresholds)[1]
+        P, Th = self.unpack(tau)
+        e = self._psi(P, Th) - self.r_hat
+        return 2.0 * (self._jacobian(P, Th).T @ (self.weighted_information(weights) @ e))
+
+    def weighted_information(self, weights) -> sp.csc_matrix:
+        """``W^T diag(w) W`` with one weight per quantity (``w = 1``: ``Lambda``)."""
+        W, factor, _ = self._robust_structure()
+        return (W.T @ sp.diags(np.asarray(weights, dtype=float)[factor]) @ W).tocsc()
 
     def _check_connected(self):
         reach = self._spanning_order()
@@ -508,14 +614,24 @@ class RelativeProblem:
         gtol: float = 1e-8,
         xtol: float = 1e-10,
         quasi_newton: str = "L-BFGS-B",
+        robust: str | None = None,
     ) -> OptimiserResult:
         """Minimise CM (13); see the module docstring for the methods.
 
         ``tau0``: start (default :meth:`initial_guess`). ``gtol``: gradient tolerance of the
         quasi-Newton method on the cost per coordinate of ``r`` (``"reduced"``); ``xtol``: relative
         step tolerance of Gauss-Newton; ``quasi_newton``: ``"L-BFGS-B"`` or ``"BFGS"``.
+        ``robust``: None (CM (12)), ``"huber"`` or ``"cauchy"`` (module docstring; Gauss-Newton
+        and Levenberg-Marquardt, problems stacked from constraints).
         """
         require(method in METHODS, "method", method, f"one of {METHODS}")
+        require(robust in ROBUST_KERNELS, "robust", robust, f"one of {ROBUST_KERNELS}")
+        require(
+            robust is None or method != "reduced", "robust", robust,
+            "None with method='reduced' (robust kernels use Gauss-Newton)",
+        )
+        if robust is not None:
+            self._robust_structure()  # ValueError naming robust if the blocks are unknown
         require(
             quasi_newton in QUASI_NEWTON, "quasi_newton", quasi_newton, f"one of {QUASI_NEWTON}"
         )
@@ -539,8 +655,13 @@ class RelativeProblem:
             res = self._optimise_reduced(tau0, max_iterations, gtol, quasi_newton)
         else:
             lam0 = 0.0 if method == "gauss-newton" else 1e-3
-            res = self._optimise_lm(tau0, max_iterations, xtol, lam0)
+            res = self._optimise_lm(tau0, max_iterations, xtol, lam0, robust)
         tau, iters, evals, converged, msg = res
+        weights = rcost = None
+        if robust is not None:
+            _, _, thresholds = self._robust_structure()
+            rho, weights = robust_rho(robust, self.factor_residuals(tau), thresholds)
+            rcost = float(rho.sum())
         out = OptimiserResult(
             means=self.means(tau),
             tau=tau,
@@ -552,6 +673,9 @@ class RelativeProblem:
             method=method,
             message=msg,
             problem=self,
+            robust=robust,
+            robust_cost=rcost,
+            weights=weights,
         )
         logger.debug("optimise %s: %d iterations, %.3f s, %s", method, iters, out.time_s, msg)
         return out
@@ -585,11 +709,28 @@ class RelativeProblem:
         tau = np.concatenate([self.optimal_positions(theta), theta])
         return tau, int(res.nit), int(res.nfev), bool(res.success or small), str(res.message)
 
-    def _optimise_lm(self, tau, max_iterations, xtol, lam0):
-        def residual_cost(t):
-            P, Th = self.unpack(t)
-            e = self._psi(P, Th) - self.r_hat
-            return float(e @ (self.Lambda @ e)), P, Th
+    def _optimise_lm(self, tau, max_iterations, xtol, lam0, robust=None):
+        if robust is None:
+            def residual_cost(t):
+                P, Th = self.unpack(t)
+                e = self._psi(P, Th) - self.r_hat
+                return float(e @ (self.Lambda @ e)), P, Th
+        else:  # iteratively re-weighted: the weights at the current iterate (module docstring)
+            W, factor, thresholds = self._robust_structure()
+            n_q = len(self.quantities)
+
+            def residual_cost(t):
+                P, Th = self.unpack(t)
+                w = W @ (self._psi(P, Th) - self.r_hat)
+                s = np.bincount(factor, weights=w * w, minlength=n_q)
+                return float(robust_rho(robust, s, thresholds)[0].sum()), P, Th
+
+        def information(P, Th):
+            if robust is None:
+                return self.Lambda
+            w = W @ (self._psi(P, Th) - self.r_hat)
+            s = np.bincount(factor, weights=w * w, minlength=n_q)
+            return self.weighted_information(robust_rho(robust, s, thresholds)[1])
 
         cost, P, Th = residual_cost(tau)
         lam, evals, it = lam0, 1, 0
@@ -597,8 +738,9 @@ class RelativeProblem:
         while it < max_iterations:
             it += 1
             J = self._jacobian(P, Th)
-            g = J.T @ (self.Lambda @ (self._psi(P, Th) - self.r_hat))
-            H = (J.T @ self.Lambda @ J).tocsc()
+            Lam = information(P, Th)
+            g = J.T @ (Lam @ (self._psi(P, Th) - self.r_hat))
+            H = (J.T @ Lam @ J).tocsc()
             diag = sp.diags(H.diagonal())
             accepted = False
             tiny = False

@@ -46,6 +46,7 @@ from filters.existence import CONFIRMED_PROBABILITY
 from filters.geometry import compose, compose_jacobians, transform_point, wrap_angle
 from filters.interface_features import INTERFACE_FEATURE_NAMES
 from filters.models import observe
+from filters.optimiser import ROBUST_KERNELS
 from filters.submap_optimise import optimise_submaps
 from filters.types import FusionReport, GaussianMap, LandmarkEstimate
 from filters.validation import check_range, require
@@ -91,6 +92,8 @@ class SubmapSLAM:
     ``initial_pose``, ``initial_pose_cov``, ``gate_probability``, ``node_budget``, and for
     ``"ekf"`` the loop-closure test's ``loop_closure_unseen_s`` and ``closure_radius_m``).
     ``closure_radius_m`` also bounds the search of the per-observation innovation test.
+    ``robust_kernel``: the kernel :meth:`optimise` uses by default (None: CM (12) as it is;
+    ``"huber"`` / ``"cauchy"``: :mod:`filters.optimiser`).
 
     Interface events are aggregated over a *decision interval*: :meth:`start_interval` (the env
     calls it before each decision) clears them; until then every update and fusion adds to them.
@@ -107,8 +110,11 @@ class SubmapSLAM:
         node_budget: int = DEFAULT_NODE_BUDGET,
         loop_closure_unseen_s: float = DEFAULT_LOOP_CLOSURE_UNSEEN_S,
         closure_radius_m: float = DEFAULT_CLOSURE_RADIUS_M,
+        robust_kernel: str | None = None,
     ):
         validate_gate_probability(gate_probability)
+        require(robust_kernel in ROBUST_KERNELS, "robust_kernel", robust_kernel,
+                f"one of {ROBUST_KERNELS}")
         validate_node_budget(node_budget)
         check_range("loop_closure_unseen_s", loop_closure_unseen_s, 0.0, 1e9)
         check_range("closure_radius_m", closure_radius_m, 0.0, 1e6)
@@ -130,6 +136,7 @@ class SubmapSLAM:
         self.back_end = back_end
         self.gate_probability = float(gate_probability)
         self.closure_radius_m = float(closure_radius_m)
+        self.robust_kernel = robust_kernel
         self.front_end.restart()
         self.submaps: list[StoredSubmap] = []
         self.n_fusions = 0
@@ -249,7 +256,9 @@ class SubmapSLAM:
 
     def optimise(self, method: str = "gauss-newton", **options):
         """DESIGN 3.10: minimise CM (12) over the stored sub-maps and replace the global estimate
-        by the optimum and its Gauss-Newton covariance (:mod:`filters.submap_optimise`)."""
+        by the optimum and its Gauss-Newton covariance (:mod:`filters.submap_optimise`); with the
+        system's ``robust_kernel`` (None, ``"huber"``, ``"cauchy"``) unless ``robust`` is given."""
+        options.setdefault("robust", self.robust_kernel)
         return optimise_submaps(self, method, **options)
 
     def _optimised(self):

@@ -203,7 +203,8 @@ def build_submap_problem(
 
 
 def joint_covariance(result: OptimiserResult, entities) -> np.ndarray:
-    """Joint Gauss-Newton covariance of ``entities``: a block of ``(J^T Lambda J)^-1``.
+    """Joint Gauss-Newton covariance of ``entities``: a block of ``(J^T Lambda J)^-1`` (with a
+    robust kernel, ``Lambda`` re-weighted at the optimum: :attr:`OptimiserResult.information`).
 
     Solves for the listed entities' columns only (sparse factorisation, no inverse); the gauge
     contributes zero rows and columns. Poses take 3 rows, points 2.
@@ -220,7 +221,7 @@ def joint_covariance(result: OptimiserResult, entities) -> np.ndarray:
     C = np.zeros((starts[-1], starts[-1]))
     if var_idx:
         J = p.psi_jacobian(result.tau)
-        H = (J.T @ p.Lambda @ J).tocsc()
+        H = (J.T @ result.information @ J).tocsc()
         E = np.zeros((p.n_variables, len(var_idx)))
         E[np.asarray(var_idx), np.arange(len(var_idx))] = 1.0
         X = sparse_spd_factor(H).solve(E)
@@ -286,13 +287,15 @@ def optimise_submaps(
 
     ``submap_slam``: a :class:`filters.submap.SubmapSLAM` (its ``submaps`` and ``back_end``).
     ``method``: ``"gauss-newton"``, ``"levenberg-marquardt"`` or ``"reduced"`` (CM's reduced
-    quasi-Newton); ``options`` go to :meth:`RelativeProblem.optimise`. The initial pose (the
-    gauge) and its covariance come from the back-end (``initial_pose``, ``initial_pose_cov``
-    attributes, set by :func:`make_back_end`) unless given. The back-end's ``x``/``P`` become the
-    optimum over ``[v-, features]`` and its Gauss-Newton covariance (a back-end with
-    ``apply_optimum``, i.e. :class:`RelativeBackEnd`, takes it as its new anchor); ids and
-    existence are kept. Calls ``submap_slam._optimised()`` (book-keeping) in every case; with no
-    fused sub-map nothing else changes.
+    quasi-Newton); ``options`` go to :meth:`RelativeProblem.optimise` (e.g. ``robust="huber"``:
+    each sub-map factorised into its end pose and its features, each conditional on the ones
+    before it, and every such term given a Huber or Cauchy kernel; :mod:`filters.optimiser`).
+    The initial pose (the gauge) and its covariance come from the back-end (``initial_pose``,
+    ``initial_pose_cov`` attributes, set by :func:`make_back_end`) unless given. The back-end's
+    ``x``/``P`` become the optimum over ``[v-, features]`` and its Gauss-Newton covariance (a
+    back-end with ``apply_optimum``, i.e. :class:`RelativeBackEnd`, takes it as its new anchor);
+    ids and existence are kept. Calls ``submap_slam._optimised()`` (book-keeping) in every case;
+    with no fused sub-map nothing else changes.
     """
     require(method in METHODS, "method", method, f"one of {METHODS}")
     t0 = time.perf_counter()

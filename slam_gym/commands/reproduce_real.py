@@ -6,7 +6,8 @@ same systems (:func:`slam_gym.systems.make_system`) and the same evaluation mach
 ``summary.json`` and ``table.md``), plus a readable ``real_table.md`` and PNG maps.
 
 Schedule: the sub-map systems (``ekf-submap``, ``hybrid``) fuse every 10 s (BB's rule, via
-:func:`slam_gym.evaluation.core.run_system`), never optimise. Particle filters use 200 particles
+:func:`slam_gym.evaluation.core.run_system`) and by default never optimise (``--optimise``: one
+of :data:`slam_gym.evaluation.core.OPTIMISE_MODES`). Particle filters use 200 particles
 by default (``--particles``; BB used 500 in simulation; on MRCLAM's 15 landmarks 100-200 are
 enough to show the behaviour and keep a robot under a minute). Runs do **not** stop at BB's
 failure criterion (``stop_on_failure=False``): on real data the map and path errors over the
@@ -79,6 +80,7 @@ from slam_gym.commands.common import emit, out_dir
 from slam_gym.commands.runs import add_run_options, int_list, name_list
 from slam_gym.datasets.location import default_data_dir
 from slam_gym.datasets.mrclam import DEFAULT_CALIBRATION_S
+from slam_gym.evaluation.core import OPTIMISE_MODES
 
 logger = logging.getLogger(__name__)
 
@@ -109,6 +111,8 @@ MRCLAM_OPTIONS = {
     "calibration_s": DEFAULT_CALIBRATION_S,
     "landmark_density_per_m2": None,
     "gate_chi2": None,
+    "optimise": "never",
+    "robust_kernel": None,
 }
 #: MRCLAM options that change the stream (the loader's sensor calibration)
 MRCLAM_STREAM_OPTIONS = (
@@ -208,6 +212,15 @@ def add_parser(targets) -> None:
         "--gate-chi2", type=float, default=None,
         help="FastSLAM's association gate, chi-square with 2 dof (default: the filter's, "
         "13.8 = 99.9 %%)",
+    )
+    mr.add_argument(
+        "--optimise", choices=list(OPTIMISE_MODES), default="never",
+        help="optimise() schedule of the sub-map systems (ekf-submap, hybrid; default never)",
+    )
+    mr.add_argument(
+        "--robust-kernel", choices=["huber", "cauchy"], default=None,
+        help="robust kernel of the sub-map systems' optimise() (filters.optimiser; default "
+        "none: CM (12) as it is)",
     )
     _add_shared_options(mr, "out/reproduce-mrclam")
     mr.set_defaults(run=run_mrclam)
@@ -348,6 +361,10 @@ def run_mrclam(args) -> int:
                                    "fusion_interval_s": FUSION_INTERVAL_S}
                     if s in ("fastslam", "hybrid"):
                         opts["n_particles"] = args.particles
+                    if s in ("ekf-submap", "hybrid") and args.optimise != "never":
+                        opts["optimise"] = args.optimise  # in the resume key only when given
+                    if s in ("ekf-submap", "hybrid") and args.robust_kernel is not None:
+                        opts["robust_kernel"] = args.robust_kernel
                     jobs.append(Job("system", s, scenario, None, seed, opts))
             for p in usable:
                 opts = base | {"n_particles": args.particles,
@@ -539,9 +556,13 @@ def run_mrclam_system(
     fusion_interval_s=FUSION_INTERVAL_S, decision_interval=DECISION_INTERVAL, model_path=None,
     noise_window_s=None, sensor_bias_correction=None, motion_compensation=None,
     corrections=True, calibration_s=DEFAULT_CALIBRATION_S, landmark_density_per_m2=None,
-    gate_chi2=None,
+    gate_chi2=None, optimise="never", robust_kernel=None,
 ) -> dict:
     """One system over one MRCLAM robot on BB's fixed schedule; the result row.
+
+    ``optimise``: the sub-map systems' ``optimise()`` schedule
+    (:data:`slam_gym.evaluation.core.OPTIMISE_MODES`); ``robust_kernel``: their optimiser's
+    kernel (None, ``"huber"``, ``"cauchy"``; :mod:`filters.optimiser`).
 
     ``noise_window_s``, ``sensor_bias_correction``, ``motion_compensation``: the loader's sensor
     calibration (:func:`slam_gym.envs.mrclam.mrclam_stream`); ``landmark_density_per_m2``,
@@ -557,13 +578,20 @@ def run_mrclam_system(
         calibration_s=calibration_s,
     )
     fs_options = fastslam_options(landmark_density_per_m2, gate_chi2)
+    system_options = _system_options(name, fs_options)
+    if robust_kernel is not None:
+        require(name in ("ekf-submap", "hybrid"), "robust_kernel", robust_kernel,
+                "None for a system without sub-maps")
+        system_options["back_robust_kernel"] = robust_kernel
     episode = run_system(
         name, stream, seed, n_particles=n_particles, fusion_interval_s=fusion_interval_s,
         known_association=known_association, stop_on_failure=False, record_trace=True,
-        system_options=_system_options(name, fs_options),
+        system_options=system_options, optimise=optimise,
     )
     row = _mrclam_result(episode, stream, robot, "known" if known_association else "unknown")
     row.update(_calibration_fields(locals()))
+    row["optimise"] = optimise
+    row["robust_kernel"] = robust_kernel
     return row
 
 
@@ -573,15 +601,20 @@ def run_mrclam_policy(
     known_association=False, fusion_interval_s=FUSION_INTERVAL_S,
     noise_window_s=None, sensor_bias_correction=None, motion_compensation=None,
     corrections=True, calibration_s=DEFAULT_CALIBRATION_S, landmark_density_per_m2=None,
-    gate_chi2=None,
+    gate_chi2=None, optimise="never", robust_kernel=None,
 ) -> dict:
     """HYBRID driven by interface policy ``name`` in :class:`MRCLAMEnv` over one robot (the
-    calibration and FastSLAM options as in :func:`run_mrclam_system`)."""
+    calibration and FastSLAM options as in :func:`run_mrclam_system`; the policy decides when
+    to optimise, so ``optimise`` must stay ``"never"``)."""
     import policies
     from slam_gym.envs.mrclam import MRCLAMEnv
 
     require(not known_association, "known_association", known_association,
             "False for policies (the env has no known-association mode)")
+    require(optimise == "never", "optimise", optimise,
+            "'never' for policies (the policy chooses when to optimise)")
+    require(robust_kernel is None, "robust_kernel", robust_kernel,
+            "None for policies (the env's optimiser has no kernel option)")
     kwargs = {"path": model_path} if (name == "learned" and model_path) else {}
     policy = policies.make(name, **kwargs)
     env = MRCLAMEnv(

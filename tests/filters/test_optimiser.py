@@ -312,3 +312,99 @@ def test_no_descent_step_tells_a_minimum_to_working_precision_from_a_slope():
     assert _no_descent_step(fun, at_minimum, *fun(at_minimum))
     away = np.array([0.3, -0.2])
     assert not _no_descent_step(fun, away, *fun(away))
+
+
+# --------------------------------------------------------------------------- robust kernels
+def _outlier_problem(offset=(8.0, -6.0)):
+    """A small noise-free map (odometry chain, every point seen from two poses) plus one point
+    constraint ``offset`` metres off, as confident as the rest: a wrong association."""
+    rng = np.random.default_rng(0)
+    n_poses, n_points = 6, 6
+    poses, pts = _truth(rng, n_poses, n_points)
+    kinds = [POSE] * n_poses + [POINT] * n_points
+    cons = [
+        GaussianConstraint((RelativeQuantity(POSE, k - 1, k),), relative(poses[k - 1], poses[k]),
+                           np.diag([100.0, 100.0, 1000.0]))
+        for k in range(1, n_poses)
+    ]
+
+    def seen_from(f, p):
+        c, s = np.cos(f[2]), np.sin(f[2])
+        d = p - f[:2]
+        return np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1]])
+
+    for j in range(n_points):
+        for k in (j % n_poses, (j + 2) % n_poses):
+            cons.append(GaussianConstraint((RelativeQuantity(POINT, k, n_poses + j),),
+                                           seen_from(poses[k], pts[j]), 100.0 * np.eye(2)))
+    bad = seen_from(poses[3], pts[0]) + np.asarray(offset)
+    cons.append(GaussianConstraint((RelativeQuantity(POINT, 3, n_poses),), bad, 100.0 * np.eye(2)))
+    prob = RelativeProblem.from_constraints(kinds, cons, gauge=0, gauge_pose=poses[0])
+    return prob, np.vstack([poses[:, :2], pts])
+
+
+@pytest.mark.parametrize(("robust", "tolerance_m"), [("cauchy", 0.01), ("huber", 0.25)])
+def test_robust_kernel_recovers_the_truth_that_one_outlier_ruins(robust, tolerance_m):
+    prob, truth = _outlier_problem()
+    plain = prob.optimise("gauss-newton")
+    assert plain.converged
+    assert np.max(np.linalg.norm(plain.means[:, :2] - truth, axis=1)) > 1.0
+    res = prob.optimise("gauss-newton", robust=robust)
+    assert res.converged and res.robust == robust
+    errors = np.linalg.norm(res.means[:, :2] - truth, axis=1)
+    assert np.max(errors) < tolerance_m
+    # the outlier (the last quantity) is the one down-weighted, the rest keep weight ~1
+    assert res.weights[-1] < 0.05 and np.min(res.weights[:-1]) > 0.5
+    # Huber keeps a bounded pull (not re-descending), Cauchy almost none
+    if robust == "huber":
+        assert np.max(errors) > 0.01
+
+
+@pytest.mark.parametrize("robust", [None, "huber", "cauchy"])
+def test_robust_cost_and_gradient_match_finite_differences(robust):
+    prob, tau_true = _problem(1)
+    tau = tau_true + np.random.default_rng(3).normal(0.0, 0.05, tau_true.shape)
+    # the factor terms split CM (12) exactly
+    assert prob.factor_residuals(tau).sum() == pytest.approx(prob.weighted_residual_cost(tau),
+                                                              rel=1e-10)
+    g = prob.robust_gradient(tau, robust)
+    fd = _fd_grad(lambda t: prob.robust_cost(t, robust), tau)
+    np.testing.assert_allclose(g, fd, atol=1e-6 * np.max(np.abs(fd)))
+    if robust is None:  # CM (12) and CM (13) differ by a constant: the same gradient
+        np.testing.assert_allclose(g, prob.gradient(tau), rtol=1e-8, atol=1e-8)
+
+
+@pytest.mark.parametrize("robust", ["huber", "cauchy"])
+def test_kernels_are_least_squares_inside_and_bounded_in_slope(robust):
+    from filters.optimiser import robust_rho
+
+    d2 = 5.99
+    s = np.array([0.0, 1.0, 3.0, 20.0, 400.0])
+    rho, slope = robust_rho(robust, s, d2)
+    h = 1e-6
+    fd = (robust_rho(robust, s + h, d2)[0] - robust_rho(robust, np.maximum(s - h, 0), d2)[0]) / (
+        s + h - np.maximum(s - h, 0))
+    np.testing.assert_allclose(slope, fd, rtol=1e-5)
+    assert np.all(rho <= s + 1e-12) and np.all(np.diff(slope) <= 0)  # never above LS, concave
+    if robust == "huber":
+        np.testing.assert_array_equal(rho[:3], s[:3])  # quadratic below the threshold
+    else:
+        np.testing.assert_allclose(rho[:2], s[:2], rtol=0.1)
+
+
+def test_robust_options_are_validated():
+    prob, _ = _problem(0)
+    with pytest.raises(ValueError, match="robust"):
+        prob.optimise("gauss-newton", robust="tukey")
+    with pytest.raises(ValueError, match="robust"):
+        prob.optimise("reduced", robust="huber")
+    direct = RelativeProblem(prob.entity_kinds, prob.quantities, prob.eta, prob.Lambda,
+                             gauge=0, gauge_pose=prob.gauge_pose)
+    with pytest.raises(ValueError, match="robust"):
+        direct.optimise("gauss-newton", robust="cauchy")
+    # without a kernel the weighted information is Lambda itself
+    res = prob.optimise("gauss-newton")
+    assert res.information is prob.Lambda
+    np.testing.assert_allclose(
+        prob.weighted_information(np.ones(len(prob.quantities))).toarray(),
+        prob.Lambda.toarray(), atol=1e-9 * abs(prob.Lambda).max())

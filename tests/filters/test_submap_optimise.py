@@ -380,3 +380,23 @@ def test_bad_calls_raise_value_error_naming_field(loop_ekf):
         back.fuse(GaussianMap(np.zeros(5), np.eye(3), np.array([1]), np.ones(1)))
     with pytest.raises(ValueError, match="pose_index"):
         back.apply_optimum(3, np.zeros(3), np.eye(3))
+
+
+def test_robust_kernel_of_the_system_is_used_and_keeps_a_spd_covariance(loop_ekf):
+    r = loop_ekf
+    plain = optimise_submaps(r.system)
+    x_plain = r.system.back_end.x.copy()
+    r.system.robust_kernel = "cauchy"
+    try:
+        res = r.system.optimise()
+    finally:
+        r.system.robust_kernel = None
+    assert res.converged and res.optimiser.robust == "cauchy"
+    assert is_spd(r.system.back_end.P)
+    # consistent simulated sub-maps carry no outlier: the robust optimum stays near the plain one
+    np.testing.assert_allclose(r.system.back_end.x, x_plain, atol=0.05)
+    assert r.system.optimise(robust=None).optimiser.robust is None  # the call overrides it
+    np.testing.assert_allclose(r.system.back_end.x, plain.x, atol=1e-9)
+    with pytest.raises(ValueError, match="robust_kernel"):
+        SubmapSLAM(EKFSLAM(r.stream.sensor, r.stream.clutter, r.stream.odometry_noise),
+                   back_end="ekf", initial_pose=r.stream.initial_pose, robust_kernel="tukey")
