@@ -26,6 +26,7 @@ transform without SB3's pickles. Evaluation runs the snapshot through the benchm
 
 from __future__ import annotations
 
+import copy
 import csv
 import json
 import logging
@@ -410,7 +411,8 @@ def train_run(setup: TrainingSetup, run_dir: Path, *, resume: bool = False,
     total = int(params["n_timesteps"])
     vec = _build_vec_env(setup, run_dir, t0, checkpoint)
     algo_cls = _algorithm(setup.algo)
-    kwargs = {k: v for k, v in params.items() if k in ALGO_KEYS[setup.algo]}
+    # a copy: SB3 writes into the dicts it is given (A2C puts RMSprop's class in policy_kwargs)
+    kwargs = copy.deepcopy({k: v for k, v in params.items() if k in ALGO_KEYS[setup.algo]})
     if checkpoint is None:
         model = algo_cls(params["policy"], vec, seed=setup.seed, device="cpu", verbose=0,
                          **kwargs)
@@ -477,6 +479,10 @@ def train_run(setup: TrainingSetup, run_dir: Path, *, resume: bool = False,
             record.get("sampled_n_optimisations", math.nan), record["eval_time_s"])
         return record
 
+    due = (t0 // setup.eval_every) * setup.eval_every
+    if checkpoint and 0 < due < total and not any(
+            r["timesteps"] >= due for r in read_eval_log(run_dir)):
+        evaluate(model, t0)  # the run stopped between its checkpoint and this evaluation
     start = time.perf_counter()
     remaining = total - t0
     if remaining > 0:

@@ -83,8 +83,9 @@ def tiny_setup(seed=0, n_timesteps=96, algo="ppo"):
     params = validate_hyperparams(algo, {
         "n_timesteps": n_timesteps, "n_envs": 1, "normalize": True,
         "env_kwargs": {"n_particles": 5, "n_steps": 120},
-        **({"n_steps": 32, "batch_size": 32, "n_epochs": 1} if algo == "ppo" else
-           {"learning_starts": 16, "buffer_size": 500}),
+        **{"ppo": {"n_steps": 32, "batch_size": 32, "n_epochs": 1},
+           "a2c": {"n_steps": 8, "policy_kwargs": {"net_arch": [16]}},  # SB3 writes into it
+           "dqn": {"learning_starts": 16, "buffer_size": 500}}[algo],
     })
     return TrainingSetup(algo, "SlamGym/HybridSLAM-v0", seed, params, clutter_levels=(0, 2),
                          eval_seeds=(7,), eval_every=64, eval_workers=1, checkpoint_every=32)
@@ -135,8 +136,11 @@ def test_the_policy_normalises_observations_as_vecnormalize_did(tmp_path):
     np.testing.assert_allclose(seen[0], want, rtol=1e-5, atol=1e-5)
 
 
-@pytest.mark.parametrize("algo", ["ppo", "dqn"])
-def test_resume_continues_from_the_newest_checkpoint(tmp_path, algo):
+@pytest.mark.parametrize("algo, evaluated", [("ppo", True), ("a2c", True), ("dqn", True),
+                                             ("ppo", False)])
+def test_resume_continues_from_the_newest_checkpoint(tmp_path, algo, evaluated):
+    """With ``evaluated=False`` the run stopped after its checkpoint at 64 decisions but before
+    the evaluation due there: the resumed run makes that evaluation first."""
     run = tmp_path / "run"
     train_run(tiny_setup(n_timesteps=64, algo=algo), run, progress=False)
     if algo == "dqn":
@@ -144,6 +148,8 @@ def test_resume_continues_from_the_newest_checkpoint(tmp_path, algo):
     # an interrupted longer run: the final model is gone, the checkpoints are there
     (run / "model.zip").unlink()
     (run / "model.json").unlink()
+    if not evaluated:
+        (run / "eval.csv").unlink()
     with pytest.raises(ValueError, match="resume"):
         train_run(tiny_setup(n_timesteps=128, algo=algo), run, progress=False)
     config = train_run(tiny_setup(n_timesteps=128, algo=algo), run, resume=True, progress=False)
