@@ -18,6 +18,7 @@ optimise``), the helper the wrapper itself uses.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import zipfile
@@ -65,6 +66,22 @@ def _resolve_path(path: str | Path | None) -> Path:
     if not candidate.is_file():
         raise FileNotFoundError(f"no learned model at {candidate}: {hint}")
     return candidate
+
+
+def model_digest(path: str | Path | None = None) -> str:
+    """The first 16 hex digits of the SHA-256 of the model file ``path`` (None: the packaged
+    default): what identifies a model in a benchmark's resumable job keys, so that results of a
+    model are never reused for another one saved under the same name."""
+    return hashlib.sha256(_resolve_path(path).read_bytes()).hexdigest()[:16]
+
+
+def check_model_digest(path: str | Path | None, expected: str | None) -> None:
+    """``ValueError`` naming ``model_sha256`` if ``expected`` (None: no check) is not the
+    :func:`model_digest` of ``path``: the model changed since the job naming it was made."""
+    if expected is not None:
+        found = model_digest(path)
+        require(found == expected, "model_sha256", expected,
+                f"the digest of the model file ({found}); the model changed since the job was made")
 
 
 def detect_algorithm(path: str | Path) -> str:

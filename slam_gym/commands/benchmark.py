@@ -95,7 +95,7 @@ def run(args) -> int:
     }
     jobs = []
     for name in names:
-        opts = options | ({"model_path": args.model} if name == "learned" and args.model else {})
+        opts = options | (learned_options(args.model) if name == "learned" else {})
         seeds = range(args.seed_start, args.seed_start + args.trials)
         jobs += [Job("policy", name, args.scenario, level, seed, opts)
                  for level in levels for seed in seeds]
@@ -127,6 +127,15 @@ def run(args) -> int:
     emit(args, {"summary": doc, "figures": figures, "out": str(out)},
          [f"wrote {out / 'results.jsonl'}, summary.json, table.md and {len(figures)} figures"])
     return 0
+
+
+def learned_options(model: str | None) -> dict:
+    """The learned policy's job options: its model file and that file's digest, so that a
+    resumed benchmark never reuses the rows of another model (e.g. the shipped default before
+    it was retrained)."""
+    from policies.learned import model_digest
+
+    return ({"model_path": model} if model else {}) | {"model_sha256": model_digest(model)}
 
 
 def apply_env_id(args) -> None:

@@ -104,6 +104,7 @@ MRCLAM_OPTIONS = {
     "fusion_interval_s": FUSION_INTERVAL_S,
     "decision_interval": DECISION_INTERVAL,
     "model_path": None,
+    "model_sha256": None,
     "noise_window_s": None,
     "sensor_bias_correction": None,
     "motion_compensation": None,
@@ -369,8 +370,12 @@ def run_mrclam(args) -> int:
             for p in usable:
                 opts = base | {"n_particles": args.particles,
                                "decision_interval": DECISION_INTERVAL}
-                if p == "learned" and args.model_path:
-                    opts["model_path"] = str(Path(args.model_path).expanduser().resolve())
+                if p == "learned":
+                    from slam_gym.commands.benchmark import learned_options
+
+                    path = (str(Path(args.model_path).expanduser().resolve())
+                            if args.model_path else None)
+                    opts |= learned_options(path)
                 jobs.append(Job("policy", p, scenario, None, seed, opts))
     require(bool(jobs), "--systems/--policies", "", "at least one system or usable policy")
     out = out_dir(args)
@@ -597,7 +602,7 @@ def run_mrclam_system(
 
 def run_mrclam_policy(
     name: str, robot: int, seed: int, *, data, n_particles=DEFAULT_PARTICLES, max_steps=None,
-    noise_scale=1.0, decision_interval=DECISION_INTERVAL, model_path=None,
+    noise_scale=1.0, decision_interval=DECISION_INTERVAL, model_path=None, model_sha256=None,
     known_association=False, fusion_interval_s=FUSION_INTERVAL_S,
     noise_window_s=None, sensor_bias_correction=None, motion_compensation=None,
     corrections=True, calibration_s=DEFAULT_CALIBRATION_S, landmark_density_per_m2=None,
@@ -616,6 +621,10 @@ def run_mrclam_policy(
     require(robust_kernel is None, "robust_kernel", robust_kernel,
             "None for policies (the env's optimiser has no kernel option)")
     kwargs = {"path": model_path} if (name == "learned" and model_path) else {}
+    if name == "learned":
+        from policies.learned import check_model_digest
+
+        check_model_digest(model_path, model_sha256)
     policy = policies.make(name, **kwargs)
     env = MRCLAMEnv(
         data_dir=data, robot=robot, n_particles=n_particles,

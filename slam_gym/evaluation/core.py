@@ -14,7 +14,9 @@ fusion had touched for 60 s),
 ``stop_on_failure`` (True: stop at BB's failure, the outcome is known), ``n_steps`` (cut the path),
 ``existence_model`` (``"gate"``/``"bb"``: the reading of BB (11), :mod:`filters.existence`).
 Policy jobs take ``n_particles`` (500), ``decision_interval`` (10), ``front_end``, ``back_end``,
-``model_path`` and ``deterministic`` (for ``learned``); the env ends an episode at BB's failure.
+``model_path``, ``model_sha256`` (the model file's :func:`policies.learned.model_digest`: a run
+checks it, so a job key names the model it was run with) and ``deterministic`` (for ``learned``);
+the env ends an episode at BB's failure.
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ POLICY_OPTIONS = {
     "front_end": "fastslam",
     "back_end": "ekf",
     "model_path": None,
+    "model_sha256": None,
     "deterministic": None,
     "n_steps": None,
 }
@@ -141,16 +144,21 @@ def run_policy(
     seed: int,
     *,
     model_path=None,
+    model_sha256=None,
     deterministic=None,
     **env_options,
 ):
     """Run the named interface policy in the env for one episode; (episode, env).
 
-    ``model_path`` and ``deterministic`` are options of ``learned`` (None: its defaults)."""
+    ``model_path``, ``model_sha256`` and ``deterministic`` are options of ``learned`` (None: its
+    defaults; a ``model_sha256`` that is not the model file's digest is a ``ValueError``)."""
     import policies
 
     kwargs = {}
     if policy_name == "learned":
+        from policies.learned import check_model_digest
+
+        check_model_digest(model_path, model_sha256)
         kwargs = {k: v for k, v in (("path", model_path), ("deterministic", deterministic))
                   if v is not None}
     return run_policy_object(
