@@ -25,16 +25,23 @@ SUMMARY_KEYS: tuple[str, ...] = ("success_rate", "mean_return", "map_error_m", "
 
 
 def read_monitor(run_dir: Path) -> list[dict[str, float]]:
-    """Every training episode of a run (all segments), with its cumulative decision count ``t``."""
+    """Every training episode of a run (all segments), with its cumulative decision count ``t``.
+
+    A segment is the run from one start (``monitor_<start>.monitor.csv``); a resumed run starts a
+    new one at its checkpoint, so the episodes an interrupted segment ran past the next segment's
+    start were discarded with the lost progress and are left out here."""
     rows: list[dict[str, float]] = []
     files = sorted(Path(run_dir, "logs").glob("monitor_*.monitor.csv"),
                    key=lambda p: int(p.name.split("_")[1].split(".")[0]))
-    for file in files:
-        t = float(file.name.split("_")[1].split(".")[0])
+    starts = [float(f.name.split("_")[1].split(".")[0]) for f in files]
+    for file, start, end in zip(files, starts, starts[1:] + [math.inf], strict=True):
+        t = start
         with file.open() as fh:
             fh.readline()  # the JSON header line
             for row in csv.DictReader(fh):
                 t += float(row["l"])
+                if t > end:
+                    break
                 rows.append({"t": t, "return": float(row["r"]), "length": float(row["l"]),
                              "failed": row.get("failed") == "True",
                              "n_optimisations": _number(row.get("n_optimisations"))})

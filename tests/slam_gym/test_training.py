@@ -242,3 +242,21 @@ def test_chosen_mode_is_the_higher_mean_return():
     assert chosen_mode({"mean_return": -10.0, "sampled_mean_return": -5.0}) == "sampled"
     assert chosen_mode({"mean_return": -5.0, "sampled_mean_return": -5.0}) == "deterministic"
     assert chosen_mode({"mean_return": -5.0}) == "deterministic"
+
+
+def test_training_curve_leaves_out_episodes_an_interrupted_segment_ran_past_its_resumption(
+        tmp_path):
+    """Segment 0 ran to 70 decisions, then died; the run resumed from its checkpoint at 50: the
+    episodes of segment 0 past 50 were discarded with the lost progress."""
+    from slam_gym.training.report import read_monitor
+
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    header = '#{"t_start": 0}\nr,l,t,failed,n_fusions,n_optimisations\n'
+    (logs / "monitor_0.monitor.csv").write_text(
+        header + "-1,20,1,False,2,0\n-2,30,2,True,3,1\n-3,20,3,False,2,0\n")
+    (logs / "monitor_50.monitor.csv").write_text(header + "-4,25,1,False,2,0\n")
+    rows = read_monitor(tmp_path)
+    assert [r["t"] for r in rows] == [20, 50, 75]
+    assert [r["return"] for r in rows] == [-1, -2, -4]
+    assert [r["failed"] for r in rows] == [False, True, False]
