@@ -295,6 +295,17 @@ def test_the_shipped_model_loads_acts_and_says_how_it_was_made():
     assert policy.observation_transform == "log1p"  # from learned-default.json
     config = json.loads(learned.DEFAULT_MODEL_PATH.with_suffix(".json").read_text())
     assert config["command"].startswith("slam-gym train")
+    # trained at the paper's configuration, with its normaliser, seed and evaluation mode recorded
+    assert config["env_options"]["n_particles"] == 500
+    assert config["seed"] in config["chosen_among_seeds"]
+    assert len(config["observation_normalisation"]["mean"]) == len(policy.feature_names)
+    assert policy.deterministic is config["deterministic"]
+    # its hyper-parameters ship as the YAML entry it was trained with, readable by `slam-gym train`
+    from slam_gym.training.hyperparams import load_hyperparams
+
+    shipped_yaml = learned.DEFAULT_MODEL_PATH.with_suffix(".yml")
+    assert load_hyperparams(config["algo"], config["env_id"], shipped_yaml) == config["hyperparams"]
+    assert learned.DEFAULT_MODEL_PATH.with_name("learned-default_training_curves.png").is_file()
     features = dict.fromkeys(INTERFACE_FEATURES, 0.0)
     action = policy.act(np.zeros(len(INTERFACE_FEATURES), dtype=np.float32), {"features": features})
     assert action.shape == (2,) and action.dtype == np.int64
@@ -303,6 +314,31 @@ def test_the_shipped_model_loads_acts_and_says_how_it_was_made():
     assert len(policy.feature_names) == policy.observation_shape[0]
     others = [n for n in INTERFACE_FEATURES if n not in policy.feature_names]
     shifted = dict(features, **dict.fromkeys(others, 5.0))
+    policy.reset()  # a sampling policy replays its draws after a reset
     assert policy.act(None, {"features": shifted}).tolist() == action.tolist()
     with pytest.raises(ValueError, match="info"):
         policy.act(None, {"features": {}})
+
+
+def test_model_digest_identifies_the_file_and_a_stale_digest_is_rejected(ppo_zip, a2c_zip):
+    digest = learned.model_digest(ppo_zip)
+    assert len(digest) == 16 and digest == learned.model_digest(str(ppo_zip))
+    assert learned.model_digest(a2c_zip) != digest
+    learned.check_model_digest(ppo_zip, digest)
+    learned.check_model_digest(ppo_zip, None)  # no digest given: nothing to check
+    with pytest.raises(ValueError, match="model_sha256"):
+        learned.check_model_digest(a2c_zip, digest)
+
+
+def test_benchmark_jobs_of_the_learned_policy_name_its_model(ppo_zip, a2c_zip):
+    """A resumed benchmark must not reuse one model's rows for another saved under the same
+    name: the model's digest is part of the job (and so of its key)."""
+    from slam_gym.commands.benchmark import learned_options
+    from slam_gym.evaluation.core import run_policy
+
+    first, second = learned_options(str(ppo_zip)), learned_options(str(a2c_zip))
+    assert first["model_sha256"] != second["model_sha256"]
+    assert learned_options(None)["model_sha256"] == learned.model_digest(None)
+    with pytest.raises(ValueError, match="model_sha256"):
+        run_policy("learned", "brooks-bailey", 0, 0, model_path=str(a2c_zip),
+                   model_sha256=first["model_sha256"], n_steps=20)

@@ -1,0 +1,93 @@
+"""When an interface policy fuses and optimises, over several worlds (#15: "whether the learned
+policy uses the optimise action, and when").
+
+Usage: python scripts/learned_decisions.py [POLICY] [SEED_START] [N_SEEDS] [LEVELS]
+e.g.   python scripts/learned_decisions.py learned 100 5 0,1,2,3
+
+Plays POLICY (default ``learned``: the shipped model) on ``SlamGym/HybridSLAM-v0`` worlds
+SEED_START..SEED_START+N_SEEDS-1 at each clutter level (the benchmark's worlds and seeds, so the
+episodes are the benchmark's) and prints per episode, then pooled:
+
+* fusions and optimisations per episode;
+* *redundant* optimisations: those with no fusion since the previous optimisation (the stored
+  sub-maps and associations are unchanged, so the optimum is the one already applied:
+  ``tests/filters/test_submap_optimise.py::test_optimising_twice_changes_nothing``, and in the
+  env an extra optimisation after each one changes no observation but ``time_since_optimise_s``,
+  docs/RESULTS.md);
+* optimisations that follow a fusion in the same decision, and the share of optimisations in the
+  first half of the path, before the true loop closure and after it.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+
+import numpy as np
+
+import policies
+from slam_gym.evaluation.timeline import decision_timeline
+
+logger = logging.getLogger(__name__)
+
+
+def decision_counts(timeline) -> dict[str, float]:
+    fused = np.asarray(timeline["fused"], bool)
+    optimised = np.asarray(timeline["optimised"], bool)
+    t = np.asarray(timeline["t_s"], float)
+    redundant, fused_since = 0, False
+    for f, o in zip(fused, optimised, strict=True):
+        fused_since |= bool(f)
+        if o:
+            redundant += not fused_since
+            fused_since = False
+    closure = timeline["true_loop_closure_s"]
+    n_opt = int(optimised.sum())
+    return {
+        "fusions": int(fused.sum()),
+        "optimisations": n_opt,
+        "redundant": redundant,
+        "with_fusion": int((optimised & fused).sum()),
+        "after_closure": int((optimised & (t >= closure)).sum()) if closure is not None else 0,
+        "end_s": float(timeline["end_s"]),
+        "failed": bool(timeline["failed"]),
+        "closure_s": closure,
+    }
+
+
+def main(argv: list[str]) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    name = argv[0] if argv else "learned"
+    seed_start = int(argv[1]) if len(argv) > 1 else 100
+    n_seeds = int(argv[2]) if len(argv) > 2 else 5
+    levels = [int(x) for x in (argv[3] if len(argv) > 3 else "0,1,2,3").split(",")]
+    rows = []
+    for level in levels:
+        for seed in range(seed_start, seed_start + n_seeds):
+            policy = policies.make(name)
+            timeline, _, _ = decision_timeline(policy, "brooks-bailey", level, seed)
+            row = decision_counts(timeline) | {"level": level, "seed": seed}
+            rows.append(row)
+            closure = "-" if row["closure_s"] is None else f"{row['closure_s']:.0f} s"
+            logger.info(
+                "level %d seed %d: %s at %.0f s, %d fusions, %d optimisations (%d redundant, "
+                "%d with a fusion, %d after the loop closure at %s)", level, seed,
+                "failed" if row["failed"] else "ended", row["end_s"], row["fusions"],
+                row["optimisations"], row["redundant"], row["with_fusion"],
+                row["after_closure"], closure)
+    n_opt = sum(r["optimisations"] for r in rows)
+    logger.info(
+        "%s, %d episodes: %.1f fusions and %.1f optimisations per episode; of the optimisations "
+        "%.0f %% redundant (no fusion since the previous one), %.0f %% in the decision of a "
+        "fusion; %d of %d episodes reached the loop closure, %.0f %% of all optimisations "
+        "after it", name, len(rows), np.mean([r["fusions"] for r in rows]),
+        np.mean([r["optimisations"] for r in rows]),
+        100 * sum(r["redundant"] for r in rows) / max(n_opt, 1),
+        100 * sum(r["with_fusion"] for r in rows) / max(n_opt, 1),
+        sum(r["closure_s"] is not None and r["end_s"] >= r["closure_s"] for r in rows), len(rows),
+        100 * sum(r["after_closure"] for r in rows) / max(n_opt, 1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,83 @@
+"""Ship the best of several ``slam-gym train`` outputs as the default learned policy (#15).
+
+Usage: python scripts/ship_model.py TRAIN_OUT [TRAIN_OUT ...]
+e.g.   python scripts/ship_model.py out/train15/ppo out/train15/a2c
+
+Each TRAIN_OUT is the ``--out`` of one ``slam-gym train`` (one algorithm, several seeds): its
+``summary.json`` names the seed chosen there and ``model.zip``/``model.json`` are that seed's
+model. Among them the one with the highest mean return of its final evaluation on the
+*training-time* evaluation worlds is copied to ``policies/models/learned-default.{zip,json}``
+(success rate breaks ties), the same rule ``slam-gym train`` applies across seeds; nothing here
+reads the reported (benchmark) worlds. The JSON gains ``chosen_among_algorithms``: every
+candidate's algorithm, seed and final evaluation. Beside the model go its hyper-parameters as
+the YAML entry it was trained with (``learned-default.yml``, rl-zoo3 layout: ``slam-gym train
+--hyperparams`` reads it back) and its algorithm's training curves over every seed
+(``learned-default_training_curves.png``); every candidate's curves are also copied to
+``docs/figures/training_curves_<algo>.png``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import sys
+from pathlib import Path
+
+import yaml
+
+logger = logging.getLogger(__name__)
+ROOT = Path(__file__).resolve().parent.parent
+TARGET = ROOT / "policies" / "models" / "learned-default.zip"
+FIGURES = ROOT / "docs" / "figures"
+
+
+def candidates(outs: list[Path]) -> list[dict]:
+    found = []
+    for out in outs:
+        summary_path, model = out / "summary.json", out / "model.zip"
+        if not (summary_path.is_file() and model.is_file()):
+            raise ValueError(f"TRAIN_OUT={str(out)!r} is invalid: it must hold the summary.json "
+                             "and model.zip that `slam-gym train` writes")
+        summary = json.loads(summary_path.read_text())
+        seed = summary["chosen_seed"]
+        final = summary["final_evaluation"][str(seed)]
+        found.append({"out": str(out), "algo": summary["algo"], "seed": seed,
+                      "mean_return": final["mean_return"], "success_rate": final["success_rate"],
+                      "mode": final["mode"], "n_seeds": len(summary["seeds"])})
+    return found
+
+
+def main(argv: list[str]) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    if not argv:
+        print(__doc__)
+        return 2
+    found = candidates([Path(a) for a in argv])
+    best = max(found, key=lambda c: (c["mean_return"], c["success_rate"]))
+    source = Path(best["out"]) / "model.zip"
+    shutil.copyfile(source, TARGET)
+    config = json.loads(source.with_suffix(".json").read_text())
+    config["chosen_among_algorithms"] = found
+    config["shipped_by"] = "python scripts/ship_model.py " + " ".join(argv)
+    TARGET.with_suffix(".json").write_text(json.dumps(config, indent=2) + "\n")
+    header = (f"# The hyper-parameters of policies/models/learned-default.zip ({best['algo']}, "
+              f"seed {best['seed']}),\n# as trained by: {config['command']}\n")
+    TARGET.with_suffix(".yml").write_text(
+        header + yaml.safe_dump({config["env_id"]: config["hyperparams"]}, sort_keys=False))
+    for c in found:
+        curves = Path(c["out"]) / "training_curves.png"
+        if curves.is_file():
+            shutil.copyfile(curves, FIGURES / f"training_curves_{c['algo']}.png")
+            if c is best:
+                shutil.copyfile(curves, TARGET.parent / "learned-default_training_curves.png")
+    for c in found:
+        logger.info("%-4s seed %d (%d seeds, %s): mean return %.0f, success %.2f%s", c["algo"],
+                    c["seed"], c["n_seeds"], c["mode"], c["mean_return"], c["success_rate"],
+                    "   <- shipped" if c is best else "")
+    logger.info("wrote %s (+ .json)", TARGET)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
