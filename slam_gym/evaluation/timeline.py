@@ -2,11 +2,11 @@
 
 :func:`decision_timeline` plays one episode of a policy object and records, per decision, the
 time, whether a fusion and an optimisation happened (the counters' increments, so an action the
-system could not carry out is not drawn) and the back-end's loop-closure flag (CM Definition 1,
-the ``loop_closure_flag`` feature). The *true* loop closure is the first scan in the second half
-of the path that sees a landmark seen in its first tenth (the re-observation that closes BB's
-loop, as ``slam-gym simulate`` reports it). :func:`plot_decision_timelines` draws one row per
-policy.
+system could not carry out is not drawn), the back-end's loop-closure flag (CM Definition 1,
+the ``loop_closure_flag`` feature) and the reward's modelled compute seconds (``compute_s``).
+The *true* loop closure is the first scan in the second half of the path that sees a landmark
+seen in its first tenth (the re-observation that closes BB's loop, as ``slam-gym simulate``
+reports it). :func:`plot_decision_timelines` draws one row per policy.
 """
 
 from __future__ import annotations
@@ -38,7 +38,8 @@ def true_loop_closure_s(stream, start_fraction: float = 0.1) -> float | None:
 def decision_timeline(policy, scenario: str, clutter_level, seed: int, **env_options):
     """One episode of ``policy`` with its decisions recorded (see the module docstring);
     ``(timeline, episode, env)``."""
-    records: dict[str, list] = {"t_s": [], "fused": [], "optimised": [], "closure_flag": []}
+    records: dict[str, list] = {"t_s": [], "fused": [], "optimised": [], "closure_flag": [],
+                                "compute_s": []}
     counts = {"n_fusions": 0, "n_optimisations": 0}
     rate_hz = get_scenario(scenario).filter_rate_hz
 
@@ -47,6 +48,7 @@ def decision_timeline(policy, scenario: str, clutter_level, seed: int, **env_opt
         records["fused"].append(info["n_fusions"] > counts["n_fusions"])
         records["optimised"].append(info["n_optimisations"] > counts["n_optimisations"])
         records["closure_flag"].append(bool(info["features"]["loop_closure_flag"]))
+        records["compute_s"].append(float(info["reward_components"]["compute_s"]))
         counts.update(n_fusions=info["n_fusions"], n_optimisations=info["n_optimisations"])
 
     episode, env = run_policy_object(policy, scenario, clutter_level, seed, on_step=on_step,

@@ -592,6 +592,13 @@ def test_decision_timeline_records_what_the_system_did():
     # the rule fuses every 10 s and optimises right after each fusion
     np.testing.assert_array_equal(tl["fused"], tl["optimised"])
     assert np.allclose(np.diff(t[tl["fused"]]), 10.0)
+    # the reward's compute term: positive at every decision, more where the system fused and
+    # optimised than at the decision before it
+    compute = tl["compute_s"]
+    assert len(compute) == len(t) and np.all(compute > 0)
+    acted = np.nonzero(tl["fused"])[0]
+    acted = acted[acted > 0]
+    assert np.all(compute[acted] > compute[acted - 1])
     # BB's whole path returns over its start once, in its second half
     from slam_gym.scenarios import make_stream
 
