@@ -473,7 +473,8 @@ def run_real_job(job) -> dict:
 
     ``job.scenario`` is ``"mrclam:robotN"`` or ``"victoria-park"``; ``job.options`` carry the
     data directory (``data``), ``max_steps``, ``n_particles``, and for MRCLAM
-    ``known_association``, ``noise_scale`` and (policies) ``decision_interval``, ``model_path``.
+    ``known_association``, ``noise_scale`` and (policies) ``decision_interval``, ``model_path``,
+    ``model_sha256``.
     """
     if job.scenario.startswith(MRCLAM_PREFIX):
         robot = int(job.scenario[len(MRCLAM_PREFIX):])
@@ -559,9 +560,9 @@ def run_mrclam_system(
     name: str, robot: int, seed: int, *, data, known_association=False,
     n_particles=DEFAULT_PARTICLES, max_steps=None, noise_scale=1.0,
     fusion_interval_s=FUSION_INTERVAL_S, decision_interval=DECISION_INTERVAL, model_path=None,
-    noise_window_s=None, sensor_bias_correction=None, motion_compensation=None,
-    corrections=True, calibration_s=DEFAULT_CALIBRATION_S, landmark_density_per_m2=None,
-    gate_chi2=None, optimise="never", robust_kernel=None,
+    model_sha256=None, noise_window_s=None, sensor_bias_correction=None,
+    motion_compensation=None, corrections=True, calibration_s=DEFAULT_CALIBRATION_S,
+    landmark_density_per_m2=None, gate_chi2=None, optimise="never", robust_kernel=None,
 ) -> dict:
     """One system over one MRCLAM robot on BB's fixed schedule; the result row.
 
