@@ -16,7 +16,9 @@ fusion had touched for 60 s),
 Policy jobs take ``n_particles`` (500), ``decision_interval`` (10), ``front_end``, ``back_end``,
 ``model_path``, ``model_sha256`` (the model file's :func:`policies.learned.model_digest`: a run
 checks it, so a job key names the model it was run with) and ``deterministic`` (for ``learned``);
-the env ends an episode at BB's failure.
+the env ends an episode at BB's failure. ``w_compute`` and ``compute_clip_s`` (None: the env's
+defaults) change the reward's price of compute, so a policy trained under another price is
+evaluated (its return) under the reward it was trained for.
 """
 
 from __future__ import annotations
@@ -48,6 +50,8 @@ POLICY_OPTIONS = {
     "model_sha256": None,
     "deterministic": None,
     "n_steps": None,
+    "w_compute": None,
+    "compute_clip_s": None,
 }
 OPTIMISE_MODES = ("never", "at-end", "every-fusion", "after-loop-closure")
 LOOP_CLOSURE_UNSEEN_S = 60.0
@@ -178,6 +182,8 @@ def run_policy_object(
     back_end="ekf",
     n_steps=None,
     on_step=None,
+    w_compute=None,
+    compute_clip_s=None,
 ):
     """Run a policy object (``act(obs, info)``, ``reset()``) for one episode; (episode, env).
 
@@ -187,6 +193,8 @@ def run_policy_object(
     """
     from slam_gym.envs.hybrid_slam import HybridSLAMEnv
 
+    reward = {k: v for k, v in (("w_compute", w_compute), ("compute_clip_s", compute_clip_s))
+              if v is not None}
     env = HybridSLAMEnv(
         scenario=scenario,
         clutter_level=clutter_level,
@@ -195,6 +203,7 @@ def run_policy_object(
         front_end=front_end,
         back_end=back_end,
         n_steps=n_steps,
+        **reward,
     )
     policy.reset()
     obs, info = env.reset(seed=int(seed), options={"world_seed": int(seed)})

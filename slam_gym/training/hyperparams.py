@@ -35,7 +35,7 @@ RUN_KEYS: tuple[str, ...] = (
     "initial_fuse_probability", "initial_optimise_probability",
 )
 ENV_KWARGS: tuple[str, ...] = ("n_particles", "decision_interval", "front_end", "back_end",
-                               "n_steps")
+                               "n_steps", "w_compute", "compute_clip_s")
 """The env options a training entry may set: the ones evaluation runs with the same values."""
 
 _ON_POLICY = ("learning_rate", "n_steps", "gamma", "gae_lambda", "ent_coef", "vf_coef",

@@ -606,3 +606,20 @@ def test_decision_timeline_records_what_the_system_did():
     closure = true_loop_closure_s(stream)
     end_s = max(step.t_s for step in stream)
     assert end_s / 2 < closure < end_s
+
+
+def test_policy_runs_take_the_rewards_price_of_compute():
+    """A policy trained under another price of compute is evaluated under it: the options reach
+    the env's reward and change nothing else of the run."""
+    from slam_gym.evaluation.core import run_job
+    from slam_gym.evaluation.jobs import Job
+
+    base = {"n_particles": 20, "n_steps": 120}
+    default = run_job(Job("policy", "fixed-10s-optimise", "brooks-bailey", 1, 3, base))
+    pricier = run_job(Job("policy", "fixed-10s-optimise", "brooks-bailey", 1, 3,
+                          base | {"w_compute": 50.0, "compute_clip_s": 0.5}))
+    assert pricier["return"] < default["return"]
+    for key in ("success", "n_fusions", "n_optimisations", "map_error_m", "anees"):
+        assert pricier[key] == default[key]
+    with pytest.raises(ValueError, match="w_compute"):
+        run_job(Job("policy", "fixed-10s", "brooks-bailey", 1, 3, base | {"w_compute": -1.0}))

@@ -260,3 +260,12 @@ def test_training_curve_leaves_out_episodes_an_interrupted_segment_ran_past_its_
     assert [r["t"] for r in rows] == [20, 50, 75]
     assert [r["return"] for r in rows] == [-1, -2, -4]
     assert [r["failed"] for r in rows] == [False, True, False]
+
+
+def test_training_entries_may_set_the_rewards_price_of_compute():
+    params = validate_hyperparams("ppo", {"n_timesteps": 8, "n_envs": 1, "env_kwargs": {
+        "n_particles": 5, "w_compute": 20.0, "compute_clip_s": 0.2}})
+    assert params["env_kwargs"]["w_compute"] == 20.0
+    with pytest.raises(ValueError, match="w_nees"):
+        validate_hyperparams("ppo", {"n_timesteps": 8, "n_envs": 1,
+                                     "env_kwargs": {"w_nees": 2.0}})
