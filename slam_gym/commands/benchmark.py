@@ -69,6 +69,7 @@ def add_parser(subparsers) -> None:
 def run(args) -> int:
     import policies
     from slam_gym.evaluation import Job, plot_pareto, plot_success_rates, write_summary
+    from slam_gym.evaluation.core import learned_options
 
     if args.quick:
         args.policies, args.clutter_levels = QUICK["policies"], QUICK["clutter_levels"]
@@ -129,15 +130,6 @@ def run(args) -> int:
     return 0
 
 
-def learned_options(model: str | None) -> dict:
-    """The learned policy's job options: its model file and that file's digest, so that a
-    resumed benchmark never reuses the rows of another model (e.g. the shipped default before
-    it was retrained)."""
-    from policies.learned import model_digest
-
-    return ({"model_path": model} if model else {}) | {"model_sha256": model_digest(model)}
-
-
 def apply_env_id(args) -> None:
     """Take the front-end and back-end of a registered simulated env id (``--env``)."""
     import slam_gym
@@ -153,15 +145,14 @@ def apply_env_id(args) -> None:
 def episode_figures(names, args, level, out) -> dict:
     """Uncertainty and NEES traces of every policy on one seed, that seed's map, and when each
     policy fused and optimised against the loop closure."""
-    import policies
     from slam_gym.evaluation import plot_nees, plot_uncertainty_traces
+    from slam_gym.evaluation.core import make_policy
     from slam_gym.evaluation.timeline import decision_timeline, plot_decision_timelines
 
     traces, nees, runs, timelines = {}, {}, [], {}
     for name in names:
-        kwargs = {"path": args.model} if (name == "learned" and args.model) else {}
         timeline, episode, env = decision_timeline(
-            policies.make(name, **kwargs), args.scenario, level, args.seed_start,
+            make_policy(name, model_path=args.model), args.scenario, level, args.seed_start,
             n_particles=args.particles, decision_interval=args.decision_interval,
             front_end=args.front_end, back_end=args.back_end,
         )

@@ -349,6 +349,11 @@ def run_mrclam(args) -> int:
         "gate_chi2": args.gate_chi2,
     }
     base |= {k: v for k, v in given.items() if v is not None}
+    if "learned" in usable:
+        from slam_gym.evaluation.core import learned_options
+
+        learned = learned_options(str(Path(args.model_path).expanduser().resolve())
+                                  if args.model_path else None)
     seeds = range(args.seed_start, args.seed_start + args.trials)
     jobs = []
     for seed in seeds:
@@ -371,11 +376,7 @@ def run_mrclam(args) -> int:
                 opts = base | {"n_particles": args.particles,
                                "decision_interval": DECISION_INTERVAL}
                 if p == "learned":
-                    from slam_gym.commands.benchmark import learned_options
-
-                    path = (str(Path(args.model_path).expanduser().resolve())
-                            if args.model_path else None)
-                    opts |= learned_options(path)
+                    opts |= learned
                 jobs.append(Job("policy", p, scenario, None, seed, opts))
     require(bool(jobs), "--systems/--policies", "", "at least one system or usable policy")
     out = out_dir(args)
@@ -612,8 +613,8 @@ def run_mrclam_policy(
     """HYBRID driven by interface policy ``name`` in :class:`MRCLAMEnv` over one robot (the
     calibration and FastSLAM options as in :func:`run_mrclam_system`; the policy decides when
     to optimise, so ``optimise`` must stay ``"never"``)."""
-    import policies
     from slam_gym.envs.mrclam import MRCLAMEnv
+    from slam_gym.evaluation.core import make_policy
 
     require(not known_association, "known_association", known_association,
             "False for policies (the env has no known-association mode)")
@@ -621,12 +622,7 @@ def run_mrclam_policy(
             "'never' for policies (the policy chooses when to optimise)")
     require(robust_kernel is None, "robust_kernel", robust_kernel,
             "None for policies (the env's optimiser has no kernel option)")
-    kwargs = {"path": model_path} if (name == "learned" and model_path) else {}
-    if name == "learned":
-        from policies.learned import check_model_digest
-
-        check_model_digest(model_path, model_sha256)
-    policy = policies.make(name, **kwargs)
+    policy = make_policy(name, model_path=model_path, model_sha256=model_sha256)
     env = MRCLAMEnv(
         data_dir=data, robot=robot, n_particles=n_particles,
         decision_interval=decision_interval, n_steps=max_steps,

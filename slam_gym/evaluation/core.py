@@ -154,20 +154,38 @@ def run_policy(
 ):
     """Run the named interface policy in the env for one episode; (episode, env).
 
-    ``model_path``, ``model_sha256`` and ``deterministic`` are options of ``learned`` (None: its
-    defaults; a ``model_sha256`` that is not the model file's digest is a ``ValueError``)."""
+    ``model_path``, ``model_sha256`` and ``deterministic`` are options of ``learned``
+    (:func:`make_policy`)."""
+    policy = make_policy(policy_name, model_path=model_path, model_sha256=model_sha256,
+                         deterministic=deterministic)
+    return run_policy_object(policy, scenario, clutter_level, seed, **env_options)
+
+
+def learned_options(model_path: str | None = None) -> dict:
+    """The job options of policy ``learned``: its model file (None: the packaged default, not
+    named) and that file's digest, so that a resumed run never reuses the rows of another model
+    saved at the same path (e.g. the shipped default before it was retrained)."""
+    from policies.learned import model_digest
+
+    return ({"model_path": model_path} if model_path else {}) | {
+        "model_sha256": model_digest(model_path)}
+
+
+def make_policy(name: str, *, model_path=None, model_sha256=None, deterministic=None):
+    """The policy object a job names. For ``learned``: the model at ``model_path`` (None: the
+    packaged default), checked against the job's ``model_sha256`` (None: not checked; another
+    digest is a ``ValueError``), acting by ``deterministic`` (None: the model's default). The
+    other policies take none of these."""
     import policies
 
-    kwargs = {}
-    if policy_name == "learned":
-        from policies.learned import check_model_digest
+    if name != "learned":
+        return policies.make(name)
+    from policies.learned import check_model_digest
 
-        check_model_digest(model_path, model_sha256)
-        kwargs = {k: v for k, v in (("path", model_path), ("deterministic", deterministic))
-                  if v is not None}
-    return run_policy_object(
-        policies.make(policy_name, **kwargs), scenario, clutter_level, seed, **env_options
-    )
+    check_model_digest(model_path, model_sha256)
+    kwargs = {k: v for k, v in (("path", model_path), ("deterministic", deterministic))
+              if v is not None}
+    return policies.make("learned", **kwargs)
 
 
 def run_policy_object(
@@ -239,20 +257,3 @@ def run_job(job) -> dict:
     row["return"] = env.episode_return
     row.update(summarise_records(env.compute_records, env.compute_model))
     return row
-
-
-def evaluate_policy(policy, scenario, clutter_levels, seeds, **env_options) -> list[dict]:
-    """Rows (as in results.jsonl) of a policy object over levels x seeds, in this process.
-
-    The training callback uses this to log success rate, ANEES and map error with the same code
-    as the benchmark.
-    """
-    rows = []
-    for level in clutter_levels:
-        for seed in seeds:
-            episode, env = run_policy_object(policy, scenario, level, seed, **env_options)
-            row = episode_result(episode, env.stream)
-            row.update(policy="learning", scenario=scenario, clutter_level=level, seed=seed,
-                       status="ok")
-            rows.append(row)
-    return rows

@@ -333,8 +333,7 @@ def test_model_digest_identifies_the_file_and_a_stale_digest_is_rejected(ppo_zip
 def test_benchmark_jobs_of_the_learned_policy_name_its_model(ppo_zip, a2c_zip):
     """A resumed benchmark must not reuse one model's rows for another saved under the same
     name: the model's digest is part of the job (and so of its key)."""
-    from slam_gym.commands.benchmark import learned_options
-    from slam_gym.evaluation.core import run_policy
+    from slam_gym.evaluation.core import learned_options, run_policy
 
     first, second = learned_options(str(ppo_zip)), learned_options(str(a2c_zip))
     assert first["model_sha256"] != second["model_sha256"]
