@@ -91,7 +91,9 @@ def _kind_name(row: Mapping[str, Any]) -> tuple[str, str]:
     return kinds[0], row[kinds[0]]
 
 
-def _numbers(rows: Sequence[Mapping[str, Any]], key: str) -> list[float]:
+def metric_values(rows: Sequence[Mapping[str, Any]], key: str) -> list[float]:
+    """The finite values of metric ``key`` over ``rows`` (booleans as 0/1; the
+    :data:`DERIVED_KEYS` summed from their parts), rows without it left out."""
     out = []
     for row in rows:
         if key in DERIVED_KEYS and key not in row:
@@ -175,19 +177,19 @@ def summarise(
             "success_ci95": ci,
         }
         for key in _MEAN_KEYS:
-            group[key] = _mean(_numbers(ok, key))
+            group[key] = _mean(metric_values(ok, key))
         for key in _MEAN_MEDIAN_KEYS:
-            values = _numbers(ok, key)
+            values = metric_values(ok, key)
             group[key] = {"mean": _mean(values), "median": _median(values)}
         intervals = {}
         for key in CI_KEYS:
-            values = _numbers(ok, key)
+            values = metric_values(ok, key)
             if values:
                 group.setdefault(key, _mean(values))
                 ci = mean_interval(values)
                 intervals[key] = None if ci is None else list(ci)
         succeeded = [r for r in judged if r["success"]]
-        values = _numbers(succeeded, "map_error_m")
+        values = metric_values(succeeded, "map_error_m")
         if values and intervals:
             # the map error of the runs that did not fail: a rule that fails early keeps a small
             # map with small errors, which the mean over all runs would reward
@@ -197,9 +199,9 @@ def summarise(
         if intervals:
             group["ci95"] = intervals
         if any(r.get("return") is not None for r in ok):
-            group["return_failed"] = _mean(_numbers([r for r in judged if not r["success"]],
+            group["return_failed"] = _mean(metric_values([r for r in judged if not r["success"]],
                                                     "return"))
-            group["return_succeeded"] = _mean(_numbers([r for r in judged if r["success"]],
+            group["return_succeeded"] = _mean(metric_values([r for r in judged if r["success"]],
                                                        "return"))
         if paper is not None:
             group["paper_success_rate"] = paper_rate(paper, name, level)

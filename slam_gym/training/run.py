@@ -230,11 +230,12 @@ def evaluate_snapshot(model_path: Path, setup: TrainingSetup, out: Path,
 
 
 def _summarise_rows(rows: list[dict], levels) -> dict[str, float]:
+    from slam_gym.evaluation.summary import metric_values
+
     survived = [r for r in rows if r["success"]]
 
     def mean(key, subset=rows):
-        values = [r[key] for r in subset if r.get(key) is not None]
-        values = [v for v in values if np.isfinite(v)]
+        values = metric_values(subset, key)
         return float(np.mean(values)) if values else math.nan
 
     record = {
@@ -245,8 +246,7 @@ def _summarise_rows(rows: list[dict], levels) -> dict[str, float]:
         "map_completeness": mean("map_completeness"),
         "n_fusions": mean("n_fusions"),
         "n_optimisations": mean("n_optimisations"),
-        "interface_cpu_s": float(np.mean([(r.get("fusion_cpu_s") or 0.0)
-                                          + (r.get("optimise_cpu_s") or 0.0) for r in rows])),
+        "interface_cpu_s": mean("interface_cpu_s"),
         "n_episodes": len(rows),
     }
     for level in levels:
