@@ -356,11 +356,13 @@ def _common_set(w, cids, active, existence, shares, trace, max_id):
 
 
 # --------------------------------------------------------------------------- moments (BB (6), (7))
-def pose_moments(poses, weights, pose_covs=None):
+def pose_moments(poses, weights, pose_covs=None, lineages=None):
     """Weighted mean (circular mean heading) and covariance of particle poses (P, 3).
 
     ``pose_covs`` (P, 3, 3), if given, is each particle's own pose covariance (zero in FastSLAM,
     BB 2.1; the FastSLAM 2.0 proposal between prediction and update), added as in BB (7).
+    ``lineages`` (P,), if given, adds :func:`lineage_covariance` (the pose block of
+    :func:`moment_match` with the same lineages).
     """
     w = _normalised(weights)
     poses = np.asarray(poses, dtype=float)
@@ -373,6 +375,8 @@ def pose_moments(poses, weights, pose_covs=None):
     cov = (d * w[:, None]).T @ d
     if pose_covs is not None:
         cov = cov + np.einsum("p,pij->ij", w, np.asarray(pose_covs, dtype=float))
+    if lineages is not None:
+        cov = cov + lineage_covariance(d * w[:, None], w, lineages)
     return mean, 0.5 * (cov + cov.T)
 
 
@@ -430,6 +434,45 @@ def feature_means(weights, means, slots):
     return np.einsum("pn,pnk->nk", _feature_weights(w, has), mu)
 
 
+def lineage_covariance(weighted_deviations, weights, lineages):
+    """Covariance to add to BB (7) for a particle cloud whose particles share ancestors.
+
+    ``weighted_deviations`` (P, d): row ``p`` is ``w_p (x_p - mean)`` (the deviations of BB (7)
+    times the particle's weight); ``weights`` (P,) normalised; ``lineages`` (P,) each particle's
+    ancestor at a reference time (the local map's restart). Grouping the particles by lineage
+    ``e`` with weight ``W_e`` and mean ``m_e``, and ``s = sum_e W_e^2``:
+
+    * the Monte Carlo variance of the weighted mean, ``V = sum_e W_e^2 (m_e - m)(m_e - m)^T``
+      (Chan & Lai 2013, Ann. Statist. 41(6), the ancestral-group estimator; Lee & Whiteley 2018,
+      Biometrika 105(3), show it consistent), and
+    * the bias of the between-lineage spread ``B = sum_e W_e (m_e - m)(m_e - m)^T`` as an
+      estimate of the posterior's from few weighted lineages (reliability weights: ``B / (1 - s)``
+      is unbiased for independent lineages),
+
+    give the predictive covariance of (truth - mean) ``within + (B + V) / (1 - s)``, i.e. BB (7)
+    plus ``(s B + V) / (1 - s)``, which is returned (d, d; symmetric PSD). With independent,
+    equally weighted particles it is ``2 / (P - 1)`` times BB (7)'s spread, negligible at
+    P = 500; a cloud with a single lineage (``s = 1``) carries no information about its own
+    Monte Carlo error, and zero is returned.
+    """
+    weighted_deviations = np.asarray(weighted_deviations, dtype=float)
+    weights = np.asarray(weights, dtype=float)
+    lineages = np.asarray(lineages)
+    P, d = weighted_deviations.shape
+    require(weights.shape == (P,), "weights", weights.shape, f"({P},)")
+    require(lineages.shape == (P,), "lineages", lineages.shape, f"({P},)")
+    _, group = np.unique(lineages, return_inverse=True)
+    sums = np.zeros((group.max() + 1 if P else 0, d))
+    np.add.at(sums, group, weighted_deviations)  # W_e (m_e - m) per lineage
+    mass = np.bincount(group, weights=weights, minlength=len(sums))
+    s = float(np.sum(mass * mass))
+    if s >= 1.0 - 1e-9:
+        return np.zeros((d, d))
+    between = (sums / np.where(mass > 0.0, mass, 1.0)[:, None]).T @ sums
+    out = (s * between + sums.T @ sums) / (1.0 - s)
+    return 0.5 * (out + out.T)
+
+
 def nearest_spd(P, eig_floor: float = EIGENVALUE_FLOOR):
     """The symmetric matrix nearest to ``P`` (Frobenius) whose eigenvalues are ``>= eig_floor``.
 
@@ -455,6 +498,7 @@ def moment_match(
     *,
     min_existence: float = CONFIRMED_PROBABILITY,
     pose_covs=None,
+    lineages=None,
     eig_floor: float = EIGENVALUE_FLOOR,
 ) -> GaussianMap:
     """BB 3.2: one Gaussian over ``[pose, features with existence > min_existence]``.
@@ -462,7 +506,8 @@ def moment_match(
     Each particle's mean is BB (9) ``[v^p, mu_delta(1,p)^p, ...]`` with the block-diagonal
     covariance of BB 3.2 (zero pose block unless ``pose_covs`` is given); the moments are BB (6)
     and (7) with the missing-feature rule and the SPD projection of the module docstring. All
-    sums over particles are vectorised (einsum / matrix products).
+    sums over particles are vectorised (einsum / matrix products). ``lineages`` (P,), if given,
+    adds :func:`lineage_covariance` (each feature's entries weighted as in its moments).
     """
     check_range("min_existence", min_existence, 0.0, 1.0)
     check_range("eig_floor", eig_floor, 0.0, 1.0)
@@ -500,6 +545,11 @@ def moment_match(
             cov[idx + a, idx + b] += own[:, a, b]
     if pose_covs is not None:
         cov[:3, :3] += np.einsum("p,pij->ij", w, np.asarray(pose_covs, dtype=float))
+    if lineages is not None:
+        W = np.empty((P, dim))
+        W[:, :3] = w[:, None]
+        W[:, 3:] = np.repeat(wc, 2, axis=1)
+        cov += lineage_covariance(W * D, w, lineages)
 
     cov, projected = nearest_spd(cov, eig_floor)
     if projected:

@@ -1,9 +1,11 @@
 """Local-pose NEES of a front-end's local maps at BB's fusion points (#14, docs/RESULTS.md).
 
-Usage: python scripts/local_pose_nees.py FRONT_END LEVELS N_SEEDS N_STEPS [N_PARTICLES] [known]
+Usage: python scripts/local_pose_nees.py FRONT_END LEVELS SEEDS N_STEPS [N_PARTICLES] [known]
 e.g.   python scripts/local_pose_nees.py fastslam 0,1,2,3 4 1000 500
-FRONT_END is fastslam, fastslam-sampled-clutter (the earlier DAS rule, ``sample_clutter=True``)
-or ekf; ``known`` gives FastSLAM the true associations.
+SEEDS is a count (seeds 0 .. SEEDS-1) or a range FIRST-LAST (inclusive), e.g. 4-11.
+FRONT_END is fastslam, fastslam-no-lineage (BB (7) alone, ``lineage_correction=False``),
+fastslam-sampled-clutter (the earlier DAS rule, ``sample_clutter=True``) or ekf; ``known`` gives
+FastSLAM the true associations.
 """
 
 import logging
@@ -19,29 +21,32 @@ from slam_gym.scenarios import make_stream
 
 
 def main(argv) -> int:
-    front, levels, n_seeds, n_steps = argv[0], argv[1], int(argv[2]), int(argv[3])
+    front, levels, n_steps = argv[0], argv[1], int(argv[3])
+    first, _, last = argv[2].partition("-")
+    seeds = range(int(first), int(last) + 1) if last else range(int(first))
     n_particles = int(argv[4]) if len(argv) > 4 else 500
     known = len(argv) > 5 and argv[5] == "known"
     lo, hi = chi2.ppf([0.025, 0.975], 3)
     values = []
     for level in (int(x) for x in levels.split(",")):
-        for seed in range(n_seeds):
+        for seed in seeds:
             s = make_stream("brooks-bailey", seed=seed, clutter_level=level, n_steps=n_steps)
-            if front in ("fastslam", "fastslam-sampled-clutter"):
+            if front in ("fastslam", "fastslam-no-lineage", "fastslam-sampled-clutter"):
                 f = FastSLAM2(s.sensor, s.clutter, s.odometry_noise,
                               np.random.default_rng([seed, 11]), n_particles=n_particles,
-                              sample_clutter=front == "fastslam-sampled-clutter")
+                              sample_clutter=front == "fastslam-sampled-clutter",
+                              lineage_correction=front != "fastslam-no-lineage")
             elif front == "ekf":
                 f = EKFSLAM(s.sensor, s.clutter, s.odometry_noise)
             else:
                 raise ValueError(f"front_end={front!r} is invalid: must be fastslam, "
-                                 "fastslam-sampled-clutter or ekf")
+                                 "fastslam-no-lineage, fastslam-sampled-clutter or ekf")
             values.append(local_pose_nees_at_fusion(f, s, 100, known))
     v = np.concatenate(values)
     logging.getLogger(__name__).info(
-        "%s levels %s seeds 0-%d, %d steps, %d particles, known=%s: %d fusions, "
+        "%s levels %s seeds %d-%d, %d steps, %d particles, known=%s: %d fusions, "
         "outside the 95 %% band %.3f (over-confident %.3f, under-confident %.3f), worst %.3g",
-        front, levels, n_seeds - 1, n_steps, n_particles, known, len(v),
+        front, levels, seeds[0], seeds[-1], n_steps, n_particles, known, len(v),
         np.mean((v < lo) | (v > hi)), np.mean(v > hi), np.mean(v < lo), v.max(),
     )
     return 0

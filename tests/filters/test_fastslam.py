@@ -9,7 +9,7 @@ import pytest
 from scipy.stats import chi2
 
 from filters import fastslam_kernel as kernel
-from filters.conversion import CLUTTER_VOTE, NEW_VOTE
+from filters.conversion import CLUTTER_VOTE, NEW_VOTE, pose_moments
 from filters.fastslam import FastSLAM2
 from filters.geometry import wrap_angle
 from filters.models import (
@@ -181,6 +181,7 @@ def test_pose_draw_reproduces_singular_covariances(rank):
         ("feature_budget", 0),
         ("initial_capacity", 0),
         ("initial_pose", (0.0, 1.0)),
+        ("lineage_correction", 1),
     ],
 )
 def test_constructor_rejects_bad_options(option, value):
@@ -331,7 +332,9 @@ def test_to_gaussian_restart_and_local_statistics():
     assert 0.0 <= stats["vote_margin"] <= 1.0
     assert stats["local_feature_count"] == len(lm)
     assert stats["local_map_budget_ratio"] == pytest.approx(len(lm) / 40)
-    assert stats["particle_position_spread_m"] == pytest.approx(np.sqrt(cov[0, 0] + cov[1, 1]))
+    _, cloud_cov = pose_moments(f.poses, f.weights)  # the spreads are the cloud's own
+    assert stats["particle_position_spread_m"] == pytest.approx(
+        np.sqrt(cloud_cov[0, 0] + cloud_cov[1, 1]))
 
     f.restart()
     mean, cov = f.pose()
@@ -574,3 +577,28 @@ def test_unexplained_observation_is_a_new_feature_whose_existence_carries_clutte
     assert np.all(g.last_votes[0, taken == 0] == CLUTTER_VOTE)
     with pytest.raises(ValueError, match="sample_clutter"):
         FastSLAM2(sensor, clutter, noise, np.random.default_rng(0), sample_clutter="yes")
+
+
+def test_lineage_correction_only_adds_uncertainty_and_restarts_with_the_local_map():
+    """#14 (2): the lineage term widens the pose and map Gaussians of a cloud that resampled
+    (same particles, same means); after a restart every particle is its own lineage again."""
+    stream = make_stream("brooks-bailey", seed=2, n_steps=150, clutter_level=1)
+    with_term = run(make_filter(stream, seed=2, n_particles=200), stream)
+    without = run(make_filter(stream, seed=2, n_particles=200, lineage_correction=False), stream)
+    np.testing.assert_array_equal(with_term.poses, without.poses)  # filtering is unchanged
+    assert len(np.unique(with_term._lineage)) < 100  # resampled: shared ancestors
+    g1, g0 = with_term.to_gaussian(), without.to_gaussian()
+    np.testing.assert_array_equal(g1.x, g0.x)
+    extra = g1.P - g0.P
+    assert np.linalg.eigvalsh(extra).min() > -1e-12 and np.trace(extra[:3, :3]) > 0.0
+    assert_spd(g1.P)
+    np.testing.assert_allclose(g1.P[:3, :3], with_term.pose()[1], atol=1e-9)
+    assert with_term.local_statistics() == without.local_statistics()
+
+    with_term.restart()
+    np.testing.assert_array_equal(with_term._lineage, np.arange(200))
+    with_term.predict([1.0, 0.2], 0.1)
+    with_term.update(np.zeros((0, 2)))
+    _, spread = pose_moments(with_term.poses, with_term.weights)
+    # independent, equally weighted particles: the term is 2 / (P - 1) of the spread
+    np.testing.assert_allclose(with_term.pose()[1], spread * (1 + 2 / 199), rtol=1e-9)
