@@ -57,6 +57,13 @@ projected onto the symmetric matrices with eigenvalues ``>= eig_floor`` (default
 :data:`EIGENVALUE_FLOOR` = 1e-10, i.e. a std of 1e-5 m or rad, far below any real uncertainty):
 the nearest such matrix in the Frobenius norm (Higham 1988) clips the eigenvalues at the floor.
 This happens only when the smallest eigenvalue is below the floor; it is logged at debug level.
+
+A cloud with shared ancestry (issue #14): BB (7) reads the particles as independent draws. After
+resampling they are not, and a local map's pose and features relative to its start are carried
+by the few lineages (ancestors at the restart) that survive. :func:`moment_match` and
+:func:`pose_moments` take the particles' ``lineages`` and add :func:`lineage_covariance`: the
+Monte Carlo variance of the weighted mean (Chan & Lai 2013) and the small-sample bias of the
+spread between few weighted lineages. The means are unchanged; the covariance only grows.
 """
 
 from __future__ import annotations
