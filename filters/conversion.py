@@ -514,7 +514,9 @@ def moment_match(
     covariance of BB 3.2 (zero pose block unless ``pose_covs`` is given); the moments are BB (6)
     and (7) with the missing-feature rule and the SPD projection of the module docstring. All
     sums over particles are vectorised (einsum / matrix products). ``lineages`` (P,), if given,
-    adds :func:`lineage_covariance` (each feature's entries weighted as in its moments).
+    adds :func:`lineage_covariance`: each feature's deviations weighted as in its moments, the
+    lineage weights ``W_e`` and ``s`` from the full particle weights (exact for a feature every
+    particle holds, an approximation for one held by some).
     """
     check_range("min_existence", min_existence, 0.0, 1.0)
     check_range("eig_floor", eig_floor, 0.0, 1.0)

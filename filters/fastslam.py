@@ -103,10 +103,11 @@ from the posterior. Within a local map they are not: after about 25 resamplings 
 500 particles descend from a median of 15 ancestors at the restart, and the pose and map errors
 relative to the local map's start (fixed early in the local map, by the few surviving paths) are
 represented by those few lineages only. Their spread then underestimates the posterior's and the
-weighted mean carries a Monte Carlo error of its own: converted local poses were over-confident
-at 11 % of fusions at 500 particles (6 % at 2000), with an empirical mean square error 1.5-1.8
-times the reported variance. :meth:`to_gaussian` and :meth:`pose` therefore add the lineage term
-of :func:`filters.conversion.lineage_covariance` (the Chan & Lai 2013 estimate of the variance of
+weighted mean carries a Monte Carlo error of its own: with known association, converted local
+poses were over-confident at 11 % of fusions at 500 particles (6 % at 2000), with an empirical
+mean square error 1.5-1.8 times the reported variance (docs/RESULTS.md, "Local maps at fusion").
+:meth:`to_gaussian` and :meth:`pose` therefore add the lineage term of
+:func:`filters.conversion.lineage_covariance` (the Chan & Lai 2013 estimate of the variance of
 the particle mean, with the small-sample correction of a weighted variance from few lineages).
 For the FASTSLAM baseline the lineages are those of the start: they coalesce into one within the
 first minute, after which the term is zero (a single lineage says nothing about its own error).
@@ -183,7 +184,8 @@ class FastSLAM2:
     kept for comparison; over-confident local maps, docs/RESULTS.md) instead of one new feature
     whose existence carries the clutter probability (module doc; the default).
     lineage_correction: add the lineage term of :func:`filters.conversion.lineage_covariance`
-    to the Gaussian of :meth:`to_gaussian` (module doc; the default; False gives BB (7) alone).
+    to the Gaussians of :meth:`pose` and :meth:`to_gaussian` (module doc; the default; False
+    gives BB (7) alone).
 
     Storage is structure-of-arrays: each feature component (mean x, y; covariance xx, xy, yy;
     existence; active; correspondence id) is one (P, C) array, so gathers and scatters by flat
