@@ -105,7 +105,7 @@ relative to the local map's start (fixed early in the local map, by the few surv
 represented by those few lineages only. Their spread then underestimates the posterior's and the
 weighted mean carries a Monte Carlo error of its own: with known association, converted local
 poses were over-confident at 11 % of fusions at 500 particles (6 % at 2000), with an empirical
-mean square error 1.5-1.8 times the reported variance (docs/RESULTS.md, "Local maps at fusion").
+mean square error 1.4-1.7 times the reported variance (docs/RESULTS.md, "Local maps at fusion").
 :meth:`to_gaussian` and :meth:`pose` therefore add the lineage term of
 :func:`filters.conversion.lineage_covariance` (the Chan & Lai 2013 estimate of the variance of
 the particle mean, with the small-sample correction of a weighted variance from few lineages).
@@ -397,6 +397,11 @@ class FastSLAM2:
     @property
     def correspondence_ids(self) -> np.ndarray:
         return self._cid.copy()
+
+    @property
+    def lineages(self) -> np.ndarray:
+        """Each particle's ancestor at the last restart (or start): the index it had there."""
+        return self._lineage.copy()
 
     # ------------------------------------------------------------------ prediction
     def predict(self, u, dt):

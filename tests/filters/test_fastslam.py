@@ -586,7 +586,7 @@ def test_lineage_correction_only_adds_uncertainty_and_restarts_with_the_local_ma
     with_term = run(make_filter(stream, seed=2, n_particles=200), stream)
     without = run(make_filter(stream, seed=2, n_particles=200, lineage_correction=False), stream)
     np.testing.assert_array_equal(with_term.poses, without.poses)  # filtering is unchanged
-    assert len(np.unique(with_term._lineage)) < 100  # resampled: shared ancestors
+    assert len(np.unique(with_term.lineages)) < 100  # resampled: shared ancestors
     g1, g0 = with_term.to_gaussian(), without.to_gaussian()
     np.testing.assert_array_equal(g1.x, g0.x)
     extra = g1.P - g0.P
@@ -596,7 +596,7 @@ def test_lineage_correction_only_adds_uncertainty_and_restarts_with_the_local_ma
     assert with_term.local_statistics() == without.local_statistics()
 
     with_term.restart()
-    np.testing.assert_array_equal(with_term._lineage, np.arange(200))
+    np.testing.assert_array_equal(with_term.lineages, np.arange(200))
     with_term.predict([1.0, 0.2], 0.1)
     with_term.update(np.zeros((0, 2)))
     _, spread = pose_moments(with_term.poses, with_term.weights)
