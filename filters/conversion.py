@@ -363,13 +363,14 @@ def _common_set(w, cids, active, existence, shares, trace, max_id):
 
 
 # --------------------------------------------------------------------------- moments (BB (6), (7))
-def pose_moments(poses, weights, pose_covs=None, lineages=None):
+def pose_moments(poses, weights, pose_covs=None, lineages=None, small_sample=False):
     """Weighted mean (circular mean heading) and covariance of particle poses (P, 3).
 
     ``pose_covs`` (P, 3, 3), if given, is each particle's own pose covariance (zero in FastSLAM,
     BB 2.1; the FastSLAM 2.0 proposal between prediction and update), added as in BB (7).
-    ``lineages`` (P,), if given, adds :func:`lineage_covariance` (the pose block of
-    :func:`moment_match` with the same lineages).
+    ``lineages`` (P,), if given, adds :func:`lineage_covariance`, and with ``small_sample`` the
+    result is scaled by :func:`small_sample_factor` (the pose block of :func:`moment_match` with
+    the same arguments).
     """
     w = _normalised(weights)
     poses = np.asarray(poses, dtype=float)
@@ -383,7 +384,10 @@ def pose_moments(poses, weights, pose_covs=None, lineages=None):
     if pose_covs is not None:
         cov = cov + np.einsum("p,pij->ij", w, np.asarray(pose_covs, dtype=float))
     if lineages is not None:
-        cov = cov + lineage_covariance(d * w[:, None], w, lineages)
+        added, between, s = _lineage_parts(d * w[:, None], w, lineages)
+        cov = cov + added
+        if small_sample:
+            cov = cov * small_sample_factor(cov, between, s)
     return mean, 0.5 * (cov + cov.T)
 
 
@@ -462,6 +466,13 @@ def lineage_covariance(weighted_deviations, weights, lineages):
     P = 500; a cloud with a single lineage (``s = 1``) carries no information about its own
     Monte Carlo error, and zero is returned.
     """
+    return _lineage_parts(weighted_deviations, weights, lineages)[0]
+
+
+def _lineage_parts(weighted_deviations, weights, lineages):
+    """``(added, between, s)``: the :func:`lineage_covariance` term ``(s B + V) / (1 - s)``, the
+    between-lineage part of the predictive covariance ``(B + V) / (1 - s)`` and ``s`` (zeros and
+    ``s = 1`` for a single lineage)."""
     weighted_deviations = np.asarray(weighted_deviations, dtype=float)
     weights = np.asarray(weights, dtype=float)
     lineages = np.asarray(lineages)
@@ -474,10 +485,51 @@ def lineage_covariance(weighted_deviations, weights, lineages):
     mass = np.bincount(group, weights=weights, minlength=len(sums))
     s = float(np.sum(mass * mass))
     if s >= 1.0 - 1e-9:
-        return np.zeros((d, d))
-    between = (sums / np.where(mass > 0.0, mass, 1.0)[:, None]).T @ sums
-    out = (s * between + sums.T @ sums) / (1.0 - s)
-    return 0.5 * (out + out.T)
+        return np.zeros((d, d)), np.zeros((d, d)), 1.0
+    between = (sums / np.where(mass > 0.0, mass, 1.0)[:, None]).T @ sums  # B
+    spread_of_mean = sums.T @ sums  # V
+    added = (s * between + spread_of_mean) / (1.0 - s)
+    total_between = (between + spread_of_mean) / (1.0 - s)
+    return (0.5 * (added + added.T), 0.5 * (total_between + total_between.T), s)
+
+
+def small_sample_factor(cov, between, s) -> float:
+    """Scale for a covariance whose between-lineage part is estimated from few lineages.
+
+    ``cov`` (p, p) is the predictive covariance (BB (7) plus :func:`lineage_covariance`),
+    ``between`` (p, p) its part estimated from the spread between lineages, ``(B + V) / (1 - s)``,
+    and ``s = sum_e W_e^2`` (so ``1 / s`` is the effective number of lineages). That part has
+    ``nu_b = 1 / s - 1`` degrees of freedom; the within-lineage part is taken as exact. Matching
+    the variance of ``tr(cov^-1 C_hat)`` to a Wishart's (Satterthwaite 1946) gives the effective
+    degrees of freedom of ``cov``,
+
+        nu = p nu_b / tr((cov^-1 between)^2)        (>= nu_b, as ``between <= cov``),
+
+    and a covariance estimated with ``nu`` degrees of freedom overstates the information:
+    ``E[S^-1] = nu / (nu - p - 1) Sigma^-1`` for ``S ~ Wishart(Sigma / nu, nu)`` (the mean of
+    the inverse Wishart distribution). The returned factor ``nu / (nu - p - 1)`` makes the
+    information the back-end fuses unbiased (and the mean NEES ``p``). It is infinite at
+    ``nu <= p + 1``; ``nu`` is clipped below at ``p + 2`` (the factor is at most ``p + 2``).
+    ``p`` is the rank of ``cov`` (its size unless the cloud is degenerate, e.g. one step after a
+    restart, when the poses lie on a curve) and ``cov^-1`` its pseudo-inverse. A single lineage
+    (``s = 1``, no between part) returns 1: its cloud says nothing about its own error.
+    """
+    cov = np.asarray(cov, dtype=float)
+    between = np.asarray(between, dtype=float)
+    p = cov.shape[0]
+    require(cov.shape == (p, p), "cov", cov.shape, "(p, p)")
+    require(between.shape == (p, p), "between", between.shape, f"({p}, {p})")
+    check_range("s", s, 0.0, 1.0)
+    if s >= 1.0 - 1e-9 or not np.any(between):
+        return 1.0
+    rank = int(np.linalg.matrix_rank(cov, hermitian=True))
+    ratio = np.linalg.pinv(cov) @ between
+    spread = float(np.trace(ratio @ ratio))
+    if rank == 0 or spread <= 0.0:
+        return 1.0
+    nu = rank * (1.0 / s - 1.0) / spread
+    nu = max(nu, rank + 2.0)
+    return nu / (nu - rank - 1.0)
 
 
 def nearest_spd(P, eig_floor: float = EIGENVALUE_FLOOR):
@@ -506,6 +558,7 @@ def moment_match(
     min_existence: float = CONFIRMED_PROBABILITY,
     pose_covs=None,
     lineages=None,
+    small_sample: bool = False,
     eig_floor: float = EIGENVALUE_FLOOR,
 ) -> GaussianMap:
     """BB 3.2: one Gaussian over ``[pose, features with existence > min_existence]``.
@@ -516,7 +569,10 @@ def moment_match(
     sums over particles are vectorised (einsum / matrix products). ``lineages`` (P,), if given,
     adds :func:`lineage_covariance`: each feature's deviations weighted as in its moments, the
     lineage weights ``W_e`` and ``s`` from the full particle weights (exact for a feature every
-    particle holds, an approximation for one held by some).
+    particle holds, an approximation for one held by some). With ``small_sample`` (and
+    ``lineages``) the pose block is scaled by :func:`small_sample_factor` of that block, i.e.
+    ``(c - 1)`` times it is added to it alone: the covariance only grows (Loewner order), the
+    cross-covariances and the features' blocks are unchanged.
     """
     check_range("min_existence", min_existence, 0.0, 1.0)
     check_range("eig_floor", eig_floor, 0.0, 1.0)
@@ -558,7 +614,11 @@ def moment_match(
         W = np.empty((P, dim))
         W[:, :3] = w[:, None]
         W[:, 3:] = np.repeat(wc, 2, axis=1)
-        cov += lineage_covariance(W * D, w, lineages)
+        added, between, s = _lineage_parts(W * D, w, lineages)
+        cov += added
+        if small_sample:
+            c = small_sample_factor(cov[:3, :3], between[:3, :3], s)
+            cov[:3, :3] *= c
 
     cov, projected = nearest_spd(cov, eig_floor)
     if projected:

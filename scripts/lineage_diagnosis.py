@@ -6,9 +6,11 @@ e.g.   python scripts/lineage_diagnosis.py 0,1,2,3 0-3 1000 500 known
 Runs FastSLAM 2.0 over BB's path as :func:`slam_gym.local_consistency.local_pose_nees_at_fusion`
 does (restart every 100 steps, the same random streams as scripts/local_pose_nees.py) and, at
 every fusion, converts the local map both ways: by BB (7) alone and with the lineage term (the
-filtering is the same; only the Gaussian differs). Reports the median number of lineages
-(distinct ancestors at the restart) at fusion, the per-component mean square error of the local
-pose over its reported variance, and the share of over-confident fusions by lineage count.
+filtering is the same; only the Gaussian differs), and with the small-sample factor as well.
+Reports the median number of lineages (distinct ancestors at the restart) and of effective
+lineages (1 / sum of squared lineage weights) at fusion, the per-component mean square error of
+the local pose over its reported variance, the share of over-confident fusions by lineage count,
+and by the effective degrees of freedom ``nu`` of :func:`filters.conversion.small_sample_factor`.
 SEEDS is a count or a range FIRST-LAST (inclusive).
 """
 
@@ -26,11 +28,16 @@ from slam_gym.scenarios import make_stream
 
 logger = logging.getLogger(__name__)
 BINS = ((1, 5), (5, 10), (10, 20), (20, 50), (50, 10**9))
+NU_BINS = ((0, 5), (5, 10), (10, 20), (20, 50), (50, np.inf))
+
+
+CONVERSIONS = (("BB (7) alone", False, False), ("with the lineage term", True, False),
+               ("with the lineage term and the small-sample factor", True, True))
 
 
 def fusion_records(level, seed, n_steps, n_particles, known):
-    """Per fusion: lineage count, then for BB (7) alone and with the term the NEES and the
-    squared error over the variance of x, y and heading."""
+    """Per fusion: lineage count, effective lineage count, ``nu``, then for each of
+    :data:`CONVERSIONS` the NEES and the squared error over the variance of x, y and heading."""
     stream = make_stream("brooks-bailey", seed=seed, clutter_level=level, n_steps=n_steps)
     f = FastSLAM2(stream.sensor, stream.clutter, stream.odometry_noise,
                   np.random.default_rng([seed, 11]), n_particles=n_particles)
@@ -41,15 +48,21 @@ def fusion_records(level, seed, n_steps, n_particles, known):
         f.update(step.z, step.truth.landmark_ids if known else None)
         if (i + 1) % 100:
             continue
-        row = [len(np.unique(f.lineages))]
-        for correction in (False, True):
-            f.lineage_correction = correction
+        _, group = np.unique(f.lineages, return_inverse=True)
+        mass = np.bincount(group, weights=f.weights)
+        row = [len(mass), 1.0 / np.sum(mass**2)]
+        covs = []
+        for _, lineage, small_sample in CONVERSIONS:
+            f.lineage_correction, f.small_sample_correction = lineage, small_sample
             g = f.to_gaussian()
             error = relative(start, step.truth.pose) - g.x[:3]
             error[2] = wrap_angle(error[2])
-            cov = g.P[:3, :3]
-            row += [float(error @ np.linalg.solve(cov, error)), *(error**2 / np.diag(cov))]
-        f.lineage_correction = True
+            covs.append(g.P[:3, :3])
+            row += [float(error @ np.linalg.solve(covs[-1], error)),
+                    *(error**2 / np.diag(covs[-1]))]
+        f.lineage_correction = f.small_sample_correction = True
+        factor = covs[2][0, 0] / covs[1][0, 0]  # small_sample_factor = nu / (nu - 4)
+        row.insert(2, 4.0 * factor / (factor - 1.0) if factor > 1.0 else np.inf)
         rows.append(row)
         f.restart()
         start = np.asarray(step.truth.pose, dtype=float).copy()
@@ -67,18 +80,21 @@ def main(argv) -> int:
     r = np.array([row for level in levels for seed in seeds
                   for row in fusion_records(level, seed, n_steps, n_particles, known)])
     hi = chi2.ppf(0.975, 3)
-    lineages = r[:, 0]
-    logger.info("%d fusions, %d particles, known=%s: median lineages at fusion %.0f",
-                len(r), n_particles, known, np.median(lineages))
-    for name, col in (("BB (7) alone", 1), ("with the lineage term", 5)):
+    lineages, nu = r[:, 0], r[:, 2]
+    logger.info("%d fusions, %d particles, known=%s: median lineages at fusion %.0f, "
+                "effective lineages %.1f, nu %.1f", len(r), n_particles, known,
+                np.median(lineages), np.median(r[:, 1]), np.median(nu))
+    for k, (name, _, _) in enumerate(CONVERSIONS):
+        col = 3 + 4 * k
         nees = r[:, col]
         logger.info("%s: over the band %.3f; mean square error / variance (x, y, heading) %s",
                     name, np.mean(nees > hi), np.round(r[:, col + 1:col + 4].mean(axis=0), 2))
-        for lo_n, hi_n in BINS:
-            in_bin = (lineages >= lo_n) & (lineages < hi_n)
-            if in_bin.any():
-                logger.info("  lineages %d-%d: %d fusions, over the band %.3f", lo_n,
-                            min(hi_n, 10**4) - 1, in_bin.sum(), np.mean(nees[in_bin] > hi))
+        for label, key, bins in (("lineages", lineages, BINS), ("nu", nu, NU_BINS)):
+            for lo_n, hi_n in bins:
+                in_bin = (key >= lo_n) & ((key < hi_n) | (hi_n == np.inf))
+                if in_bin.any():
+                    logger.info("  %s %g-%g: %d fusions, over the band %.3f", label, lo_n,
+                                hi_n, in_bin.sum(), np.mean(nees[in_bin] > hi))
     return 0
 
 

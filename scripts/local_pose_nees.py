@@ -3,9 +3,11 @@
 Usage: python scripts/local_pose_nees.py FRONT_END LEVELS SEEDS N_STEPS [N_PARTICLES] [known]
 e.g.   python scripts/local_pose_nees.py fastslam 0,1,2,3 4 1000 500
 SEEDS is a count (seeds 0 .. SEEDS-1) or a range FIRST-LAST (inclusive), e.g. 4-11.
-FRONT_END is fastslam, fastslam-no-lineage (BB (7) alone, ``lineage_correction=False``),
-fastslam-sampled-clutter (the earlier DAS rule, ``sample_clutter=True``) or ekf; ``known`` gives
-FastSLAM the true associations.
+FRONT_END is fastslam, fastslam-no-small-sample (the lineage term without the small-sample
+factor, ``small_sample_correction=False``), fastslam-no-lineage (BB (7) alone,
+``lineage_correction=False``), fastslam-sampled-clutter (the earlier DAS rule,
+``sample_clutter=True``, with both corrections) or ekf; ``known`` gives FastSLAM the true
+associations.
 """
 
 import logging
@@ -31,16 +33,19 @@ def main(argv) -> int:
     for level in (int(x) for x in levels.split(",")):
         for seed in seeds:
             s = make_stream("brooks-bailey", seed=seed, clutter_level=level, n_steps=n_steps)
-            if front in ("fastslam", "fastslam-no-lineage", "fastslam-sampled-clutter"):
+            if front in ("fastslam", "fastslam-no-small-sample", "fastslam-no-lineage",
+                         "fastslam-sampled-clutter"):
                 f = FastSLAM2(s.sensor, s.clutter, s.odometry_noise,
                               np.random.default_rng([seed, 11]), n_particles=n_particles,
                               sample_clutter=front == "fastslam-sampled-clutter",
-                              lineage_correction=front != "fastslam-no-lineage")
+                              lineage_correction=front != "fastslam-no-lineage",
+                              small_sample_correction=front != "fastslam-no-small-sample")
             elif front == "ekf":
                 f = EKFSLAM(s.sensor, s.clutter, s.odometry_noise)
             else:
                 raise ValueError(f"front_end={front!r} is invalid: must be fastslam, "
-                                 "fastslam-no-lineage, fastslam-sampled-clutter or ekf")
+                                 "fastslam-no-small-sample, fastslam-no-lineage, "
+                                 "fastslam-sampled-clutter or ekf")
             values.append(local_pose_nees_at_fusion(f, s, 100, known))
     v = np.concatenate(values)
     logging.getLogger(__name__).info(

@@ -18,6 +18,7 @@ from filters.conversion import (
     moment_match,
     nearest_spd,
     pose_moments,
+    small_sample_factor,
     vote_all,
 )
 
@@ -531,3 +532,79 @@ def test_lineage_covariance_and_moment_match_agree_and_reject_bad_shapes():
         lineage_covariance(wd, w, lineages[:2])
     with pytest.raises(ValueError, match="weights"):
         lineage_covariance(wd, w[:2], lineages)
+
+
+# --------------------------------------------------------------------------- small-sample factor
+@pytest.mark.parametrize(
+    "between_share, s, expected",
+    [
+        (1.0, 1 / 6, 5.0),  # nu_b = 5, all between: nu = 5 -> 5 / (5 - 4)
+        (0.5, 1 / 10, 36 / 32),  # nu_b = 9, tr((C^-1 B)^2) = 3 / 4: nu = 3 * 9 / 0.75 = 36
+        (1.0, 1 / 3, 5.0),  # nu_b = 2 < p + 2: clipped to nu = 5
+        (0.3, 1.0, 1.0),  # one lineage: nothing to correct with
+        (0.0, 0.2, 1.0),  # no between part
+    ],
+)
+def test_small_sample_factor_hand_computed(between_share, s, expected):
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(3, 3))
+    cov = A @ A.T + np.eye(3)
+    assert small_sample_factor(cov, between_share * cov, s) == pytest.approx(expected, rel=1e-12)
+
+
+def test_small_sample_factor_makes_the_information_of_a_wishart_estimate_unbiased():
+    """The principle of the factor: a covariance estimated with nu degrees of freedom (here all
+    of it between lineages, ``s = 1 / (nu + 1)``) gives NEES with mean p nu / (nu - p - 1) (4.5 at
+    nu = 12, p = 3); scaled by the factor, the mean is p."""
+    rng = np.random.default_rng(4)
+    p, nu, n = 3, 12, 20000
+    A = rng.normal(size=(p, p))
+    sigma = A @ A.T + np.eye(p)
+    L = np.linalg.cholesky(sigma)
+    z = L @ rng.normal(size=(n, p, nu))  # nu draws per estimate
+    estimates = z @ np.swapaxes(z, 1, 2) / nu
+    errors = rng.normal(size=(n, p)) @ L.T
+    raw = np.einsum("ni,nij,nj->n", errors, np.linalg.inv(estimates), errors)
+    c = small_sample_factor(sigma, sigma, 1 / (nu + 1))
+    assert c == pytest.approx(nu / (nu - p - 1))
+    # standard error of the mean NEES ~ 0.05 here
+    assert raw.mean() == pytest.approx(p * nu / (nu - p - 1), abs=0.2)
+    assert (raw / c).mean() == pytest.approx(p, abs=0.15)
+
+
+def test_small_sample_factor_rejects_bad_input_naming_the_field():
+    cov = np.eye(3)
+    with pytest.raises(ValueError, match="between"):
+        small_sample_factor(cov, np.eye(2), 0.5)
+    with pytest.raises(ValueError, match="cov"):
+        small_sample_factor(np.eye(3)[:2], np.eye(3), 0.5)
+    with pytest.raises(ValueError, match="s="):
+        small_sample_factor(cov, cov, 1.5)
+
+
+def test_moment_match_small_sample_scales_the_pose_block_only():
+    """With ``small_sample`` the pose block is scaled by the factor c (as pose_moments does), the
+    cross-covariances and feature blocks are unchanged, so the covariance only grows and stays
+    symmetric positive definite."""
+    rng = np.random.default_rng(5)
+    P, n = 60, 4
+    poses = rng.normal(size=(P, 3)) * [1.0, 0.5, 0.1]
+    weights = rng.random(P) + 0.2
+    means = rng.normal(size=(P, n, 2)) + poses[:, None, :2]
+    covs = np.tile(np.eye(2) * 0.05, (P, n, 1, 1))
+    cids = np.tile(np.arange(n), (P, 1))
+    common = common_features(weights, cids, np.ones((P, n), bool), np.ones((P, n)))
+    lineages = rng.integers(0, 4, size=P)
+    g0 = moment_match(poses, weights, means, covs, common, min_existence=0.0, lineages=lineages)
+    g1 = moment_match(poses, weights, means, covs, common, min_existence=0.0, lineages=lineages,
+                      small_sample=True)
+    _, pose_cov = pose_moments(poses, weights, lineages=lineages, small_sample=True)
+    c = pose_cov[0, 0] / g0.P[0, 0]
+    assert c > 1.0
+    np.testing.assert_allclose(pose_cov, c * g0.P[:3, :3], rtol=1e-12)
+    np.testing.assert_allclose(g1.P[:3, :3], pose_cov, rtol=1e-12)
+    np.testing.assert_array_equal(g1.P[:3, 3:], g0.P[:3, 3:])
+    np.testing.assert_array_equal(g1.P[3:, 3:], g0.P[3:, 3:])
+    assert np.linalg.eigvalsh(g1.P - g0.P).min() > -1e-12
+    np.testing.assert_array_equal(g1.x, g0.x)
+    assert_spd(g1.P)

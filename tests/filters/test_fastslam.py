@@ -182,6 +182,7 @@ def test_pose_draw_reproduces_singular_covariances(rank):
         ("initial_capacity", 0),
         ("initial_pose", (0.0, 1.0)),
         ("lineage_correction", 1),
+        ("small_sample_correction", "yes"),
     ],
 )
 def test_constructor_rejects_bad_options(option, value):
@@ -600,5 +601,9 @@ def test_lineage_correction_only_adds_uncertainty_and_restarts_with_the_local_ma
     with_term.predict([1.0, 0.2], 0.1)
     with_term.update(np.zeros((0, 2)))
     _, spread = pose_moments(with_term.poses, with_term.weights)
-    # independent, equally weighted particles: the term is 2 / (P - 1) of the spread
-    np.testing.assert_allclose(with_term.pose()[1], spread * (1 + 2 / 199), rtol=1e-9)
+    # independent, equally weighted particles: the term is 2 / (P - 1) of the spread, and the
+    # small-sample factor nu / (nu - p - 1) has nu = P - 1; one step after the restart the
+    # poses lie on a curve (rank p = 2): 199 / 196
+    assert np.linalg.matrix_rank(spread, hermitian=True) == 2
+    np.testing.assert_allclose(with_term.pose()[1], spread * (1 + 2 / 199) * 199 / 196,
+                               rtol=1e-9)
