@@ -112,12 +112,13 @@ the particle mean, with the small-sample correction of a weighted variance from 
 For the FASTSLAM baseline the lineages are those of the start: they coalesce into one within the
 first minute, after which the term is zero (a single lineage says nothing about its own error).
 
-That covariance is itself estimated from few lineages (a median of about 7 effective ones at
-fusion), so its inverse, the information the back-end fuses, is biased high, and the local-pose
-NEES is heavy-tailed: fusions whose effective degrees of freedom are below 5 were over the 95 %
-band at 22 % of fusions. With ``small_sample_correction`` (the default) the pose block is also
-scaled by :func:`filters.conversion.small_sample_factor`, ``nu / (nu - 4)`` for ``nu`` effective
-degrees of freedom, which makes that information unbiased (docs/RESULTS.md).
+That covariance is itself estimated from few lineages (a median of 7 effective ones at fusion),
+so its inverse, the information the back-end fuses, is biased high, and the local-pose NEES is
+heavy-tailed: local maps whose pose covariance has fewer than 10 effective degrees of freedom
+were over the 95 % band at 10.5 % of fusions (nominal 2.5 %; scripts/lineage_diagnosis.py).
+With ``small_sample_correction`` (the default) the pose block is also scaled by
+:func:`filters.conversion.small_sample_factor`, ``nu / (nu - 4)`` for ``nu`` effective degrees
+of freedom, which makes that information unbiased (docs/RESULTS.md).
 
 Use the methods in the order predict, [update_heading], update: a compass reading that arrives
 after ``update`` (pose already sampled) can only reweight the particles.
