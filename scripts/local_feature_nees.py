@@ -1,0 +1,73 @@
+"""Feature NEES (2 dof) of FastSLAM's converted local maps at BB's fusion points, on the simulator.
+
+Usage: python scripts/local_feature_nees.py LEVELS SEEDS N_STEPS [N_PARTICLES]
+e.g.   python scripts/local_feature_nees.py 0,3 4 2000
+
+FastSLAM 2.0 with the true associations (so that every converted feature has a known landmark)
+over BB's path, restarted every 100 steps as :func:`slam_gym.local_consistency.
+local_pose_nees_at_fusion` does; at every fusion each converted feature's mean and marginal
+covariance are compared with its landmark's true position in the frame of the true pose at the
+local map's start. SEEDS is a count (seeds 0 .. SEEDS-1). The reference for the same measurement
+on MRCLAM is ``scripts/mrclam_optimise_diagnosis.py`` (docs/RESULTS.md, issue 16 item 3).
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+
+import numpy as np
+from scipy.stats import chi2
+
+from filters.fastslam import FastSLAM2
+from filters.geometry import point_to_frame
+from slam_gym.scenarios import make_stream
+
+logger = logging.getLogger(__name__)
+
+
+def feature_nees(level, seed, n_steps, n_particles):
+    stream = make_stream("brooks-bailey", seed=seed, clutter_level=level, n_steps=n_steps)
+    f = FastSLAM2(stream.sensor, stream.clutter, stream.odometry_noise,
+                  np.random.default_rng([seed, 11]), n_particles=n_particles)
+    start = np.asarray(stream.initial_pose, dtype=float).copy()
+    landmark_of = {}  # the filter's feature id -> true landmark, within one local map
+    values = []
+    for i, step in enumerate(stream):
+        f.predict(step.odometry, step.dt_s)
+        f.update(step.z, step.truth.landmark_ids)
+        for fid, lid in zip(np.asarray(f.last_associations), step.truth.landmark_ids,
+                            strict=True):
+            if fid >= 0 and lid >= 0:
+                landmark_of[int(fid)] = int(lid)
+        if (i + 1) % 100:
+            continue
+        g = f.to_gaussian()
+        for k, fid in enumerate(np.asarray(g.ids)):
+            if int(fid) in landmark_of:
+                truth = point_to_frame(start, stream.landmarks_true[landmark_of[int(fid)]])
+                block = slice(3 + 2 * k, 5 + 2 * k)
+                error = truth - g.x[block]
+                values.append(float(error @ np.linalg.solve(g.P[block, block], error)))
+        f.restart()
+        start = np.asarray(step.truth.pose, dtype=float).copy()
+        landmark_of = {}
+    return values
+
+
+def main(argv) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    levels = [int(x) for x in argv[0].split(",")]
+    seeds, n_steps = range(int(argv[1])), int(argv[2])
+    n_particles = int(argv[3]) if len(argv) > 3 else 500
+    v = np.array([x for level in levels for seed in seeds
+                  for x in feature_nees(level, seed, n_steps, n_particles)])
+    logger.info("%d features at fusion, levels %s, seeds 0-%d, %d particles: NEES median %.2f "
+                "(chi-square 2 dof: 1.39), over its 97.5 %% point %.3f, over its 99 %% point %.3f",
+                len(v), argv[0], seeds[-1], n_particles, np.median(v),
+                np.mean(v > chi2.ppf(0.975, 2)), np.mean(v > chi2.ppf(0.99, 2)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
