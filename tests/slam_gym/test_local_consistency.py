@@ -101,24 +101,30 @@ def fastslam_nees_levels_0_3():
     return _fastslam_nees(range(4))
 
 
-def test_lineage_term_reduces_over_confidence_at_fusion(fastslam_nees_levels_0_3):
+@pytest.fixture(scope="module")
+def fastslam_nees_lineage_term_alone():
+    return _fastslam_nees(range(4), small_sample_correction=False)
+
+
+def test_lineage_term_reduces_over_confidence_at_fusion(fastslam_nees_lineage_term_alone):
     """Seeds 0-3, 1000 steps, 160 fusions, converted by BB (7) alone and with the lineage term,
     both without the small-sample factor (the filtering is identical, only the Gaussian
     differs): BB (7) alone puts more local poses over the band, every NEES at least as large
     (measured 11.3 % vs 9.4 % over)."""
     v0 = _fastslam_nees(range(4), lineage_correction=False)
-    v1 = _fastslam_nees(range(4), small_sample_correction=False)
+    v1 = fastslam_nees_lineage_term_alone
     assert np.all(v0 >= v1 - 1e-9)
     assert np.mean(v0 > HI) > np.mean(v1 > HI)
 
 
-def test_small_sample_factor_reduces_over_confidence_at_fusion(fastslam_nees_levels_0_3):
+def test_small_sample_factor_reduces_over_confidence_at_fusion(
+        fastslam_nees_levels_0_3, fastslam_nees_lineage_term_alone):
     """The same 160 fusions with and without the small-sample factor (it only scales the pose
     block up): every NEES at most as large, over the band 15 -> 6 of 160; the price is more
     local poses under the band (4 -> 15 of 160 on these seeds)."""
-    without = _fastslam_nees(range(4), small_sample_correction=False)
+    without = fastslam_nees_lineage_term_alone
     v = fastslam_nees_levels_0_3
-    assert len(v) == 160
+    assert len(v) == len(without) == 160
     assert np.all(v <= without + 1e-9)
     assert np.mean(v > HI) <= 0.05 < np.mean(without > HI)
 
