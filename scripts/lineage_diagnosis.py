@@ -3,10 +3,10 @@
 Usage: python scripts/lineage_diagnosis.py LEVELS SEEDS N_STEPS [N_PARTICLES] [known]
 e.g.   python scripts/lineage_diagnosis.py 0,1,2,3 0-3 1000 500 known
 
-Runs FastSLAM 2.0 over BB's path as :func:`slam_gym.local_consistency.local_pose_nees_at_fusion`
-does (restart every 100 steps, the same random streams as scripts/local_pose_nees.py) and, at
-every fusion, converts the local map both ways: by BB (7) alone and with the lineage term (the
-filtering is the same; only the Gaussian differs), and with the small-sample factor as well.
+Runs FastSLAM 2.0 over BB's path with :func:`slam_gym.local_consistency.local_maps` (restart
+every 100 steps, the same random streams as scripts/local_pose_nees.py) and, at every fusion,
+converts the local map three ways: by BB (7) alone, with the lineage term, and with the lineage
+term and the small-sample factor (the filtering is the same; only the Gaussian differs).
 Reports the median number of lineages (distinct ancestors at the restart) and of effective
 lineages (1 / sum of squared lineage weights) at fusion, the per-component mean square error of
 the local pose over its reported variance, the share of over-confident fusions by lineage count,
@@ -24,6 +24,7 @@ from scipy.stats import chi2
 
 from filters.fastslam import FastSLAM2
 from filters.geometry import relative, wrap_angle
+from slam_gym.local_consistency import local_maps
 from slam_gym.scenarios import make_stream
 
 logger = logging.getLogger(__name__)
@@ -41,12 +42,9 @@ def fusion_records(level, seed, n_steps, n_particles, known):
     stream = make_stream("brooks-bailey", seed=seed, clutter_level=level, n_steps=n_steps)
     f = FastSLAM2(stream.sensor, stream.clutter, stream.odometry_noise,
                   np.random.default_rng([seed, 11]), n_particles=n_particles)
-    start = np.asarray(stream.initial_pose, dtype=float).copy()
     rows = []
-    for i, step in enumerate(stream):
-        f.predict(step.odometry, step.dt_s)
-        f.update(step.z, step.truth.landmark_ids if known else None)
-        if (i + 1) % 100:
+    for step, start, at_fusion in local_maps(f, stream, 100, known):
+        if not at_fusion:
             continue
         _, group = np.unique(f.lineages, return_inverse=True)
         mass = np.bincount(group, weights=f.weights)
@@ -64,8 +62,6 @@ def fusion_records(level, seed, n_steps, n_particles, known):
         factor = covs[2][0, 0] / covs[1][0, 0]  # small_sample_factor = nu / (nu - 4)
         row.insert(2, 4.0 * factor / (factor - 1.0) if factor > 1.0 else np.inf)
         rows.append(row)
-        f.restart()
-        start = np.asarray(step.truth.pose, dtype=float).copy()
     return rows
 
 

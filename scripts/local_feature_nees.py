@@ -4,8 +4,8 @@ Usage: python scripts/local_feature_nees.py LEVELS SEEDS N_STEPS [N_PARTICLES]
 e.g.   python scripts/local_feature_nees.py 0,3 4 2000
 
 FastSLAM 2.0 with the true associations (so that every converted feature has a known landmark)
-over BB's path, restarted every 100 steps as :func:`slam_gym.local_consistency.
-local_pose_nees_at_fusion` does; at every fusion each converted feature's mean and marginal
+over BB's path, restarted every 100 steps by :func:`slam_gym.local_consistency.local_maps`; at
+every fusion each converted feature's mean and marginal
 covariance are compared with its landmark's true position in the frame of the true pose at the
 local map's start. SEEDS is a count (seeds 0 .. SEEDS-1). The reference for the same measurement
 on MRCLAM is ``scripts/mrclam_optimise_diagnosis.py`` (docs/RESULTS.md, issue 16 item 3).
@@ -21,6 +21,7 @@ from scipy.stats import chi2
 
 from filters.fastslam import FastSLAM2
 from filters.geometry import point_to_frame
+from slam_gym.local_consistency import local_maps
 from slam_gym.scenarios import make_stream
 
 logger = logging.getLogger(__name__)
@@ -30,17 +31,14 @@ def feature_nees(level, seed, n_steps, n_particles):
     stream = make_stream("brooks-bailey", seed=seed, clutter_level=level, n_steps=n_steps)
     f = FastSLAM2(stream.sensor, stream.clutter, stream.odometry_noise,
                   np.random.default_rng([seed, 11]), n_particles=n_particles)
-    start = np.asarray(stream.initial_pose, dtype=float).copy()
     landmark_of = {}  # the filter's feature id -> true landmark, within one local map
     values = []
-    for i, step in enumerate(stream):
-        f.predict(step.odometry, step.dt_s)
-        f.update(step.z, step.truth.landmark_ids)
+    for step, start, at_fusion in local_maps(f, stream, 100, known_association=True):
         for fid, lid in zip(np.asarray(f.last_associations), step.truth.landmark_ids,
                             strict=True):
             if fid >= 0 and lid >= 0:
                 landmark_of[int(fid)] = int(lid)
-        if (i + 1) % 100:
+        if not at_fusion:
             continue
         g = f.to_gaussian()
         for k, fid in enumerate(np.asarray(g.ids)):
@@ -49,8 +47,6 @@ def feature_nees(level, seed, n_steps, n_particles):
                 block = slice(3 + 2 * k, 5 + 2 * k)
                 error = truth - g.x[block]
                 values.append(float(error @ np.linalg.solve(g.P[block, block], error)))
-        f.restart()
-        start = np.asarray(step.truth.pose, dtype=float).copy()
         landmark_of = {}
     return values
 
