@@ -592,12 +592,13 @@ class FastSLAM2:
         """Weighted mean (circular mean heading) and covariance of the particle poses (with the
         lineage term and the small-sample factor of the module doc unless
         ``lineage_correction`` / ``small_sample_correction`` is False)."""
-        if "pose" not in self._outputs:
-            self._outputs["pose"] = pose_moments(
+        key = ("pose", self.lineage_correction, self.small_sample_correction)  # flags may change
+        if key not in self._outputs:
+            self._outputs[key] = pose_moments(
                 self._poses, self.weights, self._pose_covs(), self._lineages(),
                 small_sample=self.small_sample_correction,
             )
-        mean, cov = self._outputs["pose"]
+        mean, cov = self._outputs[key]
         return mean.copy(), cov.copy()
 
     def _common(self):

@@ -594,6 +594,13 @@ def test_lineage_correction_only_adds_uncertainty_and_restarts_with_the_local_ma
     assert np.linalg.eigvalsh(extra).min() > -1e-12 and np.trace(extra[:3, :3]) > 0.0
     assert_spd(g1.P)
     np.testing.assert_allclose(g1.P[:3, :3], with_term.pose()[1], atol=1e-9)
+    # pose() is cached per step, but not across a change of the flags
+    with_term.small_sample_correction = False
+    lineage_only = pose_moments(with_term.poses, with_term.weights,
+                                lineages=with_term.lineages)[1]
+    np.testing.assert_allclose(with_term.pose()[1], lineage_only, atol=1e-12)
+    assert np.trace(lineage_only) < np.trace(g1.P[:3, :3])
+    with_term.small_sample_correction = True
     assert with_term.local_statistics() == without.local_statistics()
 
     with_term.restart()
