@@ -86,6 +86,17 @@ that a feature can always be un-confirmed (with alpha = 1 a single miss would ot
 exactly 0, and a feature at p = 1 could never decay; it also keeps ``1 - alpha e p_vis`` >= 0.011).
 Every ``cull_interval_steps`` updates, features with existence below ``cull_threshold`` are removed.
 
+The clip is also a memory limit: at ``max_existence = 0.999`` (log-odds 6.9) the evidence of any
+number of detections is forgotten after the misses that take log-odds 6.9 to 2.9 (p = 0.95).
+With a small per-step detection probability that is short: on Victoria Park (alpha = 0.107 per
+40 Hz step) 36 steps, 0.9 s, without a detection un-confirm any tree, and at BB's fusion half of
+a local map's trees, many seen ten times or more, were dropped at fusion (docs/RESULTS.md,
+"Victoria Park"). The default 0.999 is kept for a long-lived map (FASTSLAM), where forgetting lets
+a feature be un-confirmed when the evidence changes; a front-end whose map restarts every local
+map has nothing to forget within BB's 10 s, and HYBRID builds it with
+:data:`LOCAL_MAP_MAX_EXISTENCE` (1 - 1e-9, the float guard; BB gives no clip, and the EKF
+front-end of EKF sub-mapping has none).
+
 Correspondences (BB 3.1) are voted per observation, with the weights after that observation
 (:func:`filters.conversion.vote_all`); all features modified or created by the
 observation get the winner's id (a new id from the shared :class:`filters.types.FeatureIds` when
@@ -157,6 +168,10 @@ logger = logging.getLogger(__name__)
 
 GATE_CHI2_999 = 13.815510557964274
 """chi2.ppf(0.999, 2): default validation gate (2-dof, 99.9 %)."""
+LOCAL_MAP_MAX_EXISTENCE = 0.999999999
+"""``max_existence`` of a front-end whose map restarts with every local map (HYBRID, via
+:func:`slam_gym.systems.make_system`): the clip is then only the guard that keeps a feature
+un-confirmable in floating point, not a memory limit (module doc, "Existence")."""
 BB_LANDMARK_DENSITY = 35.0 / (120.0 * 120.0)
 """BB 5.2: 35 landmarks over 120 m x 120 m; the default density of not-yet-mapped landmarks."""
 _TWO_PI = 2.0 * np.pi

@@ -146,8 +146,9 @@ def make_system(
         stray = sorted(k for k in options if not k.startswith(("front_", "back_")))
         require(not stray, "options", stray, "prefixed front_ or back_ for sub-map systems")
         if name == "hybrid":
-            from filters.fastslam import FastSLAM2
+            from filters.fastslam import LOCAL_MAP_MAX_EXISTENCE, FastSLAM2
 
+            front_options.setdefault("max_existence", LOCAL_MAP_MAX_EXISTENCE)
             front = FastSLAM2(
                 sensor, clutter, noise, rng, ids, n_particles=n_particles, **front_options
             )

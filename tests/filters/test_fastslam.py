@@ -10,7 +10,7 @@ from scipy.stats import chi2
 
 from filters import fastslam_kernel as kernel
 from filters.conversion import CLUTTER_VOTE, NEW_VOTE, pose_moments
-from filters.fastslam import FastSLAM2
+from filters.fastslam import LOCAL_MAP_MAX_EXISTENCE, FastSLAM2
 from filters.geometry import wrap_angle
 from filters.models import (
     ClutterModel,
@@ -614,3 +614,32 @@ def test_lineage_correction_only_adds_uncertainty_and_restarts_with_the_local_ma
     assert np.linalg.matrix_rank(spread, hermitian=True) == 2
     np.testing.assert_allclose(with_term.pose()[1], spread * (1 + 2 / 199) * 199 / 196,
                                rtol=1e-9)
+
+
+@pytest.mark.parametrize("max_existence", [0.999, LOCAL_MAP_MAX_EXISTENCE])
+def test_existence_clip_is_a_memory_limit_and_the_front_end_guard_still_decays(max_existence):
+    """A landmark detected in 20 steps at alpha = 0.1 (Victoria Park's per-step rate), then in
+    view but missed: at the 0.999 clip it is un-confirmed after about 36 misses (evidence of the
+    20 detections forgotten); at the front-end's float guard it stays confirmed for 100 misses,
+    and it is still un-confirmable: enough misses take it below 0.95."""
+    sensor = RangeBearingSensor()
+    clutter = ClutterModel(alpha=0.1, beta=0.01)
+    f = FastSLAM2(sensor, clutter, ProportionalVelocityNoise(0.0, 0.0, 1e-4, 1e-4),
+                  np.random.default_rng(4), n_particles=20, max_existence=max_existence)
+    landmark = np.array([[8.0, 2.0]])
+    for _ in range(20):
+        f.predict([0.0, 0.0], 0.1)
+        f.update(observe(f.pose()[0], landmark))
+    assert f.existence[f.active].min() > 0.95
+    misses_to_unconfirm = None
+    for k in range(1, 2001):
+        f.predict([0.0, 0.0], 0.1)
+        f.update(np.zeros((0, 2)))
+        if f.landmarks().existence.max(initial=0.0) < 0.95:
+            misses_to_unconfirm = k
+            break
+    assert misses_to_unconfirm is not None  # never stuck at 1
+    if max_existence == 0.999:
+        assert 30 <= misses_to_unconfirm <= 45
+    else:
+        assert misses_to_unconfirm > 100

@@ -433,7 +433,7 @@ class _OriginStartEnv(HybridSLAMEnv):
         )
 
 
-def _env_and_reference(system_name, **config):
+def _env_and_reference(system_name, system_options=None, **config):
     """An env episode's stream and a system built exactly as the env builds its own."""
     from slam_gym.episode import Episode
     from slam_gym.systems import make_system
@@ -441,7 +441,7 @@ def _env_and_reference(system_name, **config):
     env = _OriginStartEnv(**config)
     env.reset(seed=3, options={"world_seed": 5})
     system = make_system(system_name, env.stream, np.random.default_rng(env.filter_seed),
-                         n_particles=env.config.n_particles)
+                         n_particles=env.config.n_particles, **(system_options or {}))
     return env, Episode(system, env.stream)
 
 
@@ -467,7 +467,13 @@ def test_env_fusing_every_10_s_reproduces_hybrid_bit_for_bit():
 
 
 def test_env_never_fusing_reproduces_pure_fastslam():
-    env, reference = _env_and_reference("fastslam", clutter_level=0, n_particles=100, n_steps=300)
+    """HYBRID never fusing is FASTSLAM with the front-end's existence clip (the float guard,
+    filters.fastslam.LOCAL_MAP_MAX_EXISTENCE; FASTSLAM's own default is 0.999)."""
+    from filters.fastslam import LOCAL_MAP_MAX_EXISTENCE
+
+    env, reference = _env_and_reference(
+        "fastslam", {"max_existence": LOCAL_MAP_MAX_EXISTENCE},
+        clutter_level=0, n_particles=100, n_steps=300)
     _play(env, reference, fuse_every_iterations=0)
     assert env.episode.n_fusions == 0
     mine, theirs = env.system.pose(), reference.system.pose()

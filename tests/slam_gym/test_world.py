@@ -395,3 +395,19 @@ def test_true_views_of_pose_blocks_equal_the_views_pose_by_pose():
         assert z_true.tobytes() == expected.tobytes()
         assert np.array_equal(visible, np.flatnonzero(sensor.in_view(expected)))
     assert [len(z) for z, _ in _true_views(poses[:3], np.zeros((0, 2)), sensor)] == [0, 0, 0]
+
+
+def test_hybrid_front_end_keeps_its_evidence_and_fastslam_forgets():
+    """HYBRID's front-end restarts with every local map, so it is built with the float guard
+    as its existence clip (filters.fastslam module doc); FASTSLAM's long-lived map keeps 0.999;
+    an explicit option still wins."""
+    from filters.fastslam import LOCAL_MAP_MAX_EXISTENCE
+    from slam_gym.systems import make_system
+
+    stream = make_stream("brooks-bailey", seed=0, n_steps=5)
+    rng = np.random.default_rng(0)
+    hybrid = make_system("hybrid", stream, rng, n_particles=5)
+    assert hybrid.front_end.max_existence == LOCAL_MAP_MAX_EXISTENCE
+    assert make_system("fastslam", stream, rng, n_particles=5).estimator.max_existence == 0.999
+    chosen = make_system("hybrid", stream, rng, n_particles=5, front_max_existence=0.99)
+    assert chosen.front_end.max_existence == 0.99
