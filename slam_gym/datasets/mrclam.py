@@ -90,11 +90,16 @@ The models then estimated on the (corrected) calibration part:
   ranges; fov = twice the 99.5 % quantile of |bearing| (the camera sees about +-0.6 rad).
 * **Odometry noise** (:func:`estimate_odometry_noise`): a :class:`ProportionalVelocityNoise`
   (BB 5.2 form, std = hypot(fraction |u|, floor)). The true (v, omega) over windows of
-  ``odometry_window_s`` (default 1 s) come from the differentiated ground truth; the error of the
-  window means is converted to a per-step std by the white-noise rule (variance x window / dt) —
-  i.e. the per-step noise that reproduces the dead-reckoning error growth over one window (the
-  errors are correlated in time, so the per-step errors themselves are smaller but the growth
-  larger; differentiating the motion capture over 0.1 s would also add ~1 cm/s of noise). The
+  ``odometry_window_s`` come from the differentiated ground truth (summed over 0.1 s parts of
+  each window, :func:`true_velocities`); the error of the window means is converted to a
+  per-step std by the white-noise rule (variance x window / dt) — i.e. the per-step noise that
+  reproduces the dead-reckoning error growth over one window. The errors are correlated over
+  seconds, so that noise grows with the window until the window outlasts the correlation (on
+  Dataset 7 the speed's, at v = 0.1 m/s: 0.015-0.021 m/s over 1 s, 0.024-0.035 m/s over 10 s,
+  0.029-0.038 m/s over 20-30 s; ``scripts/mrclam_odometry_windows.py``). The default window is
+  BB's local-map length, 10 s (:data:`DEFAULT_ODOMETRY_WINDOW_S`): the span over which a
+  front-end integrates the odometry between fusions, so a local map's odometry covariance is
+  not under-stated (the earlier 1 s window gave 57-68 % of the 10 s std for the speed). The
   fractions and floors are fitted by non-negative least squares to the squared errors; floors
   are at least 1e-3 so the covariance stays regular at rest.
 * **Clutter** (:func:`estimate_detection_rates`, over the calibration part's steps): alpha =
@@ -135,7 +140,13 @@ logger = logging.getLogger(__name__)
 
 ROBOT_SUBJECTS = (1, 2, 3, 4, 5)
 DEFAULT_DT_S = 0.1
-DEFAULT_ODOMETRY_WINDOW_S = 1.0
+DEFAULT_ODOMETRY_WINDOW_S = 10.0
+"""Window (s) of the odometry-noise fit: BB's local-map length, the span over which a front-end
+integrates the odometry between fusions (module doc, "Odometry noise")."""
+MIN_ODOMETRY_WINDOWS = 4
+"""Fewest windows the odometry-noise fit takes (:func:`estimate_odometry_noise`)."""
+ODOMETRY_CORRECTION_WINDOW_S = 1.0
+"""Window (s) of the odometry delay and gain fit (:func:`estimate_odometry_correction`)."""
 DEFAULT_OUTLIER_GATE_PROBABILITY = 0.9999
 FIELD_QUANTILE = 0.995
 MIN_ODOMETRY_FLOOR = 1e-3
@@ -404,13 +415,25 @@ class OdometryNoiseEstimate:
         )
 
 
-def true_velocities(row_t, poses, grid_t) -> np.ndarray:
+def true_velocities(row_t, poses, grid_t, sub_steps: int = 1) -> np.ndarray:
     """Mean true (v, omega) (M, 2) over each interval of ``grid_t`` (M + 1,) from a pose track.
 
     omega = wrapped heading change / interval; v = arc length / interval, the arc being the
     chord projected on the mid heading divided by sinc(dtheta / 2) (exact for a constant turn
-    rate, the unicycle of :func:`filters.models.motion`).
+    rate, the unicycle of :func:`filters.models.motion`). With ``sub_steps`` = k > 1 each
+    interval is cut into k equal parts and the parts' arcs and heading changes are summed: over
+    windows of several seconds the turn rate is not constant and the heading may change by more
+    than pi, so one arc per window would take the chord for the path (on MRCLAM a 10 s window
+    read that way shows up to twice the speed error there is).
     """
+    check_range("sub_steps", sub_steps, 1, 1e6)
+    require(int(sub_steps) == sub_steps, "sub_steps", sub_steps, "a whole number")
+    if sub_steps > 1:
+        grid_t = np.asarray(grid_t, dtype=float)
+        parts = np.linspace(0.0, 1.0, int(sub_steps) + 1)[:-1]
+        fine = np.append((grid_t[:-1, None] + np.diff(grid_t)[:, None] * parts).ravel(),
+                         grid_t[-1])
+        return true_velocities(row_t, poses, fine).reshape(-1, int(sub_steps), 2).mean(axis=1)
     p = interpolate_poses(row_t, poses, grid_t)
     dt = np.diff(np.asarray(grid_t, dtype=float))
     dtheta = wrap_angle(np.diff(p[:, 2]))
@@ -418,6 +441,21 @@ def true_velocities(row_t, poses, grid_t) -> np.ndarray:
     chord = np.diff(p[:, 0]) * np.cos(mid) + np.diff(p[:, 1]) * np.sin(mid)
     arc = chord / np.sinc(0.5 * dtheta / np.pi)
     return np.column_stack([arc / dt, dtheta / dt])
+
+
+def odometry_window_fitting(window_s: float, span_s: float, dt_s: float) -> float:
+    """``window_s``, shortened (to a whole number of steps, at least one) if the calibration part
+    of ``span_s`` seconds holds fewer than :data:`MIN_ODOMETRY_WINDOWS` such windows; a
+    shortened window is logged, since a shorter window under-states correlated errors (module
+    doc, "Odometry noise")."""
+    if span_s >= MIN_ODOMETRY_WINDOWS * window_s:
+        return float(window_s)
+    steps = max(1, int(np.floor(span_s / MIN_ODOMETRY_WINDOWS / dt_s + 1e-9)))
+    shorter = round(steps * dt_s, 9)
+    logger.warning("calibration part of %.1f s holds fewer than %d odometry windows of %g s: "
+                   "odometry noise fitted over %g s windows", span_s, MIN_ODOMETRY_WINDOWS,
+                   window_s, shorter)
+    return float(shorter)
 
 
 def estimate_odometry_noise(
@@ -445,10 +483,12 @@ def estimate_odometry_noise(
     odometry_rows = np.asarray(odometry_rows, dtype=float)
     groundtruth_rows = np.asarray(groundtruth_rows, dtype=float)
     n = int(np.floor((t_end - t_start) / window_s + 1e-9))
-    require(n >= 4, "t_end", t_end, f"at least 4 windows of {window_s} s after t_start={t_start}")
+    require(n >= MIN_ODOMETRY_WINDOWS, "t_end", t_end,
+            f"at least {MIN_ODOMETRY_WINDOWS} windows of {window_s} s after t_start={t_start}")
     grid = t_start + window_s * np.arange(n + 1)
     measured = hold_average(odometry_rows[:, 0], odometry_rows[:, 1:3], grid)
-    truth = true_velocities(groundtruth_rows[:, 0], groundtruth_rows[:, 1:4], grid)
+    truth = true_velocities(groundtruth_rows[:, 0], groundtruth_rows[:, 1:4], grid,
+                            sub_steps=max(1, round(window_s / dt_s)))
     ok = np.all(np.isfinite(truth), axis=1)
     require(int(ok.sum()) >= 4, "groundtruth_rows", "too short", "covering at least 4 windows")
     u, err = measured[ok], measured[ok] - truth[ok]
@@ -499,7 +539,7 @@ class OdometryCorrection:
 
 def estimate_odometry_correction(
     odometry_rows, groundtruth_rows, t_start: float, t_end: float, *,
-    window_s: float = DEFAULT_ODOMETRY_WINDOW_S, max_delay_s: float = MAX_DELAY_S,
+    window_s: float = ODOMETRY_CORRECTION_WINDOW_S, max_delay_s: float = MAX_DELAY_S,
     delay_step_s: float = DELAY_STEP_S,
 ) -> OdometryCorrection:
     """Delay and gains of the odometry against the ground truth over [t_start, t_end].
@@ -912,13 +952,15 @@ def _calibrate(
             max_range_m=est_range if max_range_m is None else max_range_m,
             fov_rad=est_fov if fov_rad is None else fov_rad,
         )
+    odometry_end = min(lay.t0 + lay.rel_t[-1], cal_end)
+    window_s = odometry_window_fitting(odometry_window_s, odometry_end - lay.t0, dt_s)
     odometry = estimate_odometry_noise(
         rec.odometry,
         rec.groundtruth,
         lay.t0,
-        min(lay.t0 + lay.rel_t[-1], cal_end),
+        odometry_end,
         dt_s=dt_s,
-        window_s=odometry_window_s,
+        window_s=window_s,
     )
     n_cal = int(np.searchsorted(lay.t0 + lay.rel_t[1:], cal_end, side="right"))
     n_cal = max(n_cal, 1)
