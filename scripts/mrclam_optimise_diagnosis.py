@@ -16,7 +16,8 @@ once at the end and reports:
   ones and by the wrong associations;
 * the map error of the optimum with the plain cost and with a robust kernel
   (:mod:`filters.optimiser`, ``robust=``), and with the wrong associations removed (an oracle,
-  for the diagnosis only).
+  for the diagnosis only: each wrongly associated local feature marginalised out of its sub-map
+  unless it is its global feature's only measurement; ``oracle_dropped`` counts them).
 
 Usage: ``python scripts/mrclam_optimise_diagnosis.py DATA_DIR [--robots 1,2,3,4,5]
 [--system hybrid] [--particles 200] [--seed 0] [--max-steps N]``.
@@ -161,17 +162,52 @@ def analyse(episode, stream, true_poses, local_truth, kernels):
     report["map_error_never"] = episode.map_score().map_error_m
     for name, opts in kernels.items():
         report[f"map_error_{name}"] = map_error_after(episode, opts)
+    oracle, dropped = without_wrong_associations(system.submaps, rows)
+    report["oracle_dropped"] = dropped
+    report["map_error_oracle"] = map_error_after(episode, {"robust": None}, submaps=oracle)
     return report, rows
 
 
-def map_error_after(episode, opts):
-    """Map error after one optimise() with ``opts`` on a copy of the back-end's estimate."""
+def without_wrong_associations(submaps, rows):
+    """The stored sub-maps with each wrongly associated local feature marginalised out (its rows
+    and columns dropped from the sub-map's Gaussian, its entry from ``id_map``), except where it
+    is its global feature's only measurement (the optimiser needs one for every global feature).
+    Returns (sub-maps, number of local features dropped). An oracle: it uses the truth."""
+    wrong = {(r[0], r[2]) for r in rows if r[4]}
+    correct_count = Counter()
+    for s, sub in enumerate(submaps):
+        for lid, gid in sub.id_map.items():
+            if (s, lid) not in wrong:
+                correct_count[gid] += 1
+    out, dropped = [], 0
+    for s, sub in enumerate(submaps):
+        g = sub.gaussian
+        ids = np.asarray(g.ids, dtype=np.int64)
+        keep = [k for k, lid in enumerate(ids)
+                if (s, int(lid)) not in wrong or correct_count[sub.id_map[int(lid)]] == 0]
+        dropped += len(ids) - len(keep)
+        cols = np.r_[0:3, [3 + 2 * k + j for k in keep for j in (0, 1)]].astype(np.int64)
+        gaussian = dataclasses.replace(
+            g, x=np.asarray(g.x)[cols], P=np.asarray(g.P)[np.ix_(cols, cols)], ids=ids[keep],
+            existence=np.asarray(g.existence)[keep])
+        out.append(dataclasses.replace(
+            sub, gaussian=gaussian, id_map={int(ids[k]): sub.id_map[int(ids[k])] for k in keep}))
+    return out, dropped
+
+
+def map_error_after(episode, opts, submaps=None):
+    """Map error after one optimise() with ``opts`` on a copy of the back-end's estimate (over
+    ``submaps`` instead of the stored ones if given)."""
+    estimator = episode.system.estimator
     back = episode.system.back_end
-    saved = (np.array(back.x), np.array(back.P))
-    episode.system.estimator.optimise(**opts)
-    err = episode.map_score().map_error_m
-    back.x, back.P = saved
-    return err
+    saved = (np.array(back.x), np.array(back.P), estimator.submaps)
+    if submaps is not None:
+        estimator.submaps = submaps
+    try:
+        estimator.optimise(**opts)
+        return episode.map_score().map_error_m
+    finally:
+        back.x, back.P, estimator.submaps = saved
 
 
 def main(argv=None) -> int:
