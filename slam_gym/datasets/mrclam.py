@@ -490,7 +490,8 @@ def estimate_odometry_noise(
     truth = true_velocities(groundtruth_rows[:, 0], groundtruth_rows[:, 1:4], grid,
                             sub_steps=max(1, round(window_s / dt_s)))
     ok = np.all(np.isfinite(truth), axis=1)
-    require(int(ok.sum()) >= 4, "groundtruth_rows", "too short", "covering at least 4 windows")
+    require(int(ok.sum()) >= MIN_ODOMETRY_WINDOWS, "groundtruth_rows", "too short",
+            f"covering at least {MIN_ODOMETRY_WINDOWS} windows")
     u, err = measured[ok], measured[ok] - truth[ok]
     steps_per_window = window_s / dt_s
     fractions, floors = [], []
