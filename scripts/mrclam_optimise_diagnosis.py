@@ -35,7 +35,14 @@ from collections import Counter, defaultdict
 
 import numpy as np
 
-from filters.geometry import point_to_frame, relative, wrap_angle
+from filters.fastslam import GATE_CHI2_999
+from filters.geometry import (
+    point_to_frame,
+    relative,
+    transform_point,
+    transform_point_jacobians,
+    wrap_angle,
+)
 from filters.submap_optimise import build_submap_problem, floored_covariance
 from slam_gym.envs.mrclam import mrclam_stream
 from slam_gym.episode import Episode
@@ -45,7 +52,6 @@ from slam_gym.systems import make_system
 logger = logging.getLogger(__name__)
 
 FUSION_INTERVAL_STEPS = 100  # 10 s at 0.1 s steps (BB)
-REASSOCIATION_GATE = 13.815510557964274  # chi2.ppf(0.999, 2), the fusion's gate
 REASSOCIATION_MARGIN = 2.0 * np.log(100.0)  # a move needs 100:1 likelihood odds
 REASSOCIATION_ROUNDS = 2
 
@@ -199,18 +205,17 @@ def reassociated(submaps, back, margin):
     for sub in submaps:
         x, P = np.asarray(sub.gaussian.x), np.asarray(sub.gaussian.P)
         origin = res.means[sp.pose_entity[sub.origin_index]]
-        c, s = np.cos(origin[2]), np.sin(origin[2])
-        R = np.array([[c, -s], [s, c]])
+        R = transform_point_jacobians(origin, np.zeros(2))[1]
         id_map = dict(sub.id_map)
         for k, lid in enumerate(np.asarray(sub.gaussian.ids, dtype=np.int64)):
             block = slice(3 + 2 * k, 5 + 2 * k)
-            d = global_xy - (origin[:2] + R @ x[block])
+            d = global_xy - transform_point(origin, x[block])
             S = global_cov + R @ P[block, block] @ R.T
             d2 = np.einsum("ni,nij,nj->n", d, np.linalg.inv(S), d)
             current = int(id_map[int(lid)])
             best = int(np.argmin(d2))
             d2_current = d2[int(np.searchsorted(gids, current))]
-            if (gids[best] != current and d2[best] < REASSOCIATION_GATE
+            if (gids[best] != current and d2[best] < GATE_CHI2_999
                     and d2[best] < d2_current - margin and count[current] > 1):
                 count[current] -= 1
                 count[int(gids[best])] += 1
