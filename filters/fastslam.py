@@ -149,6 +149,7 @@ from filters.conversion import (
     feature_moments,
     moment_match,
     pose_moments,
+    pose_moments_unchecked,
     vote_all,
 )
 from filters.existence import CONFIRMED_PROBABILITY, validate_existence_model
@@ -179,6 +180,12 @@ _TWO_PI = 2.0 * np.pi
 
 _FEATURE_FIELDS = ("_mx", "_my", "_sxx", "_sxy", "_syy", "_ex", "_active", "_cid")
 _FIELD_FILL = {"_active": False, "_cid": -1}
+
+
+_NO_LINEAGE = np.zeros(0, dtype=np.int64)
+_NO_POSE_COVS = np.zeros((0, 3, 3))
+_NO_LINEAGE.flags.writeable = False
+_NO_POSE_COVS.flags.writeable = False
 
 
 def clutter_share(log_weights, clutter_prob) -> np.ndarray:
@@ -395,8 +402,14 @@ class FastSLAM2:
     @property
     def weights(self) -> np.ndarray:
         """Normalised particle weights (P,)."""
-        w = np.exp(self._logw - self._logw.max())
-        return w / w.sum()
+        return self._weights().copy()
+
+    def _weights(self) -> np.ndarray:
+        """The normalised weights of the current state, computed once per state (read-only)."""
+        if "weights" not in self._outputs:
+            w = np.exp(self._logw - self._logw.max())
+            self._outputs["weights"] = w / w.sum()
+        return self._outputs["weights"]
 
     @property
     def means(self) -> np.ndarray:
@@ -576,7 +589,8 @@ class FastSLAM2:
 
     def _maybe_resample(self):
         """Systematic resampling when N_eff < resample_threshold * P."""
-        w = self.weights
+        w = np.exp(self._logw - self._logw.max())  # the weights (not cached: logw changes here)
+        w /= w.sum()
         n_eff = 1.0 / np.sum(w * w)
         self._ess_ratio = float(n_eff / self.n_particles)
         if n_eff >= self.resample_threshold * self.n_particles:
@@ -593,6 +607,7 @@ class FastSLAM2:
         self._count = self._count[idx]
         self._lineage = self._lineage[idx]
         self._logw = np.zeros(P)
+        self._outputs = {}
 
     # ------------------------------------------------------------------ outputs
     def _pose_covs(self):
@@ -609,9 +624,12 @@ class FastSLAM2:
         ``lineage_correction`` / ``small_sample_correction`` is False)."""
         key = ("pose", self.lineage_correction, self.small_sample_correction)  # flags may change
         if key not in self._outputs:
-            self._outputs[key] = pose_moments(
-                self._poses, self.weights, self._pose_covs(), self._lineages(),
-                small_sample=self.small_sample_correction,
+            # the compiled moments straight away: the filter's own arrays need no validation
+            # (lineages are ancestor indices in [0, P)); pose_moments checks external input
+            lineage = self._lineage if self.lineage_correction else _NO_LINEAGE
+            self._outputs[key] = pose_moments_unchecked(
+                self._poses, self._weights(), self._prop_cov if self._pending else _NO_POSE_COVS,
+                lineage, len(lineage), self.small_sample_correction,
             )
         mean, cov = self._outputs[key]
         return mean.copy(), cov.copy()
@@ -672,7 +690,7 @@ class FastSLAM2:
         those of the cloud (BB (7)), without the lineage term of :meth:`pose`.
         """
         common = self._common()
-        _, cov = pose_moments(self._poses, self.weights, self._pose_covs())  # the cloud itself
+        _, cov = pose_moments(self._poses, self._weights(), self._pose_covs())  # the cloud itself
         n_features = len(common)
         return {
             "local_map_age_s": float(self._age_s),

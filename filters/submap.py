@@ -43,7 +43,7 @@ from filters.back_ends import (
     transform_points_jacobians,
 )
 from filters.existence import CONFIRMED_PROBABILITY
-from filters.geometry import compose, compose_jacobians, transform_point, wrap_angle
+from filters.geometry import transform_point, wrap_angle
 from filters.interface_features import INTERFACE_FEATURE_NAMES
 from filters.models import observe
 from filters.optimiser import ROBUST_KERNELS
@@ -183,10 +183,9 @@ class SubmapSLAM:
         if self._composed is None:
             v, P_v = self.back_end.origin()
             xl, Pl = self.front_end.pose()
-            J_a, J_b = compose_jacobians(v, xl)
-            cov = J_a @ P_v @ J_a.T + J_b @ Pl @ J_b.T
-            self._composed = (compose(v, xl), 0.5 * (cov + cov.T), J_a)
-        return tuple(a.copy() for a in self._composed)
+            self._composed = _compose_with_covariance(v, P_v, xl, Pl)
+        mean, cov, J_a = self._composed
+        return mean.copy(), cov.copy(), J_a.copy()
 
     def pose(self):
         """``v- (+) x_v^L`` with covariance ``J_a P_v- J_a^T + J_b P_L J_b^T`` (BB Fig. 3)."""
@@ -319,6 +318,25 @@ class SubmapSLAM:
         missing = [k for k in INTERFACE_FEATURE_NAMES if k not in out]
         require(not missing, "front_end.local_statistics()", sorted(out), f"to include {missing}")
         return {k: float(out[k]) for k in INTERFACE_FEATURE_NAMES}
+
+
+@njit(cache=True)
+def _compose_with_covariance(v, P_v, xl, Pl):
+    """``(v (+) xl, J_a P_v J_a^T + J_b Pl J_b^T, J_a)`` (BB Fig. 3; the covariance symmetrised):
+    :func:`filters.geometry.compose` and :func:`filters.geometry.compose_jacobians` written out
+    for one pair of poses, compiled because the system composes at every iteration."""
+    c, s = np.cos(v[2]), np.sin(v[2])
+    mean = np.empty(3)
+    mean[0] = v[0] + c * xl[0] - s * xl[1]
+    mean[1] = v[1] + s * xl[0] + c * xl[1]
+    mean[2] = (v[2] + xl[2] + np.pi) % (2.0 * np.pi) - np.pi
+    J_a = np.eye(3)
+    J_a[0, 2] = -s * xl[0] - c * xl[1]
+    J_a[1, 2] = c * xl[0] - s * xl[1]
+    J_b = np.zeros((3, 3))
+    J_b[0, 0], J_b[0, 1], J_b[1, 0], J_b[1, 1], J_b[2, 2] = c, -s, s, c, 1.0
+    cov = J_a @ P_v @ J_a.T + J_b @ Pl @ J_b.T
+    return mean, 0.5 * (cov + cov.T), J_a
 
 
 @njit(cache=True)
