@@ -232,7 +232,8 @@ class RelativeProblem:
     gauge : index of the pose held fixed at ``gauge_pose``.
     """
 
-    def __init__(self, entity_kinds, quantities, eta, Lambda, *, gauge=0, gauge_pose=None):
+    def __init__(self, entity_kinds, quantities, eta, Lambda, *, gauge=0, gauge_pose=None,
+                 _r_hat=None):
         kinds = list(entity_kinds)
         require(len(kinds) > 0, "entity_kinds", entity_kinds, "a non-empty sequence")
         bad = [k for k in kinds if k not in ENTITY_KINDS]
@@ -305,11 +306,13 @@ class RelativeProblem:
         self._af, self._at = fr[has_ang], tg[has_ang]
         self._ra = np.where(kind_arr[has_ang] == POSE, starts[has_ang] + 2, starts[has_ang])
 
-        try:
-            self._lambda_factor = sparse_spd_factor(self.Lambda)
-            self.r_hat = self._lambda_factor.solve(self.eta)
-        except RuntimeError as exc:  # singular factor
-            raise ValueError(f"Lambda is invalid: must be positive definite ({exc})") from exc
+        if _r_hat is not None:  # from_constraints: Lambda^-1 eta is the stacked means
+            self.r_hat = np.asarray(_r_hat, dtype=float)
+        else:
+            try:
+                self.r_hat = sparse_spd_factor(self.Lambda).solve(self.eta)
+            except RuntimeError as exc:  # singular factor
+                raise ValueError(f"Lambda is invalid: must be positive definite ({exc})") from exc
         require(
             bool(np.all(np.isfinite(self.r_hat))),
             "Lambda",
@@ -321,9 +324,13 @@ class RelativeProblem:
     # ----------------------------------------------------------------- construction helpers
     @classmethod
     def from_constraints(cls, entity_kinds, constraints, *, gauge=0, gauge_pose=None):
-        """Stack independent :class:`GaussianConstraint` s into one block-diagonal problem."""
+        """Stack independent :class:`GaussianConstraint` s into one block-diagonal problem.
+
+        Each information matrix must be positive definite (checked by its Cholesky factor); the
+        stacked ``Lambda^-1 eta`` is then the stacked means, so no factorisation of the whole
+        ``Lambda`` is needed."""
         require(len(constraints) > 0, "constraints", constraints, "a non-empty sequence")
-        quantities, etas, blocks = [], [], []
+        quantities, etas, blocks, means = [], [], [], []
         for c in constraints:
             qs = [
                 q if isinstance(q, RelativeQuantity) else RelativeQuantity(*q) for q in c.quantities
@@ -333,9 +340,16 @@ class RelativeProblem:
             L = np.asarray(c.information, dtype=float)
             require(m.shape == (d,), "constraints.mean", m.shape, f"a vector of length {d}")
             require(L.shape == (d, d), "constraints.information", L.shape, f"a ({d}, {d}) matrix")
+            L = 0.5 * (L + L.T)
+            try:
+                np.linalg.cholesky(L)
+            except np.linalg.LinAlgError as exc:
+                raise ValueError("constraints.information is invalid: must be positive "
+                                 f"definite ({exc})") from exc
             quantities.extend(qs)
             etas.append(L @ m)
-            blocks.append(sp.csc_matrix(0.5 * (L + L.T)))
+            blocks.append(L)
+            means.append(m)
         problem = cls(
             entity_kinds,
             quantities,
@@ -343,8 +357,9 @@ class RelativeProblem:
             sp.block_diag(blocks, format="csc"),
             gauge=gauge,
             gauge_pose=gauge_pose,
+            _r_hat=np.concatenate(means),
         )
-        problem._constraint_information = [b.toarray() for b in blocks]
+        problem._constraint_information = blocks
         return problem
 
     # ----------------------------------------------------------------- robust kernels
@@ -473,15 +488,27 @@ class RelativeProblem:
         out[~self._is_pose, 2] = np.nan
         return out
 
-    def initial_guess(self) -> np.ndarray:
-        """``tau`` from composing ``r_hat`` along a breadth-first spanning tree from the gauge."""
+    def initial_guess(self, known=None) -> np.ndarray:
+        """``tau`` from composing ``r_hat`` along a breadth-first spanning tree from the gauge.
+
+        ``known`` (optional) maps entities to coordinates to start from instead (a warm start:
+        e.g. the previous optimum of a problem this one extends; a pose (3,), a point (2,)); the
+        other entities are composed from their parents in the tree as usual."""
         n = len(self.entity_kinds)
         poses = np.zeros((n, 3))
         poses[self.gauge] = self.gauge_pose
+        known = {} if known is None else known
         starts = np.concatenate([[0], np.cumsum([q.dim for q in self.quantities])])
         tree = self._spanning_order()  # insertion order: parents before children
         for e in tree:
             i, direction = tree[e]
+            if e in known and e != self.gauge:
+                value = np.asarray(known[e], dtype=float)
+                dim = 3 if self._is_pose[e] else 2
+                require(value.shape == (dim,) and bool(np.all(np.isfinite(value))),
+                        f"known[{e}]", value, f"finite coordinates of shape ({dim},)")
+                poses[e, :dim] = value
+                continue
             if i < 0:
                 continue
             q = self.quantities[i]

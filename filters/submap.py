@@ -26,7 +26,7 @@ noise), which makes the composed heading covariance conservative by up to ``P_v-
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit
@@ -80,6 +80,9 @@ class StoredSubmap:
     origin_index: int
     end_index: int
     time_s: float
+    cache: dict = field(default_factory=dict, repr=False, compare=False)
+    """What the optimiser derives from the sub-map (its information ``P^-1``, the global ids of
+    its features), computed once: a stored sub-map never changes."""
 
 
 class SubmapSLAM:
@@ -146,6 +149,7 @@ class SubmapSLAM:
         self._fusions_since_optimise = 0
         self._closures_since_optimise = 0
         self._composed = None  # the composed pose of the current state (_compose_with_origin)
+        self.last_optimum = None  # the OptimiseResult applied last (filters.submap_optimise)
         self.start_interval()
 
     # ------------------------------------------------------------------ filter interface

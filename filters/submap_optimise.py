@@ -46,15 +46,13 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
 from filters.esdf import sparse_spd_factor, symmetrise
-from filters.geometry import (
-    wrap_angle,
-)
+from filters.geometry import compose, transform_point, wrap_angle
 from filters.optimiser import (
     METHODS,
     POINT,
@@ -64,6 +62,7 @@ from filters.optimiser import (
     RelativeProblem,
     RelativeQuantity,
 )
+from filters.submap_gauss_newton import gauss_newton, submap_arrays
 from filters.validation import check_range, require
 
 logger = logging.getLogger(__name__)
@@ -137,6 +136,34 @@ class SubmapProblem:
         return self.problem.weighted_residual_cost(tau)
 
 
+def _information_of(submap, min_variance):
+    """``P^-1`` of a stored sub-map, kept in its ``cache`` when it has one."""
+    cache = getattr(submap, "cache", None)
+    if cache is None:
+        return gaussian_information(submap.gaussian.P, min_variance)
+    key = ("information", min_variance)
+    if key not in cache:
+        cache[key] = gaussian_information(submap.gaussian.P, min_variance)
+    return cache[key]
+
+
+def _global_ids_of(submap, n: int) -> np.ndarray:
+    """The global id of each local feature of stored sub-map number ``n``, in the order of its
+    mean (cached like :func:`_information_of`)."""
+    cache = getattr(submap, "cache", None)
+    if cache is not None and "global_ids" in cache:
+        return cache["global_ids"]
+    gids = []
+    for lid in np.asarray(submap.gaussian.ids, dtype=np.int64):
+        gid = submap.id_map.get(int(lid))
+        require(gid is not None, f"submaps[{n}].id_map", int(lid), "to map every local id")
+        gids.append(int(gid))
+    out = np.array(gids, dtype=np.int64)
+    if cache is not None:
+        cache["global_ids"] = out
+    return out
+
+
 def build_submap_problem(
     submaps,
     initial_pose,
@@ -193,9 +220,7 @@ def build_submap_problem(
             qs.append(RelativeQuantity(POINT, int(pose_entity[o]), ent))
         x = np.asarray(g.x, dtype=float).copy()
         x[2] = wrap_angle(x[2])
-        constraints.append(
-            GaussianConstraint(tuple(qs), x, gaussian_information(g.P, min_variance))
-        )
+        constraints.append(GaussianConstraint(tuple(qs), x, _information_of(s, min_variance)))
     problem = RelativeProblem.from_constraints(
         kinds, constraints, gauge=0, gauge_pose=np.zeros(3) if world else x0
     )
@@ -254,6 +279,15 @@ class OptimiseResult:
     ids: np.ndarray
     optimiser: OptimiserResult | None = None
     problem: SubmapProblem | None = None
+    redundant: bool = False
+    """Nothing was fused since the optimum applied last (or nothing was ever fused): the call
+    changed nothing and returned that optimum at once."""
+    settings: tuple = ()
+    """What the optimum depends on besides the sub-maps (method, options, gauge): a later call
+    with other settings is not redundant."""
+    warm_start: dict | None = field(default=None, repr=False)
+    """The optimum's fusion poses (``"poses"``, (S + 1, 3)) and features (``"features"``, by
+    global id): where the next optimisation with the same settings starts."""
 
     @property
     def optimiser_time_s(self) -> float:
@@ -274,6 +308,113 @@ def _initial_pose_of(back_end, initial_pose, initial_pose_cov):
     return np.asarray(initial_pose, dtype=float), initial_pose_cov
 
 
+SOLVERS = ("compiled", "general")
+"""``optimise_submaps(solver=...)``: see its docstring."""
+
+
+def _chain_guess(arrays, x0, known_poses, known_points):
+    """Poses and points composed along the sub-maps from ``x0`` (the general optimiser's
+    :meth:`~filters.optimiser.RelativeProblem.initial_guess`: each pose from its sub-map's origin,
+    each feature from the first sub-map holding it), except where known (a warm start)."""
+    poses = np.full((arrays.n_poses, 3), np.nan)
+    poses[0] = x0
+    for k, pose in known_poses.items():
+        if 0 < k < arrays.n_poses:
+            poses[k] = pose
+    for k in range(len(arrays.origin)):  # origin before end: the chain in order
+        e = arrays.end[k]
+        if np.isnan(poses[e, 0]):
+            r = arrays.means[arrays.mean_start[k]:arrays.mean_start[k] + 3]
+            poses[e] = compose(poses[arrays.origin[k]], r)
+            poses[e, 2] = poses[arrays.origin[k], 2] + r[2]
+    points = np.full((arrays.n_features, 2), np.nan)
+    for j, point in known_points.items():
+        points[j] = point
+    # the first sub-map holding each feature, and where in its mean the feature is
+    owner = np.repeat(np.arange(len(arrays.origin)), np.diff(arrays.feature_start))
+    offset = (arrays.mean_start[owner] + 3
+              + 2 * (np.arange(len(arrays.features)) - arrays.feature_start[owner]))
+    _, first = np.unique(arrays.features, return_index=True)
+    todo = first[np.isnan(points[arrays.features[first], 0])]
+    if len(todo):
+        r = np.stack([arrays.means[offset[todo]], arrays.means[offset[todo] + 1]], axis=1)
+        points[arrays.features[todo]] = transform_point(poses[arrays.origin[owner[todo]]], r)
+    return poses, points
+
+
+def _optimise_compiled(submap_slam, submaps, x0, previous, settings, min_variance, t0,
+                       max_iterations: int = 200, xtol: float = 1e-10) -> OptimiseResult:
+    """:func:`optimise_submaps` through :mod:`filters.submap_gauss_newton`."""
+    back = submap_slam.back_end
+    n_poses = 1 + max(int(s.end_index) for s in submaps)
+    for n, s in enumerate(submaps):
+        require(0 <= s.origin_index < s.end_index < n_poses, f"submaps[{n}].origin_index",
+                (s.origin_index, s.end_index), "origin_index < end_index, both >= 0")
+    global_ids = [_global_ids_of(s, n) for n, s in enumerate(submaps)]
+    order = dict.fromkeys(np.concatenate(global_ids).tolist())  # first appearance
+    feature_index = {g: j for j, g in enumerate(order)}
+    ids = np.asarray(back.ids, dtype=np.int64)
+    missing = [int(g) for g in ids if int(g) not in feature_index]
+    require(not missing, "back_end.ids", missing[:5],
+            "ids of features that came from fused sub-maps (listed in their id_map)")
+    arrays = submap_arrays(submaps, global_ids, feature_index, n_poses,
+                           [_information_of(s, min_variance) for s in submaps])
+    known_poses, known_points = {}, {}
+    warm = previous.warm_start if previous is not None and previous.settings == settings else None
+    if warm is not None:
+        known_poses = dict(enumerate(warm["poses"]))
+        known_points = {feature_index[g]: p for g, p in warm["features"].items()
+                        if g in feature_index}
+    poses0, points0 = _chain_guess(arrays, x0, known_poses, known_points)
+    res = gauss_newton(arrays, x0, poses0, points0, max_iterations=max_iterations, xtol=xtol)
+    pose_index = n_poses - 1
+    columns = [feature_index[int(g)] for g in ids]
+    x = np.concatenate([res.poses[pose_index], res.points[columns].ravel()])
+    x[2] = wrap_angle(x[2])
+    P = res.covariance(arrays, pose_index, columns)
+    if hasattr(back, "apply_optimum"):
+        back.apply_optimum(pose_index, x, P)
+    else:
+        back.x = x
+        back.P = P
+    submap_slam._optimised()
+    out = OptimiseResult(
+        method="gauss-newton", n_submaps=len(submaps), pose_index=pose_index,
+        iterations=res.iterations, converged=res.converged, time_s=time.perf_counter() - t0,
+        cost=res.cost, initial_cost=res.initial_cost, x=x.copy(), P=P.copy(), ids=ids.copy(),
+        settings=settings,
+        warm_start={"poses": res.poses,
+                    "features": {g: res.points[j] for g, j in feature_index.items()}},
+    )
+    if hasattr(submap_slam, "last_optimum"):
+        submap_slam.last_optimum = out
+    logger.debug("optimise_submaps (compiled): %d sub-maps, %d iterations, cost %.4g -> %.4g, "
+                 "%.4f s", len(submaps), res.iterations, res.initial_cost, res.cost, out.time_s)
+    return out
+
+
+def _warm_start(sp_problem, previous, settings):
+    """Entity -> coordinates of the previous optimum (same settings) for the entities this
+    problem shares with it: every fusion pose and global feature it had. The sub-maps only grow
+    between optimisations, so the previous optimum is the current one's but for the sub-maps
+    fused since; starting there, Gauss-Newton needs a few iterations instead of some twenty from
+    the chain of sub-maps (:meth:`RelativeProblem.initial_guess`)."""
+    if previous is None or previous.settings != settings:
+        return None
+    warm = getattr(previous, "warm_start", None)
+    if warm is None:
+        return None
+    known = {}
+    poses = warm["poses"]
+    for k in range(min(len(poses), sp_problem.n_poses)):
+        known[int(sp_problem.pose_entity[k])] = poses[k]
+    for gid, point in warm["features"].items():
+        entity = sp_problem.feature_entity.get(gid)
+        if entity is not None:
+            known[entity] = point
+    return known
+
+
 def optimise_submaps(
     submap_slam,
     method: str = "gauss-newton",
@@ -281,6 +422,7 @@ def optimise_submaps(
     initial_pose=None,
     initial_pose_cov=None,
     min_variance: float = DEFAULT_MIN_VARIANCE,
+    solver: str = "compiled",
     **options,
 ) -> OptimiseResult:
     """DESIGN 3.10: minimise CM (12) over the stored sub-maps and write the optimum back.
@@ -294,23 +436,50 @@ def optimise_submaps(
     ``initial_pose_cov`` attributes, set by :func:`make_back_end`) unless given. The back-end's
     ``x``/``P`` become the optimum over ``[v-, features]`` and its Gauss-Newton covariance (a
     back-end with ``apply_optimum``, i.e. :class:`RelativeBackEnd`, takes it as its new anchor);
-    ids and existence are kept. Calls ``submap_slam._optimised()`` (book-keeping) in every case;
-    with no fused sub-map nothing else changes.
+    ids and existence are kept. Calls ``submap_slam._optimised()`` (book-keeping).
+
+    ``solver``: ``"compiled"`` (default) runs Gauss-Newton without a robust kernel and with a
+    known initial pose (the env's case) in :mod:`filters.submap_gauss_newton`, the same
+    iteration on flat arrays; every other case, and ``solver="general"``, goes through
+    :class:`filters.optimiser.RelativeProblem` (whose objects ``problem`` / ``optimiser`` the
+    result then carries). Both start from the previous optimum when it had the same settings
+    (a warm start: the sub-maps only grow). A **redundant** call -- no sub-map fused since the
+    optimum applied last with the same settings, or none fused at all -- changes nothing (no
+    book-keeping either) and returns at once with ``redundant=True``.
     """
     require(method in METHODS, "method", method, f"one of {METHODS}")
     t0 = time.perf_counter()
     back = submap_slam.back_end
     submaps = list(submap_slam.submaps)
     x0, P0 = _initial_pose_of(back, initial_pose, initial_pose_cov)
-    if not submaps:
-        submap_slam._optimised()
+    settings = (method, float(min_variance), repr(sorted(options.items())), x0.tobytes(),
+                None if P0 is None else np.asarray(P0, dtype=float).tobytes())
+    previous = getattr(submap_slam, "last_optimum", None)
+    if not submaps or (
+        previous is not None and previous.settings == settings
+        and previous.n_submaps == len(submaps)
+        and getattr(submap_slam, "_fusions_since_optimise", 1) == 0
+    ):  # redundant: the state stays as it is, to the bit (module docstring)
+        if previous is None or not submaps:
+            x, P, ids = back.x, back.P, back.ids
+        else:
+            x, P, ids = previous.x, previous.P, previous.ids
         return OptimiseResult(
-            method, 0, 0, 0, True, time.perf_counter() - t0, 0.0, 0.0,
-            np.asarray(back.x).copy(), np.asarray(back.P).copy(), np.asarray(back.ids).copy(),
+            method, len(submaps), 0 if previous is None else previous.pose_index, 0, True,
+            time.perf_counter() - t0, 0.0 if previous is None else previous.cost,
+            0.0 if previous is None else previous.cost, np.asarray(x).copy(),
+            np.asarray(P).copy(), np.asarray(ids).copy(), redundant=True, settings=settings,
         )
+    require(solver in SOLVERS, "solver", solver, f"one of {SOLVERS}")
+    if (
+        solver == "compiled" and method == "gauss-newton" and options.get("robust") is None
+        and _is_zero(P0) and set(options) <= {"robust", "max_iterations", "xtol"}
+    ):
+        return _optimise_compiled(submap_slam, submaps, x0, previous, settings, min_variance,
+                                  t0, **{k: v for k, v in options.items() if k != "robust"})
     sp_problem = build_submap_problem(submaps, x0, P0, min_variance=min_variance)
     problem = sp_problem.problem
-    tau0 = problem.initial_guess()
+    tau0 = problem.initial_guess(known=_warm_start(sp_problem, previous, settings))
     initial_cost = problem.weighted_residual_cost(tau0)
     res = problem.optimise(method, tau0, **options)
     pose_index = sp_problem.n_poses - 1
@@ -333,6 +502,8 @@ def optimise_submaps(
         back.x = x
         back.P = P
     submap_slam._optimised()
+    warm = {"poses": res.means[sp_problem.pose_entity],
+            "features": {g: res.means[e, :2] for g, e in sp_problem.feature_entity.items()}}
     out = OptimiseResult(
         method=method,
         n_submaps=len(submaps),
@@ -347,7 +518,11 @@ def optimise_submaps(
         ids=ids.copy(),
         optimiser=res,
         problem=sp_problem,
+        settings=settings,
+        warm_start=warm,
     )
+    if hasattr(submap_slam, "last_optimum"):
+        submap_slam.last_optimum = out
     logger.debug(
         "optimise_submaps: %d sub-maps, %s, %d iterations, cost %.4g -> %.4g, %.3f s",
         len(submaps), method, res.iterations, initial_cost, out.cost, out.time_s,

@@ -135,7 +135,8 @@ class Episode:
         start = time.perf_counter()
         result = self.system.optimise()
         self.compute_time_s += time.perf_counter() - start
-        self.n_optimisations += 1
+        if not getattr(result, "redundant", False):  # a redundant call changed nothing
+            self.n_optimisations += 1
         return result
 
     # ------------------------------------------------------------------ metrics

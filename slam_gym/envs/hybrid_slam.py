@@ -8,7 +8,10 @@ optimisation** now (CM III.C). Never fusing is pure FastSLAM; fusing every 10 s 
 Action space
     ``MultiDiscrete([2, 2])``: (fuse now?, optimise now?). Decisions apply at the current time,
     before the next ``decision_interval`` iterations run. :class:`DiscreteActions` wraps it as
-    ``Discrete(4)`` with ``a = 2 * fuse + optimise`` for DQN.
+    ``Discrete(4)`` with ``a = 2 * fuse + optimise`` for DQN. An optimisation with nothing fused
+    since the last one (or before any fusion) is *redundant*: the optimum is the one already
+    applied, so it changes nothing (not even the time since the last optimisation), is not
+    counted in ``n_optimisations`` and costs nothing in ``compute_s``.
 
 Observation space
     ``Box(0, 1e6, (F,), float32)``: the interface features named by the ``features`` option
@@ -34,9 +37,9 @@ Reward (per decision; every term is in ``info["reward_components"]``)
       feature costs the cut-off, so an empty map costs the most, not nothing
       (:meth:`slam_gym.metrics.MapScore.ospa_m`);
     * ``compute_s``: the *modelled* CPU seconds of the interval's filtering and of this
-      decision's fusion and optimisation (:mod:`slam_gym.compute_cost`: an operation count
-      calibrated against measured CPU time), clipped at ``compute_clip_s``; deterministic, so
-      the same seed gives the same reward;
+      decision's fusion and (non-redundant) optimisation (:mod:`slam_gym.compute_cost`: an
+      operation count calibrated against measured CPU time), clipped at ``compute_clip_s``;
+      deterministic, so the same seed gives the same reward;
     * ``failure_charge``: 0, or at the decision where BB's failure criterion fires (and ends the
       episode) ``failure_penalty`` plus the worst case of the remaining path,
       ``remaining decisions x (w_nees nees_excess_clip + w_pose pose_error_clip_m + w_map
@@ -364,7 +367,8 @@ class HybridSLAMEnv(gym.Env):
         if optimise:
             cpu0 = time.process_time()
             result = ep.optimise()
-            modelled_s += self._record(optimise_ops(self.system, result), cpu0)
+            if not result.redundant:  # nothing fused since the optimum applied: free (#27)
+                modelled_s += self._record(optimise_ops(self.system, result), cpu0)
         cpu0 = time.process_time()
         nees_values, errors = self._run_interval()
         features = self._features()

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -61,6 +62,14 @@ def run(stream, kind="ekf", fuse_every=FUSE_EVERY, **back_options) -> Run:
     return out
 
 
+def unoptimised(system) -> SubmapSLAM:
+    """A copy of ``system`` that has forgotten its last optimum (so the next optimisation is
+    neither redundant nor warm-started), whatever the module's other tests did to it."""
+    out = copy.deepcopy(system)
+    out.last_optimum = None
+    return out
+
+
 def is_spd(P) -> bool:
     try:
         np.linalg.cholesky(P)
@@ -99,7 +108,8 @@ def test_optimised_covariance_is_spd_symmetric_and_pose_is_consistent(loop_ekf):
 
 def test_optimum_reduces_cost_below_the_unoptimised_estimate(loop_ekf):
     r = loop_ekf
-    res = optimise_submaps(r.system)
+    res = optimise_submaps(unoptimised(r.system), solver="general")
+    g = res
     g = r.system.back_end
     sp = res.problem
     # the EKF estimate: v- recorded at each fusion, features as the EKF back-end had them last
@@ -115,15 +125,53 @@ def test_optimum_reduces_cost_below_the_unoptimised_estimate(loop_ekf):
     assert np.max(np.abs(grad)) < 1e-6 * max(1.0, np.max(np.abs(sp.problem.eta)))
 
 
-def test_optimising_twice_changes_nothing(loop_ekf):
-    r = loop_ekf
-    optimise_submaps(r.system)
-    x1, P1 = r.system.back_end.x.copy(), r.system.back_end.P.copy()
-    n = r.system.n_optimisations
-    optimise_submaps(r.system)
-    np.testing.assert_allclose(r.system.back_end.x, x1, atol=1e-9)
-    np.testing.assert_allclose(r.system.back_end.P, P1, atol=1e-12)
-    assert r.system.n_optimisations == n + 1
+def test_optimising_twice_is_redundant_and_changes_nothing_to_the_bit(loop_ekf):
+    """Issue 27: a second optimisation with nothing fused since returns at once, leaves the
+    system's state bit-identical (no book-keeping either) and says it was redundant; after a
+    fusion it optimises again."""
+    system = unoptimised(loop_ekf.system)
+    first = optimise_submaps(system)
+    assert not first.redundant and first.iterations > 0
+    before = copy.deepcopy(system)
+    again = optimise_submaps(system)
+    assert again.redundant and again.iterations == 0
+    np.testing.assert_array_equal(again.x, first.x)
+    np.testing.assert_array_equal(again.P, first.P)
+    for name in ("x", "P", "ids", "existence"):
+        np.testing.assert_array_equal(getattr(system.back_end, name),
+                                      getattr(before.back_end, name))
+    assert system.n_optimisations == before.n_optimisations
+    assert system.interface_features() == before.interface_features()
+    # other settings are another optimisation, not a repeat
+    assert not optimise_submaps(system, max_iterations=150).redundant
+    system.fuse()
+    after_fusion = optimise_submaps(system)
+    assert not after_fusion.redundant and after_fusion.n_submaps == first.n_submaps + 1
+
+
+@pytest.mark.parametrize("fuse_every", [50, 100])
+def test_compiled_gauss_newton_reaches_the_general_optimum(fuse_every):
+    """Issue 27: the compiled Newton/Gauss-Newton (filters.submap_gauss_newton) and the general
+    sparse optimiser (filters.optimiser.RelativeProblem) give the same optimum and covariance,
+    cold and warm-started, on a loop with its closure."""
+    r = run(make_stream("brooks-bailey", seed=3, **SMALL_LOOP), fuse_every=fuse_every)
+    compiled, general = copy.deepcopy(r.system), copy.deepcopy(r.system)
+    a = optimise_submaps(compiled)
+    b = optimise_submaps(general, solver="general")
+    assert a.converged and b.converged and a.problem is None and b.problem is not None
+    assert a.cost == pytest.approx(b.cost, rel=1e-9)
+    np.testing.assert_allclose(a.x, b.x, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(a.P, b.P, rtol=0, atol=1e-8 * np.abs(b.P).max())
+    # a warm start from the optimum of all but the last sub-maps: the same optimum again
+    warm = copy.deepcopy(r.system)
+    last = warm.submaps.pop()
+    optimise_submaps(warm)
+    warm.submaps.append(last)
+    warm._fusions_since_optimise = 1
+    c = optimise_submaps(warm)
+    assert not c.redundant and c.iterations <= a.iterations
+    np.testing.assert_allclose(c.x, b.x, rtol=0, atol=1e-6)
+    assert c.cost == pytest.approx(b.cost, rel=1e-9)
 
 
 def test_reduced_method_reaches_the_gauss_newton_optimum(loop_ekf):
@@ -139,7 +187,7 @@ def test_reduced_method_reaches_the_gauss_newton_optimum(loop_ekf):
 def test_noise_free_optimum_equals_the_truth():
     stream = make_stream("brooks-bailey", seed=0, **SMALL_LOOP, **NOISE_FREE)
     r = run(stream)
-    res = optimise_submaps(r.system)
+    res = optimise_submaps(r.system, solver="general")
     sp = res.problem
     poses = res.optimiser.means[sp.pose_entity]
     err = np.array(r.true_poses) - poses
@@ -190,7 +238,7 @@ def test_singular_submap_covariance_is_floored():
     assert not np.any(system.submaps[1].gaussian.P)
     W = gaussian_information(system.submaps[1].gaussian.P)
     assert np.all(np.isfinite(W)) and is_spd(W)
-    res = optimise_submaps(system)
+    res = optimise_submaps(system, solver="general")
     assert res.converged and is_spd(system.back_end.P)
     np.testing.assert_allclose(
         res.optimiser.means[res.problem.pose_entity[1], :2],
@@ -199,14 +247,15 @@ def test_singular_submap_covariance_is_floored():
     )
 
 
-def test_no_submap_is_a_no_op_with_book_keeping():
+def test_no_submap_is_a_redundant_no_op():
     stream = make_stream("brooks-bailey", seed=0, n_steps=20)
     front = EKFSLAM(stream.sensor, stream.clutter, stream.odometry_noise)
     system = SubmapSLAM(front, back_end=make_back_end("ekf", stream.initial_pose))
-    x = system.back_end.x.copy()
+    x, features = system.back_end.x.copy(), system.interface_features()
     res = optimise_submaps(system)
-    assert res.n_submaps == 0 and system.n_optimisations == 1
+    assert res.n_submaps == 0 and res.redundant and system.n_optimisations == 0
     np.testing.assert_array_equal(system.back_end.x, x)
+    assert system.interface_features() == features
 
 
 # ------------------------------------------------------------------ the relative back-end
@@ -395,7 +444,8 @@ def test_robust_kernel_of_the_system_is_used_and_keeps_a_spd_covariance(loop_ekf
     assert is_spd(r.system.back_end.P)
     # consistent simulated sub-maps carry no outlier: the robust optimum stays near the plain one
     np.testing.assert_allclose(r.system.back_end.x, x_plain, atol=0.05)
-    assert r.system.optimise(robust=None).optimiser.robust is None  # the call overrides it
+    # the call overrides it
+    assert r.system.optimise(robust=None, solver="general").optimiser.robust is None
     np.testing.assert_allclose(r.system.back_end.x, plain.x, atol=1e-9)
     with pytest.raises(ValueError, match="robust_kernel"):
         SubmapSLAM(EKFSLAM(r.stream.sensor, r.stream.clutter, r.stream.odometry_noise),

@@ -516,3 +516,22 @@ def test_an_env_on_a_remembered_world_repeats_the_fresh_rollout():
     assert _remembered_world.cache_info().hits >= 1
     for a, b in zip(fresh, remembered, strict=True):
         assert np.array_equal(a, b)
+
+
+def test_redundant_optimisation_is_a_free_no_op():
+    """Issue 27: optimising again with nothing fused since (or before any fusion) is free: the
+    episode continues exactly as if the agent had not asked (observation, reward and its
+    components, the optimisation count), while a fusion in between makes it count again."""
+    def episode(actions):
+        env = make("SlamGym/HybridSLAM-v0", n_steps=400)
+        env.reset(seed=4)
+        out = [env.step(np.array(a)) for a in actions]
+        charged = sum(kind == "optimise" for kind, _, _ in env.unwrapped.compute_records)
+        return out, (env.unwrapped.episode.n_optimisations, charged)
+    asked, n_asked = episode([[0, 1], [1, 1], [0, 1], [0, 1], [1, 0], [0, 1]])
+    plain, n_plain = episode([[0, 0], [1, 1], [0, 0], [0, 0], [1, 0], [0, 1]])
+    for (obs_a, rew_a, *_, info_a), (obs_p, rew_p, *_, info_p) in zip(asked, plain, strict=True):
+        np.testing.assert_array_equal(obs_a, obs_p)
+        assert rew_a == rew_p
+        assert info_a["reward_components"] == info_p["reward_components"]
+    assert n_asked == n_plain == (2, 2)  # the 2nd and the last (after a fusion): charged

@@ -1,0 +1,375 @@
+"""A compiled Gauss-Newton for CM (12) over stored sub-maps (the env's ``optimise()``).
+
+:func:`filters.submap_optimise.optimise_submaps` minimises CM (12),
+
+    c(tau) = sum_s (psi_s(tau) - r_s)^T Lambda_s (psi_s(tau) - r_s),
+    psi_s = [relative(x_o, x_e); point_to_frame(x_o, m_j) for the sub-map's features j],
+
+over the chain of fusion poses ``x_1 .. x_S`` (``x_0``, the initial pose, is the gauge) and the
+global features. The general optimiser (:class:`filters.optimiser.RelativeProblem`) stacks every
+quantity into sparse matrices and re-builds them at every iteration: on BB's world an optimisation
+over 40 sub-maps took 30-110 ms, almost all of it in building scipy objects (issue 27). Here the
+problem is kept as flat arrays (:class:`SubmapArrays`), and one compiled pass per iteration
+(:func:`_normal_equations`) forms each sub-map's residual ``e_s``, its Jacobian ``J_s`` (dense
+in the sub-map's own variables: its origin and end poses and its features) and adds
+``J_s^T Lambda_s J_s`` and ``J_s^T Lambda_s e_s`` into the normal equations. The step solves
+them with a dense Cholesky factor (a few hundred variables at BB's scale) or, for a larger graph,
+the project's sparse factorisation; the iteration (undamped Gauss-Newton, Marquardt damping only
+when a step fails to lower the cost, the same stopping rules) is that of
+:meth:`RelativeProblem.optimise` with ``"gauss-newton"``, so the optimum is the same (tested to
+tolerance against it, and against GTSAM in ``scripts/gtsam_reference.py``).
+
+The Jacobians are those of :mod:`filters.geometry` (``relative`` and ``point_to_frame`` w.r.t.
+the origin pose, the end pose and the point); the heading residual is wrapped to ``(-pi, pi]``
+around the sub-map's heading, as the general optimiser does.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from numba import njit
+from scipy.linalg import cho_factor, cho_solve
+
+from filters.esdf import sparse_spd_factor
+
+DENSE_MAX_VARIABLES = 600
+"""Above this many variables the normal equations are factorised sparse (the graph of a
+policy that fuses at every decision reaches ~1500); below, a dense Cholesky is faster."""
+
+
+@dataclass(frozen=True)
+class SubmapArrays:
+    """The sub-maps of CM (12) as flat arrays.
+
+    ``origin``, ``end`` (S,): pose indices of each sub-map (0 = the gauge); ``feature_start``
+    (S + 1,) and ``features``: the global feature index (``0 .. n_features - 1``) of each
+    sub-map's features, in the order of its mean; ``mean_start`` (S + 1,) / ``means``: each
+    sub-map's mean ``r_s`` (end pose, then 2 per feature; heading wrapped); ``info_start``
+    (S + 1,) / ``infos``: each ``Lambda_s`` flattened (row-major).
+    """
+
+    n_poses: int
+    n_features: int
+    origin: np.ndarray
+    end: np.ndarray
+    feature_start: np.ndarray
+    features: np.ndarray
+    mean_start: np.ndarray
+    means: np.ndarray
+    info_start: np.ndarray
+    infos: np.ndarray
+
+    @property
+    def n_variables(self) -> int:
+        return 3 * (self.n_poses - 1) + 2 * self.n_features
+
+    def pose_column(self, k: int) -> int:
+        """First column of pose ``k`` (-1 for the gauge)."""
+        return 3 * (k - 1) if k > 0 else -1
+
+    def feature_column(self, j: int) -> int:
+        return 3 * (self.n_poses - 1) + 2 * j
+
+    def pack(self, poses, points) -> np.ndarray:
+        """The variable vector from poses (n_poses, 3) and points (n_features, 2)."""
+        return np.concatenate([np.asarray(poses, float)[1:].ravel(),
+                               np.asarray(points, float).ravel()])
+
+    def unpack(self, tau, gauge) -> tuple[np.ndarray, np.ndarray]:
+        """Poses (n_poses, 3; pose 0 = ``gauge``) and points (n_features, 2) from ``tau``."""
+        poses = np.empty((self.n_poses, 3))
+        poses[0] = gauge
+        poses[1:] = tau[: 3 * (self.n_poses - 1)].reshape(-1, 3)
+        return poses, tau[3 * (self.n_poses - 1):].reshape(-1, 2)
+
+
+def submap_arrays(submaps, global_ids, feature_index: dict, n_poses: int,
+                  informations) -> SubmapArrays:
+    """Pack stored sub-maps (``gaussian``, ``origin_index``, ``end_index``) with the global ids
+    of their features (``global_ids``, one array per sub-map) and their informations
+    ``Lambda_s``; ``feature_index`` maps global id -> feature index."""
+    origin = np.array([s.origin_index for s in submaps], dtype=np.int64)
+    end = np.array([s.end_index for s in submaps], dtype=np.int64)
+    means = [np.asarray(s.gaussian.x, dtype=float) for s in submaps]
+    infos = [np.asarray(info, dtype=float).ravel() for info in informations]
+    lookup = np.vectorize(feature_index.__getitem__, otypes=[np.int64])
+    flat_ids = np.concatenate(global_ids)
+    starts = [np.concatenate([[0], np.cumsum([len(a) for a in arrays])]).astype(np.int64)
+              for arrays in (global_ids, means, infos)]
+    flat_means = np.concatenate(means)
+    heading = starts[1][:-1] + 2
+    flat_means[heading] = (flat_means[heading] + np.pi) % (2.0 * np.pi) - np.pi
+    return SubmapArrays(
+        n_poses=int(n_poses), n_features=len(feature_index), origin=origin, end=end,
+        feature_start=starts[0],
+        features=lookup(flat_ids) if len(flat_ids) else np.zeros(0, np.int64),
+        mean_start=starts[1], means=flat_means, info_start=starts[2],
+        infos=np.concatenate(infos),
+    )
+
+
+@njit(cache=True)
+def _wrap(angle):
+    return (angle + np.pi) % (2.0 * np.pi) - np.pi
+
+
+@njit(cache=True)
+def _submap_terms(poses, points, a_origin, a_end, f0, f1, feats, r, info_flat):
+    """Residual ``e`` (d,), Jacobian ``J`` (d, 6 + 2m) w.r.t. [origin, end, features] and
+    ``Lambda`` (d, d) of one sub-map."""
+    m = f1 - f0
+    d = 3 + 2 * m
+    xo, xe = poses[a_origin], poses[a_end]
+    c, s = np.cos(xo[2]), np.sin(xo[2])
+    e = np.empty(d)
+    J = np.zeros((d, 6 + 2 * m))
+    dx, dy = xe[0] - xo[0], xe[1] - xo[1]
+    relx, rely = c * dx + s * dy, -s * dx + c * dy
+    e[0], e[1] = relx - r[0], rely - r[1]
+    e[2] = _wrap(xe[2] - xo[2] - r[2])
+    J[0, 0], J[0, 1], J[0, 2], J[0, 3], J[0, 4] = -c, -s, rely, c, s
+    J[1, 0], J[1, 1], J[1, 2], J[1, 3], J[1, 4] = s, -c, -relx, -s, c
+    J[2, 2], J[2, 5] = -1.0, 1.0
+    for i in range(m):
+        row, col = 3 + 2 * i, 6 + 2 * i
+        p = points[feats[f0 + i]]
+        dx, dy = p[0] - xo[0], p[1] - xo[1]
+        px, py = c * dx + s * dy, -s * dx + c * dy
+        e[row], e[row + 1] = px - r[row], py - r[row + 1]
+        J[row, 0], J[row, 1], J[row, 2], J[row, col], J[row, col + 1] = -c, -s, py, c, s
+        J[row + 1, 0], J[row + 1, 1], J[row + 1, 2] = s, -c, -px
+        J[row + 1, col], J[row + 1, col + 1] = -s, c
+    return e, J, info_flat.reshape(d, d)
+
+
+@njit(cache=True)
+def _columns(n_poses, a_origin, a_end, f0, f1, feats):
+    """The variable column of each column of :func:`_submap_terms`'s Jacobian (-1: gauge)."""
+    m = f1 - f0
+    cols = np.empty(6 + 2 * m, dtype=np.int64)
+    for k, pose in ((0, a_origin), (3, a_end)):
+        for i in range(3):
+            cols[k + i] = 3 * (pose - 1) + i if pose > 0 else -1
+    for i in range(m):
+        base = 3 * (n_poses - 1) + 2 * feats[f0 + i]
+        cols[6 + 2 * i], cols[7 + 2 * i] = base, base + 1
+    return cols
+
+
+@njit(cache=True)
+def _cost(poses, points, origin, end, feature_start, features, mean_start, means, info_start,
+          infos):
+    """CM (12) at the given poses and points."""
+    total = 0.0
+    for k in range(len(origin)):
+        e, _, L = _submap_terms(poses, points, origin[k], end[k], feature_start[k],
+                                feature_start[k + 1], features,
+                                means[mean_start[k]:mean_start[k + 1]],
+                                infos[info_start[k]:info_start[k + 1]])
+        total += e @ (L @ e)
+    return total
+
+
+@njit(cache=True)
+def _add_second_order(H, w, r0, target_col, relx, rely, c, s):
+    """Add ``w_x d^2 relx + w_y d^2 rely`` (the second derivatives of one position quantity of
+    :func:`_submap_terms`: nonzero only where the origin's heading, column 2, is involved) to
+    the local Hessian ``H``; ``w = Lambda e`` and the quantity's rows start at ``r0``."""
+    wx, wy = w[r0], w[r0 + 1]
+    H[2, 2] += -wx * relx - wy * rely
+    for col, value in ((0, wx * s + wy * c), (1, -wx * c + wy * s),
+                       (target_col, -wx * s - wy * c), (target_col + 1, wx * c - wy * s)):
+        H[2, col] += value
+        H[col, 2] += value
+
+
+@njit(cache=True)
+def _normal_equations(poses, points, n_poses, origin, end, feature_start, features, mean_start,
+                      means, info_start, infos, n_variables, newton):
+    """CM (12), the gradient half ``g = J^T Lambda e`` (n,) and the blocks of ``J^T Lambda J``
+    as triplets (rows, columns, values; duplicates to be summed), gauge columns left out. With
+    ``newton`` the blocks also carry the residuals' curvature ``sum_i (Lambda e)_i d^2 psi_i``:
+    half the exact Hessian of CM (12), Newton's matrix instead of Gauss-Newton's."""
+    n_entries = 0
+    for k in range(len(origin)):
+        v = 6 + 2 * (feature_start[k + 1] - feature_start[k])
+        n_entries += v * v
+    rows = np.empty(n_entries, dtype=np.int64)
+    cols = np.empty(n_entries, dtype=np.int64)
+    vals = np.empty(n_entries)
+    g = np.zeros(n_variables)
+    total = 0.0
+    n = 0
+    for k in range(len(origin)):
+        f0, f1 = feature_start[k], feature_start[k + 1]
+        e, J, L = _submap_terms(poses, points, origin[k], end[k], f0, f1, features,
+                                means[mean_start[k]:mean_start[k + 1]],
+                                infos[info_start[k]:info_start[k + 1]])
+        LJ = L @ J
+        Le = L @ e
+        total += e @ Le
+        H = J.T @ LJ
+        gk = J.T @ Le
+        if newton:
+            xo, xe = poses[origin[k]], poses[end[k]]
+            c, s = np.cos(xo[2]), np.sin(xo[2])
+            dx, dy = xe[0] - xo[0], xe[1] - xo[1]
+            _add_second_order(H, Le, 0, 3, c * dx + s * dy, -s * dx + c * dy, c, s)
+            for i in range(f1 - f0):
+                p = points[features[f0 + i]]
+                dx, dy = p[0] - xo[0], p[1] - xo[1]
+                _add_second_order(H, Le, 3 + 2 * i, 6 + 2 * i, c * dx + s * dy,
+                                  -s * dx + c * dy, c, s)
+        index = _columns(n_poses, origin[k], end[k], f0, f1, features)
+        for a in range(len(index)):
+            if index[a] < 0:
+                continue
+            g[index[a]] += gk[a]
+            for b in range(len(index)):
+                if index[b] < 0:
+                    continue
+                rows[n], cols[n], vals[n] = index[a], index[b], H[a, b]
+                n += 1
+    return total, g, rows[:n], cols[:n], vals[:n]
+
+
+@njit(cache=True)
+def _dense(n_variables, rows, cols, vals):
+    H = np.zeros((n_variables, n_variables))
+    for i in range(len(rows)):
+        H[rows[i], cols[i]] += vals[i]
+    return H
+
+
+class _Normal:
+    """``J^T Lambda J`` at one point, factorised on demand (dense or sparse)."""
+
+    def __init__(self, n, rows, cols, vals):
+        self.n = n
+        if n <= DENSE_MAX_VARIABLES:
+            self.matrix = _dense(n, rows, cols, vals)
+            self.diagonal = np.diag(self.matrix).copy()
+        else:
+            self.matrix = sp.csc_matrix((vals, (rows, cols)), shape=(n, n))
+            self.diagonal = self.matrix.diagonal()
+
+    def factor(self, damping: float = 0.0):
+        """A solver of ``(H + damping diag(H)) x = b``; None if not positive definite."""
+        if isinstance(self.matrix, np.ndarray):
+            H = self.matrix + np.diag(damping * self.diagonal) if damping > 0 else self.matrix
+            try:
+                factor = cho_factor(H, lower=True, check_finite=False)
+            except np.linalg.LinAlgError:
+                return None
+            return lambda b: cho_solve(factor, b, check_finite=False)
+        H = self.matrix + sp.diags(damping * self.diagonal) if damping > 0 else self.matrix
+        try:
+            return sparse_spd_factor(H).solve
+        except RuntimeError:
+            return None
+
+
+@dataclass
+class GaussNewtonResult:
+    poses: np.ndarray
+    points: np.ndarray
+    cost: float
+    initial_cost: float
+    iterations: int
+    converged: bool
+    message: str
+    normal: _Normal
+
+    def covariance(self, arrays: SubmapArrays, pose_index: int, feature_indices) -> np.ndarray:
+        """Joint Gauss-Newton covariance of pose ``pose_index`` and the listed features: the
+        block of ``(J^T Lambda J)^-1`` at the optimum, solved for those columns only."""
+        cols = [arrays.pose_column(pose_index) + i for i in range(3)] if pose_index > 0 else []
+        out_idx = list(range(3)) if pose_index > 0 else []
+        for n, j in enumerate(feature_indices):
+            base = arrays.feature_column(int(j))
+            cols += [base, base + 1]
+            out_idx += [3 + 2 * n, 4 + 2 * n]
+        dim = 3 + 2 * len(feature_indices)
+        C = np.zeros((dim, dim))
+        if cols:
+            E = np.zeros((arrays.n_variables, len(cols)))
+            E[np.asarray(cols), np.arange(len(cols))] = 1.0
+            solve = self.normal.factor()
+            if solve is None:
+                raise RuntimeError("J^T Lambda J is singular at the optimum")
+            X = solve(E)
+            oi = np.asarray(out_idx)
+            C[np.ix_(oi, oi)] = X[np.asarray(cols)]
+        return 0.5 * (C + C.T)
+
+
+def gauss_newton(arrays: SubmapArrays, gauge, poses0, points0, *, max_iterations: int = 200,
+                 xtol: float = 1e-10) -> GaussNewtonResult:
+    """Minimise CM (12) from ``poses0`` (n_poses, 3) / ``points0`` (n_features, 2).
+
+    The iteration of :meth:`filters.optimiser.RelativeProblem.optimise` (``"gauss-newton"``:
+    undamped steps, Marquardt damping only when a step fails to lower the cost; it stops at a
+    step below ``xtol`` relative, a decrease below 1e-15 relative, or when no descent step is
+    left), with one change of matrix: where Newton's matrix (Gauss-Newton's plus the residuals'
+    curvature, :func:`_normal_equations`) is positive definite, the step is Newton's. Gauss-Newton
+    alone converges only linearly here (the headings' curvature: ~18 iterations on BB's world,
+    each shrinking the step by a factor of about 0.4); Newton converges quadratically to the same
+    stationary point. The covariance is Gauss-Newton's, ``(J^T Lambda J)^-1`` at the optimum."""
+    a = arrays
+    static = (a.origin, a.end, a.feature_start, a.features, a.mean_start, a.means, a.info_start,
+              a.infos)
+    gauge = np.asarray(gauge, dtype=float)
+    tau = a.pack(poses0, points0)
+    n = a.n_variables
+
+    def evaluate(t, newton):
+        poses, points = a.unpack(t, gauge)
+        cost, g, rows, cols, vals = _normal_equations(poses, points, a.n_poses, *static, n,
+                                                      newton)
+        return cost, g, _Normal(n, rows, cols, vals)
+
+    def cost_at(t):
+        poses, points = a.unpack(t, gauge)
+        return _cost(poses, points, *static)
+
+    cost, g, normal = evaluate(tau, True)
+    initial_cost = cost
+    lam, it = 0.0, 0
+    converged, message = False, "maximum iterations reached"
+    while it < max_iterations:
+        it += 1
+        undamped = normal.factor()
+        if undamped is None:  # Newton's matrix indefinite here: Gauss-Newton's
+            _, _, normal = evaluate(tau, False)
+            undamped = normal.factor()
+        accepted = tiny = False
+        while not accepted and lam <= 1e12:
+            solve = undamped if lam == 0.0 else normal.factor(lam)
+            if solve is None:
+                lam = max(1e-6, 10.0 * lam)
+                continue
+            step = -solve(g)
+            tiny = np.max(np.abs(step)) <= xtol * (1.0 + np.max(np.abs(tau)))
+            new_cost = cost_at(tau + step)
+            accepted = bool(new_cost <= cost)
+            if not accepted:
+                if tiny:
+                    break
+                lam = max(1e-6, 10.0 * lam)
+        if not accepted:
+            converged, message = True, "no further decrease"
+            break
+        decrease = cost - new_cost
+        tau = tau + step
+        lam = 0.0 if lam <= 1e-6 else lam / 10.0
+        if tiny or decrease <= 1e-15 * max(1.0, cost):
+            converged, message = True, "step below tolerance"
+            break
+        cost, g, normal = evaluate(tau, True)
+    cost, _, normal = evaluate(tau, False)  # the covariance: Gauss-Newton's at the optimum
+    poses, points = a.unpack(tau, gauge)
+    return GaussNewtonResult(poses.copy(), points.copy(), float(cost), float(initial_cost), it,
+                             converged, message, normal)
