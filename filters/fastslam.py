@@ -140,6 +140,7 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+from numba import njit
 
 from filters.conversion import (
     NEW_VOTE,
@@ -192,8 +193,23 @@ def clutter_share(log_weights, clutter_prob) -> np.ndarray:
     """Per observation, the weighted probability that it is a false alarm: ``sum_p w_k^p c_k^p``
     with ``w_k`` the normalised weights after observation k and ``c_k^p`` (K, P) the particle's
     clutter probability (1 for clutter, ``1 - e_new`` for a new feature, 0 for an existing one)."""
-    w = np.exp(log_weights - log_weights.max(axis=1, keepdims=True))
-    return np.sum(w * clutter_prob, axis=1) / np.sum(w, axis=1)
+    return _clutter_share(np.asarray(log_weights, dtype=float),
+                          np.asarray(clutter_prob, dtype=float))
+
+
+@njit(cache=True)
+def _clutter_share(log_weights, clutter_prob):
+    K, P = log_weights.shape
+    out = np.empty(K)
+    for k in range(K):
+        top = log_weights[k].max()
+        weighted, total = 0.0, 0.0
+        for p in range(P):
+            w = np.exp(log_weights[k, p] - top)
+            weighted += w * clutter_prob[k, p]
+            total += w
+        out[k] = weighted / total
+    return out
 
 
 class FastSLAM2:
@@ -589,8 +605,7 @@ class FastSLAM2:
 
     def _maybe_resample(self):
         """Systematic resampling when N_eff < resample_threshold * P."""
-        w = np.exp(self._logw - self._logw.max())  # the weights (not cached: logw changes here)
-        w /= w.sum()
+        w = self._weights()  # of the current state; a resampling below clears the cache
         n_eff = 1.0 / np.sum(w * w)
         self._ess_ratio = float(n_eff / self.n_particles)
         if n_eff >= self.resample_threshold * self.n_particles:

@@ -90,6 +90,9 @@ class ProportionalVelocityNoise:
     def std(self, u):
         """Per-component std (..., 2) of the velocity noise for velocities u (..., 2)."""
         u = np.asarray(u, dtype=float)
+        if u.shape == (2,):  # one velocity (the filters' prediction): scalar calls are faster
+            return np.array([np.hypot(self.v_fraction * u[0], self.v_floor_mps),
+                             np.hypot(self.omega_fraction * u[1], self.omega_floor_radps)])
         out = np.empty(u.shape)
         out[..., 0] = np.hypot(self.v_fraction * u[..., 0], self.v_floor_mps)
         out[..., 1] = np.hypot(self.omega_fraction * u[..., 1], self.omega_floor_radps)
@@ -98,7 +101,8 @@ class ProportionalVelocityNoise:
     def covariance(self, u, dt):
         """Covariance (2, 2) of the measured (v, omega) over an interval of ``dt`` seconds."""
         del dt
-        return np.diag(self.std(u) ** 2)
+        sv, sw = self.std(u)
+        return np.array([[sv * sv, 0.0], [0.0, sw * sw]])
 
 
 @dataclass(frozen=True)

@@ -10,6 +10,7 @@ run (filter, fusions and the episode's metrics), so it slightly overstates the f
 from __future__ import annotations
 
 import json
+import logging
 import os
 import platform
 import subprocess
@@ -21,6 +22,8 @@ import numpy as np
 
 from slam_gym.commands.common import add_common_options, emit, out_dir, to_jsonable
 from slam_gym.commands.runs import int_list, name_list
+
+logger = logging.getLogger(__name__)
 
 PARTICLE_SYSTEMS = ("fastslam", "hybrid")
 
@@ -54,6 +57,21 @@ def add_parser(subparsers) -> None:
                    "measured CPU time and print its coefficients and correlation")
     p.add_argument("--calibration-seeds", default="0,1",
                    help="worlds of the compute calibration (default 0,1)")
+    p.add_argument("--env-schedules", default=",".join(ENV_SCHEDULES),
+                   help="action schedules timed in the env at the paper's 500 particles, "
+                   f"--env-decisions each (one of {', '.join(ENV_SCHEDULES)}; "
+                   "fuse-optimise-every-decision runs one whole episode; '' to skip)")
+    p.add_argument("--optimise-counts", default="10,20,40,80",
+                   help="stored sub-map counts at which optimise() is timed ('' to skip)")
+    p.add_argument("--optimise-seeds", default="0,1,2",
+                   help="worlds of the optimise() timing (default 0,1,2)")
+    p.add_argument("--quick", action="store_true",
+                   help="the regression check (<= 60 s): HYBRID at 500 particles, the four "
+                   "env schedules on a few hundred decisions, optimise() at 10/20/40 sub-maps on "
+                   "one world; writes speed_record.json")
+    p.add_argument("--compare", metavar="BASELINE", default=None,
+                   help="a speed record to compare with: prints every figure's speed ratio "
+                   "and exits 1 when one falls below half of the baseline's")
     add_common_options(p, default_out="out/speed")
     p.set_defaults(run=run)
 
@@ -84,19 +102,45 @@ def measure_system(name, level, n_particles, seed, iterations):
     return row
 
 
-def measure_env(decisions, seed, **config):
+ENV_SCHEDULES = {
+    "fixed-10s": "fuse every 10 s (BB), never optimise",
+    "fixed-10s-optimise": "fuse every 10 s and optimise with every fusion",
+    "optimise-every-decision": "fuse every 10 s, ask to optimise at every decision (9 in 10 "
+    "redundant: nothing fused since the last)",
+    "fuse-optimise-every-decision": "fuse and optimise at every decision: the costliest a "
+    "policy can choose (the graph grows by one sub-map a second)",
+}
+"""The action schedules :func:`measure_env` times (the rules' decisions without their feature
+logic, so only the env's own cost is measured)."""
+
+
+def _schedule_action(schedule: str, iteration: int) -> np.ndarray:
+    at_fusion = int(iteration % 100 == 0)  # BB's 10 s at 10 Hz, decisions every 10 iterations
+    return np.array({
+        "fixed-10s": (at_fusion, 0),
+        "fixed-10s-optimise": (at_fusion, at_fusion),
+        "optimise-every-decision": (at_fusion, 1),
+        "fuse-optimise-every-decision": (1, 1),
+    }[schedule])
+
+
+def measure_env(decisions, seed, schedule: str = "fixed-10s", **config):
     """Decisions per second of SlamGym/HybridSLAM-v0 (its defaults unless ``config`` says
-    otherwise), resets included, fusing every 10 s; ``decisions=None`` runs exactly one whole
-    episode. Resets draw new worlds (no world is replayed from the cache)."""
+    otherwise), resets included, deciding by ``schedule`` (:data:`ENV_SCHEDULES`);
+    ``decisions=None`` runs exactly one whole episode. Resets draw new worlds (no world is
+    replayed from the cache)."""
     from slam_gym.envs.hybrid_slam import HybridSLAMEnv
 
+    if schedule not in ENV_SCHEDULES:
+        raise ValueError(f"schedule={schedule!r} is invalid: must be one of "
+                         f"{tuple(ENV_SCHEDULES)}")
     env = HybridSLAMEnv(**config)
     start = time.process_time()
     env.reset(seed=seed)
     done_decisions, resets = 0, 1
     while decisions is None or done_decisions < decisions:
-        fuse = int(env.episode.iteration % 100 == 0)
-        _, _, terminated, truncated, _ = env.step(np.array([fuse, 0]))
+        action = _schedule_action(schedule, env.episode.iteration)
+        _, _, terminated, truncated, _ = env.step(action)
         done_decisions += 1
         if terminated or truncated:
             if decisions is None:
@@ -106,6 +150,7 @@ def measure_env(decisions, seed, **config):
     cpu = time.process_time() - start
     return {
         "env": "SlamGym/HybridSLAM-v0",
+        "schedule": schedule,
         "n_particles": env.config.n_particles,
         "clutter_level": env.config.clutter_level,
         "decision_interval": env.config.decision_interval,
@@ -115,6 +160,53 @@ def measure_env(decisions, seed, **config):
         "cpu_time_s": cpu,
         "decisions_per_s": done_decisions / cpu,
     }
+
+
+def measure_optimise(seeds, counts, steps_per_fusion: int = 50, n_particles: int = 100):
+    """CPU time of ``optimise()`` against the number of stored sub-maps on BB's world.
+
+    HYBRID (``n_particles``: the optimiser's cost does not depend on them) fuses every
+    ``steps_per_fusion`` iterations (5 s, so that one path stores ~80 sub-maps) and optimises
+    after every fusion, as ``fixed-10s-optimise`` does (each optimisation warm-started from the
+    previous optimum); then once more with nothing fused (redundant). Returns per count ``n`` the
+    median CPU ms, iterations and redundant-call microseconds of the optimisations with
+    ``n - 2 .. n + 2`` sub-maps, over the worlds ``seeds``."""
+    from slam_gym.scenarios import make_stream
+    from slam_gym.systems import make_system
+
+    samples = []
+    for seed in seeds:
+        stream = make_stream("brooks-bailey", seed=int(seed), clutter_level=2)
+        system = make_system("hybrid", stream, np.random.default_rng(int(seed)),
+                             n_particles=n_particles).estimator
+        for i, step in enumerate(stream):
+            system.predict(step.odometry, step.dt_s)
+            if step.scanned:
+                system.update(step.z)
+            if (i + 1) % steps_per_fusion == 0:
+                system.fuse()
+                start = time.process_time()
+                result = system.optimise()
+                cpu = time.process_time() - start
+                start = time.process_time()
+                again = system.optimise()
+                redundant_cpu = time.process_time() - start
+                assert again.redundant  # nothing fused since: the optimum already applied
+                samples.append((len(system.submaps), cpu, result.iterations, redundant_cpu))
+    rows = []
+    for n in counts:
+        near = [s for s in samples if abs(s[0] - n) <= 2]
+        if not near:
+            continue
+        rows.append({
+            "stored_submaps": int(n),
+            "optimisations": len(near),
+            "median_ms": 1e3 * float(np.median([s[1] for s in near])),
+            "max_ms": 1e3 * float(np.max([s[1] for s in near])),
+            "median_iterations": float(np.median([s[2] for s in near])),
+            "redundant_median_us": 1e6 * float(np.median([s[3] for s in near])),
+        })
+    return rows
 
 
 FIRST_RESET_SCRIPT = """
@@ -225,11 +317,63 @@ def calibrate_compute(args) -> int:
     return 0
 
 
+QUICK = {
+    "systems": "hybrid", "particles": "500", "clutter_levels": "2", "iterations": 2500,
+    "env_decisions": 250, "env_particles": "", "worst_case_decisions": 150,
+    "optimise_counts": "10,20,40", "optimise_seeds": "0",
+}
+"""What ``--quick`` measures (about 30 s of CPU on this project's machines)."""
+
+
+def record_figures(result) -> dict:
+    """The figures of a speed record (:mod:`slam_gym.commands.speed_record`) from a result."""
+    from slam_gym.commands.speed_record import figure
+
+    out = {}
+    for r in result.get("systems", []):
+        key = f"{r['system']}_{r['n_particles'] or 0}p_level{r['clutter_level']}"
+        out[f"{key}_iterations_per_s"] = figure(r["iterations_per_s"], "iterations/s", True)
+    for e in result.get("env_schedules", []):
+        key = e["schedule"].replace("-", "_")
+        out[f"env_{key}_decisions_per_s"] = figure(e["decisions_per_s"], "decisions/s", True)
+    for r in result.get("optimise", []):
+        out[f"optimise_{r['stored_submaps']}_submaps_ms"] = figure(r["median_ms"], "ms", False)
+    if result.get("optimise"):
+        out["optimise_redundant_us"] = figure(
+            float(np.median([r["redundant_median_us"] for r in result["optimise"]])), "us", False)
+    return out
+
+
 def run(args) -> int:
     from tqdm import tqdm
 
     if args.calibrate_compute:
         return calibrate_compute(args)
+    baseline = None
+    if args.compare is not None:
+        from slam_gym.commands.speed_record import load_record
+
+        try:
+            baseline = load_record(args.compare)
+        except ValueError as exc:
+            logger.error("%s", exc)
+            return 2
+    worst_case_decisions = None  # fuse-optimise-every-decision: one whole episode
+    if args.quick:
+        for name, value in QUICK.items():
+            if name != "worst_case_decisions":
+                setattr(args, name, value)
+        worst_case_decisions = QUICK["worst_case_decisions"]
+        args.skip_first_reset = args.skip_paper_episode = args.skip_esdf = True
+        # untimed: load the compiled functions from numba's cache (~1 s of the first run)
+        measure_system("hybrid", 2, 50, args.seed, 50)
+        measure_env(3, args.seed, schedule="fixed-10s-optimise", n_particles=50)
+    schedules = name_list(args.env_schedules)
+    bad = [s for s in schedules if s not in ENV_SCHEDULES]
+    if bad:
+        logger.error("--env-schedules=%s is invalid: must be among %s", ",".join(bad),
+                     ", ".join(ENV_SCHEDULES))
+        return 2
 
     systems = name_list(args.systems)
     particles = int_list(args.particles)
@@ -248,12 +392,22 @@ def run(args) -> int:
                     "python": platform.python_version()},
         "systems": rows,
     }
-    if args.env_decisions > 0:
+    if args.env_decisions > 0 and args.env_particles:
         result["env_runs"] = [
             measure_env(args.env_decisions, args.seed, n_particles=n)
             for n in int_list(args.env_particles)
         ]
         result["env"] = result["env_runs"][-1]
+    if args.env_decisions > 0 and schedules:
+        result["env_schedules"] = [
+            measure_env(
+                worst_case_decisions if s == "fuse-optimise-every-decision" else
+                args.env_decisions, args.seed, schedule=s, **PAPER_ENV_CONFIG)
+            for s in tqdm(schedules, desc="env schedules", disable=args.quiet or args.json)
+        ]
+    counts = int_list(args.optimise_counts)
+    if counts:
+        result["optimise"] = measure_optimise(int_list(args.optimise_seeds), counts)
     if not args.skip_first_reset:
         result["env_first_reset"] = measure_first_reset(args.seed)
     if args.env_decisions > 0 and not args.skip_paper_episode:
@@ -275,6 +429,15 @@ def run(args) -> int:
         lines.append(f"env {e['env']} ({e['n_particles']} particles, interval "
                      f"{e['decision_interval']}): {e['decisions_per_s']:.0f} decisions/s "
                      f"({e['decisions']} decisions, {e['resets']} resets included)")
+    for e in result.get("env_schedules", []):
+        lines.append(f"env {e['n_particles']} particles, {e['schedule']}: "
+                     f"{e['decisions_per_s']:.0f} decisions/s ({e['decisions']} decisions, "
+                     f"{e['resets']} resets included)")
+    for r in result.get("optimise", []):
+        lines.append(f"optimise() at {r['stored_submaps']} stored sub-maps: median "
+                     f"{r['median_ms']:.1f} ms (max {r['max_ms']:.1f}, {r['optimisations']} "
+                     f"optimisations, {r['median_iterations']:.0f} iterations); redundant "
+                     f"{r['redundant_median_us']:.0f} us")
     if "env_first_reset" in result:
         e = result["env_first_reset"]
         lines.append(f"env in a fresh process: import {e['import_cpu_s']:.2f} s, first reset "
@@ -289,5 +452,20 @@ def run(args) -> int:
                      f"{r['ms_per_update_median']:.3f} ms, mean {r['ms_per_update_mean']:.3f} ms "
                      f"per update ({r['updates']} updates)")
     lines.append(f"wrote {out / 'speed.json'}")
+    status = 0
+    if args.quick or baseline is not None:
+        from slam_gym.commands.speed_record import compare, comparison_lines, make_record
+
+        record = make_record(record_figures(result), Path(__file__).resolve().parents[2])
+        (out / "speed_record.json").write_text(json.dumps(to_jsonable(record), indent=2) + "\n")
+        result["record"] = record
+        lines.append(f"wrote {out / 'speed_record.json'}")
+        if baseline is not None:
+            rows_cmp, ok = compare(record, baseline)
+            result["comparison"] = {"baseline": args.compare, "passed": ok, "rows": rows_cmp}
+            lines += comparison_lines(rows_cmp, baseline)
+            lines.append("speed check passed" if ok else
+                         "speed check FAILED: a figure fell below half of the baseline's")
+            status = 0 if ok else 1
     emit(args, result, lines)
-    return 0
+    return status
