@@ -59,8 +59,9 @@ def add_parser(subparsers) -> None:
                    help="worlds of the compute calibration (default 0,1)")
     p.add_argument("--env-schedules", default=",".join(ENV_SCHEDULES),
                    help="action schedules timed in the env at the paper's 500 particles, "
-                   f"--env-decisions each (one of {', '.join(ENV_SCHEDULES)}; "
-                   "fuse-optimise-every-decision runs one whole episode; '' to skip)")
+                   f"--env-decisions each (among {', '.join(ENV_SCHEDULES)}; '' to skip)")
+    p.add_argument("--schedule-particles", type=int, default=500,
+                   help="particles of the env schedules (default 500, the paper's)")
     p.add_argument("--optimise-counts", default="10,20,40,80",
                    help="stored sub-map counts at which optimise() is timed ('' to skip)")
     p.add_argument("--optimise-seeds", default="0,1,2",
@@ -162,7 +163,8 @@ def measure_env(decisions, seed, schedule: str = "fixed-10s", **config):
     }
 
 
-def measure_optimise(seeds, counts, steps_per_fusion: int = 50, n_particles: int = 100):
+def measure_optimise(seeds, counts, steps_per_fusion: int = 50, n_particles: int = 100,
+                     n_steps: int | None = None):
     """CPU time of ``optimise()`` against the number of stored sub-maps on BB's world.
 
     HYBRID (``n_particles``: the optimiser's cost does not depend on them) fuses every
@@ -170,13 +172,14 @@ def measure_optimise(seeds, counts, steps_per_fusion: int = 50, n_particles: int
     after every fusion, as ``fixed-10s-optimise`` does (each optimisation warm-started from the
     previous optimum); then once more with nothing fused (redundant). Returns per count ``n`` the
     median CPU ms, iterations and redundant-call microseconds of the optimisations with
-    ``n - 2 .. n + 2`` sub-maps, over the worlds ``seeds``."""
+    ``n - 2 .. n + 2`` sub-maps, over the worlds ``seeds`` (their first ``n_steps`` iterations
+    if given)."""
     from slam_gym.scenarios import make_stream
     from slam_gym.systems import make_system
 
     samples = []
     for seed in seeds:
-        stream = make_stream("brooks-bailey", seed=int(seed), clutter_level=2)
+        stream = make_stream("brooks-bailey", seed=int(seed), clutter_level=2, n_steps=n_steps)
         system = make_system("hybrid", stream, np.random.default_rng(int(seed)),
                              n_particles=n_particles).estimator
         for i, step in enumerate(stream):
@@ -320,7 +323,7 @@ def calibrate_compute(args) -> int:
 QUICK = {
     "systems": "hybrid", "particles": "500", "clutter_levels": "2", "iterations": 2500,
     "env_decisions": 250, "env_particles": "", "worst_case_decisions": 150,
-    "optimise_counts": "10,20,40", "optimise_seeds": "0",
+    "schedule_particles": 500, "optimise_counts": "10,20,40", "optimise_seeds": "0",
 }
 """What ``--quick`` measures (about 30 s of CPU on this project's machines)."""
 
@@ -358,11 +361,14 @@ def run(args) -> int:
         except ValueError as exc:
             logger.error("%s", exc)
             return 2
-    worst_case_decisions = None  # fuse-optimise-every-decision: one whole episode
+    worst_case_decisions = args.env_decisions
+    optimise_steps = args.iterations
     if args.quick:
         for name, value in QUICK.items():
-            if name != "worst_case_decisions":
+            if name not in ("worst_case_decisions", "iterations"):
                 setattr(args, name, value)
+        args.iterations = QUICK["iterations"]  # the system's; optimise() runs the whole path
+        optimise_steps = None
         worst_case_decisions = QUICK["worst_case_decisions"]
         args.skip_first_reset = args.skip_paper_episode = args.skip_esdf = True
         # untimed: load the compiled functions from numba's cache (~1 s of the first run)
@@ -402,12 +408,13 @@ def run(args) -> int:
         result["env_schedules"] = [
             measure_env(
                 worst_case_decisions if s == "fuse-optimise-every-decision" else
-                args.env_decisions, args.seed, schedule=s, **PAPER_ENV_CONFIG)
+                args.env_decisions, args.seed, schedule=s, n_particles=args.schedule_particles)
             for s in tqdm(schedules, desc="env schedules", disable=args.quiet or args.json)
         ]
     counts = int_list(args.optimise_counts)
     if counts:
-        result["optimise"] = measure_optimise(int_list(args.optimise_seeds), counts)
+        result["optimise"] = measure_optimise(int_list(args.optimise_seeds), counts,
+                                              n_steps=optimise_steps)
     if not args.skip_first_reset:
         result["env_first_reset"] = measure_first_reset(args.seed)
     if args.env_decisions > 0 and not args.skip_paper_episode:

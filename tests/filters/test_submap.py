@@ -585,3 +585,22 @@ def test_global_innovations_match_the_dense_computation():
         if best >= 0:
             assert ratio[k] == pytest.approx(expected_ratio, rel=1e-9)
     assert list(nearest[:3]) == [4, 1, 6] and nearest[3] == -1
+
+
+def test_compiled_composition_equals_the_geometry_functions():
+    """Issue 27: the sub-map system's compiled composition (BB Fig. 3) against
+    filters.geometry.compose / compose_jacobians and the covariance formula in numpy."""
+    from filters.submap import _compose_with_covariance
+
+    rng = np.random.default_rng(11)
+    for _ in range(100):
+        v, xl = rng.normal(size=3) * [20, 20, 3], rng.normal(size=3) * [5, 5, 1]
+        A, B = rng.normal(size=(3, 3)), rng.normal(size=(3, 3))
+        P_v, P_l = A @ A.T, B @ B.T
+        mean, cov, J_a = _compose_with_covariance(v, P_v, xl, P_l)
+        Ja, Jb = compose_jacobians(v, xl)
+        expected = Ja @ P_v @ Ja.T + Jb @ P_l @ Jb.T
+        np.testing.assert_allclose(mean, compose(v, xl), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(J_a, Ja, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(cov, 0.5 * (expected + expected.T), rtol=1e-12, atol=1e-12)
+        np.testing.assert_array_equal(cov, cov.T)

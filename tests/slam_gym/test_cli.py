@@ -133,19 +133,29 @@ def test_benchmark_rejects_unknown_envs_and_baselines(tmp_path):
 
 def test_speed_tiny(tmp_path, capsys):
     out = run_json(capsys, ["speed", "--systems", "hybrid", "--particles", "10,40",
-                            "--clutter-levels", "1", "--iterations", "60", "--env-decisions",
-                            "5", "--env-particles", "10,20", "--skip-paper-episode",
-                            "--skip-first-reset", "--skip-esdf", "--out", str(tmp_path)])
+                            "--clutter-levels", "1", "--iterations", "400", "--env-decisions",
+                            "5", "--env-particles", "10,20", "--schedule-particles", "10",
+                            "--env-schedules", "fixed-10s-optimise,fuse-optimise-every-decision",
+                            "--optimise-counts", "2,3", "--optimise-seeds", "0",
+                            "--skip-paper-episode", "--skip-first-reset", "--skip-esdf",
+                            "--out", str(tmp_path)])
     rows = out["systems"]
     assert [r["n_particles"] for r in rows] == [10, 40]
     for r in rows:
-        assert r["iterations"] == 60 and r["iterations_per_s"] > 0
+        assert r["iterations"] == 400 and r["iterations_per_s"] > 0
         assert r["real_time_ratio"] == pytest.approx(r["iterations_per_s"] * 0.1)
     assert [e["n_particles"] for e in out["env_runs"]] == [10, 20]
     assert out["env"] == out["env_runs"][-1] and out["env"]["decisions"] == 5
     assert all(e["resets"] >= 1 and e["decisions_per_s"] > 0 for e in out["env_runs"])
     assert "env_first_reset" not in out
     assert "env_paper_episode" not in out
+    schedules = out["env_schedules"]
+    assert [e["schedule"] for e in schedules] == ["fixed-10s-optimise",
+                                                  "fuse-optimise-every-decision"]
+    assert all(e["decisions"] == 5 and e["n_particles"] == 10 for e in schedules)
+    # fusing every 5 s over 400 iterations: 8 sub-maps, each optimisation warm and then redundant
+    assert [r["stored_submaps"] for r in out["optimise"]] == [2, 3]
+    assert all(r["median_ms"] > 0 and r["redundant_median_us"] > 0 for r in out["optimise"])
     assert json.loads((tmp_path / "speed.json").read_text())["systems"] == rows
 
 
@@ -173,3 +183,53 @@ def test_benchmark_where_every_run_fails_still_writes_its_table(tmp_path, capsys
                             "1", "--executor", "serial", "--out", str(tmp_path)])
     assert doc["summary"]["groups"][0]["success_rate"] == 0.0
     assert "pareto" not in doc["figures"] and (tmp_path / "table.md").exists()
+
+
+def _record(**figures):
+    return {"date_utc": "2026-11-25T00:00:00Z", "commit": "abc",
+            "figures": {k: {"value": v, "unit": u, "higher_is_better": h}
+                        for k, (v, u, h) in figures.items()}}
+
+
+def test_speed_record_comparison_fails_below_half_and_on_a_missing_figure():
+    from slam_gym.commands.speed_record import compare
+
+    baseline = _record(rate=(180.0, "decisions/s", True), time=(4.0, "ms", False))
+    same = _record(rate=(170.0, "decisions/s", True), time=(4.5, "ms", False))
+    rows, ok = compare(same, baseline)
+    assert ok and {r[0]: r[-1] for r in rows} == {"rate": "ok", "time": "ok"}
+    # a threefold loss (the regression of issue 27) fails, in a rate and in a time
+    for slow in (_record(rate=(60.0, "decisions/s", True), time=(4.0, "ms", False)),
+                 _record(rate=(180.0, "decisions/s", True), time=(12.0, "ms", False))):
+        rows, ok = compare(slow, baseline)
+        assert not ok and "SLOWER" in [r[-1] for r in rows]
+        ratios = [r[4] for r in rows if r[-1] == "SLOWER"]
+        assert ratios == [pytest.approx(1 / 3)]
+    rows, ok = compare(_record(rate=(180.0, "decisions/s", True)), baseline)
+    assert not ok and ("time", 4.0, None, "ms") == rows[1][:4] and rows[1][-1] == "MISSING"
+    rows, ok = compare(_record(rate=(180.0, "decisions/s", True), time=(4.0, "ms", False),
+                               extra=(1.0, "x", True)), baseline)
+    assert ok and rows[0][0] == "extra" and rows[0][-1] == "new"
+
+
+def test_speed_compare_exits_1_against_a_much_faster_baseline(tmp_path, capsys):
+    args = ["speed", "--systems", "hybrid", "--particles", "10", "--clutter-levels", "1",
+            "--iterations", "40", "--env-decisions", "3", "--env-particles", "",
+            "--env-schedules", "fixed-10s", "--optimise-counts", "", "--skip-paper-episode",
+            "--skip-first-reset", "--skip-esdf", "--out", str(tmp_path), "--json"]
+    assert main(args) == 0
+    measured = json.loads(capsys.readouterr().out)
+    assert "record" not in measured  # a record only with --quick or --compare
+    fast = _record(hybrid_10p_level1_iterations_per_s=(1e9, "iterations/s", True))
+    (tmp_path / "fast.json").write_text(json.dumps(fast))
+    assert main([*args, "--compare", str(tmp_path / "fast.json")]) == 1
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["comparison"]["passed"] is False
+    record = json.loads((tmp_path / "speed_record.json").read_text())
+    assert record["figures"]["hybrid_10p_level1_iterations_per_s"]["value"] > 0
+    assert "env_fixed_10s_decisions_per_s" in record["figures"] and record["commit"]
+    (tmp_path / "own.json").write_text(json.dumps(record))
+    assert main([*args, "--compare", str(tmp_path / "own.json")]) == 0
+    capsys.readouterr()
+    (tmp_path / "bad.json").write_text("{}")
+    assert main([*args, "--compare", str(tmp_path / "bad.json")]) == 2

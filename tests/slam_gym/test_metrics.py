@@ -49,3 +49,28 @@ def test_ospa_charges_the_cutoff_for_missed_spurious_and_duplicate_features():
     assert empty.ospa_m(5.0) == 5.0
     perfect = score_map(np.array([7]), LANDMARKS[:1], _truth([(7, 0)]), LANDMARKS, {0})
     assert perfect.ospa_m(5.0) == 0.0
+
+
+def test_compiled_nees_equals_the_cholesky_solve_and_is_inf_when_not_positive_definite():
+    """Issue 27: the compiled NEES (slam_gym.metrics._cholesky_nees) against numpy's Cholesky
+    and triangular solve of the symmetrised, regularised covariance; a covariance that is not
+    positive definite (or NaN) gives inf, as numpy's LinAlgError did."""
+    import pytest
+
+    from slam_gym.metrics import NEES_REGULARISATION, nees
+
+    rng = np.random.default_rng(5)
+    for _ in range(200):
+        A = rng.normal(size=(3, 3)) * rng.uniform(0.01, 3.0)
+        cov = A @ A.T + rng.uniform(0, 1e-3) * np.eye(3)
+        cov[0, 1] += 1e-12  # slightly asymmetric, as filters' round-off leaves it
+        truth, est = rng.normal(size=3) * 5, rng.normal(size=3) * 5
+        e = truth - est
+        e[2] = (e[2] + np.pi) % (2 * np.pi) - np.pi
+        L = np.linalg.cholesky(0.5 * (cov + cov.T) + NEES_REGULARISATION * np.eye(3))
+        w = np.linalg.solve(L, e)
+        assert nees(truth, est, cov) == pytest.approx(float(w @ w), rel=1e-10)
+    assert nees(np.zeros(3), np.ones(3), -np.eye(3)) == math.inf
+    assert nees(np.zeros(3), np.ones(3), np.diag([1.0, 1.0, np.nan])) == math.inf
+    with pytest.raises(ValueError, match="cov"):
+        nees(np.zeros(3), np.ones(3), np.eye(2))
