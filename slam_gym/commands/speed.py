@@ -373,7 +373,7 @@ def run(args) -> int:
         args.skip_first_reset = args.skip_paper_episode = args.skip_esdf = True
         # untimed: load the compiled functions from numba's cache (~1 s of the first run)
         measure_system("hybrid", 2, 50, args.seed, 50)
-        measure_env(3, args.seed, schedule="fixed-10s-optimise", n_particles=50)
+        measure_env(3, args.seed + 999, schedule="fixed-10s-optimise", n_particles=50)
     schedules = name_list(args.env_schedules)
     bad = [s for s in schedules if s not in ENV_SCHEDULES]
     if bad:
@@ -405,10 +405,13 @@ def run(args) -> int:
         ]
         result["env"] = result["env_runs"][-1]
     if args.env_decisions > 0 and schedules:
+        # each schedule its own worlds: the process remembers recent worlds, and a replayed
+        # one would spare the schedules after the first their simulation
         result["env_schedules"] = [
             measure_env(
                 worst_case_decisions if s == "fuse-optimise-every-decision" else
-                args.env_decisions, args.seed, schedule=s, n_particles=args.schedule_particles)
+                args.env_decisions, args.seed + 1000 * (1 + list(ENV_SCHEDULES).index(s)),
+                schedule=s, n_particles=args.schedule_particles)
             for s in tqdm(schedules, desc="env schedules", disable=args.quiet or args.json)
         ]
     counts = int_list(args.optimise_counts)
