@@ -161,6 +161,8 @@ def benchmark(
     front_end: str | None = None,
     back_end: str | None = None,
     n_steps: int | None = None,
+    w_compute: float | None = None,
+    compute_clip_s: float | None = None,
     model: str | None = None,
     baselines: Iterable[str] = BASELINE_SYSTEMS,
     out: str | os.PathLike = "out/benchmark",
@@ -177,7 +179,9 @@ def benchmark(
     ``seeds``: a number of worlds from ``seed_start``, or the seeds themselves. ``env``: a
     registered simulated env id whose front-end and back-end to use (else ``front_end``,
     default ``"fastslam"``, and ``back_end``, default ``"ekf"``). ``n_steps`` cuts the path
-    (quick looks and tests). ``model``: the model zip of policy ``learned`` (None: the shipped
+    (quick looks and tests); ``w_compute`` and ``compute_clip_s`` (None: the env's defaults) set
+    the reward's price of compute, so a policy's return is scored under the reward it was
+    trained for. ``model``: the model zip of policy ``learned`` (None: the shipped
     one). ``workers``, ``executor`` (``"process"``, ``"ray"``, ``"serial"``) and
     ``ray_address`` as :func:`slam_gym.evaluation.run_jobs`.
     """
@@ -206,8 +210,10 @@ def benchmark(
 
     options: dict[str, Any] = {"n_particles": n_particles, "decision_interval": decision_interval,
                                "front_end": front_end, "back_end": back_end}
-    if n_steps is not None:
-        options["n_steps"] = int(n_steps)
+    for key, value in (("n_steps", n_steps), ("w_compute", w_compute),
+                       ("compute_clip_s", compute_clip_s)):
+        if value is not None:
+            options[key] = value
     jobs = []
     for entry in entries:
         opts = options | (learned_options(model) if entry.name == "learned" else {})
@@ -242,7 +248,8 @@ def benchmark(
         written.update(episode_figures(
             entries, scenario=scenario, level=levels[-1], seed=seed_list[0], out=out,
             model=model, n_particles=n_particles, decision_interval=decision_interval,
-            front_end=front_end, back_end=back_end, n_steps=n_steps))
+            front_end=front_end, back_end=back_end, n_steps=n_steps, w_compute=w_compute,
+            compute_clip_s=compute_clip_s))
     return BenchmarkResult(rows=rows, summary=doc, figures=written, out=out)
 
 
