@@ -21,10 +21,17 @@ Names (``policies.available()``):
 * ``never`` (pure FastSLAM), ``always`` (fuse at every decision, EKF-like);
 * ``adaptive-diversity`` and ``imminent-closure`` -- adaptive rules of BB sections 6 and 5.4;
 * ``learned`` -- a stable-baselines3 model zip (``path``, ``algo``).
+
+Policies of your own (:mod:`policies.registry`): ``policies.register("my-rule", MyRule)`` for
+this process; the entry-point group ``slam_gym.policies`` for an installed package (its names
+appear in :func:`available` and in every command); or the reference ``package.module:attribute``
+wherever a name is accepted (``policies.make("my_package.rules:MyRule")``, ``slam-gym benchmark
+--policies fixed-10s,my_package.rules:MyRule``).
 """
 
 from __future__ import annotations
 
+import functools
 import inspect
 from collections.abc import Callable, Mapping
 from types import MappingProxyType
@@ -39,6 +46,7 @@ from policies.base import (
 )
 from policies.heuristics import HEURISTICS
 from policies.learned import LearnedPolicy
+from policies.registry import ENTRY_POINT_GROUP, PolicyRegistry
 
 _CLASSES: Mapping[str, type[Policy]] = MappingProxyType({**HEURISTICS, "learned": LearnedPolicy})
 
@@ -55,8 +63,7 @@ _ALIASES: Mapping[str, tuple[str, Mapping[str, Any]]] = MappingProxyType(
 ``fixed-10s-optimise`` runs CM's optimiser after every one of its fusions."""
 
 
-def available() -> list[str]:
-    """Every name :func:`make` accepts (policies and aliases), sorted."""
+def _builtin_names() -> list[str]:
     return sorted({*_CLASSES, *_ALIASES})
 
 
@@ -65,17 +72,11 @@ def _option_names(factory: Callable[..., Any]) -> list[str]:
     return [p.name for p in params if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)]
 
 
-def make(name: str, **options: Any) -> Policy:
-    """Build the policy registered as ``name`` with keyword ``options``.
-
-    An unknown name raises ``ValueError`` listing :func:`available`; an unknown option raises
-    ``ValueError`` listing the policy's options; a bad option value raises ``ValueError`` naming
-    the option, the value and the allowed range. An alias fixes some options (``fixed-10s``:
-    ``interval_s=10``); passing a different value for one of them raises ``ValueError``.
-    """
+def _make_builtin(name: str, **options: Any) -> Policy:
+    """Build the project's policy ``name`` with keyword ``options`` (see :func:`make`)."""
     if not isinstance(name, str) or (name not in _CLASSES and name not in _ALIASES):
         raise ValueError(
-            f"policy name={name!r} is invalid: must be one of {', '.join(available())}"
+            f"policy name={name!r} is invalid: must be one of {', '.join(_builtin_names())}"
         )
     fixed: Mapping[str, Any] = {}
     target = name
@@ -99,13 +100,55 @@ def make(name: str, **options: Any) -> Policy:
     return cls(**{**fixed, **options})
 
 
+REGISTRY = PolicyRegistry(
+    {name: functools.partial(_make_builtin, name) for name in _builtin_names()},
+    group=ENTRY_POINT_GROUP,
+)
+"""The default registry: the project's policies, the entry points of group
+``slam_gym.policies`` (read on first use) and what :func:`register` adds in this process."""
+
+
+def available() -> list[str]:
+    """Every name :func:`make` accepts (the project's policies and aliases, installed plug-ins,
+    names registered in this process), sorted."""
+    return REGISTRY.available()
+
+
+def make(name: str, **options: Any) -> Policy:
+    """Build the policy ``name`` (a name of :func:`available` or a ``package.module:attribute``
+    reference) with keyword ``options``.
+
+    An unknown name raises ``ValueError`` listing :func:`available`; an unknown option raises
+    ``ValueError`` listing the policy's options; a bad option value raises ``ValueError`` naming
+    the option, the value and the allowed range. An alias fixes some options (``fixed-10s``:
+    ``interval_s=10``); passing a different value for one of them raises ``ValueError``.
+    """
+    return REGISTRY.make(name, **options)
+
+
+def register(name: str, factory: Callable[..., Any]) -> None:
+    """Register ``factory`` (a policy class, a function returning a policy, or a policy object)
+    as ``name`` in this process (:meth:`policies.registry.PolicyRegistry.register`)."""
+    REGISTRY.register(name, factory)
+
+
+def unregister(name: str) -> None:
+    """Forget a name :func:`register` added."""
+    REGISTRY.unregister(name)
+
+
 __all__ = [
+    "ENTRY_POINT_GROUP",
     "INTERFACE_FEATURES",
+    "REGISTRY",
     "HeuristicPolicy",
     "LearnedPolicy",
     "Policy",
+    "PolicyRegistry",
     "available",
     "discrete_to_multi",
     "make",
     "multi_to_discrete",
+    "register",
+    "unregister",
 ]

@@ -110,6 +110,27 @@ def make_action(fuse: bool, optimise: bool) -> np.ndarray:
     return np.array([1 if fuse else 0, 1 if optimise else 0], dtype=np.int64)
 
 
+def check_action(action: Any, policy: str) -> np.ndarray:
+    """The env's action from what policy ``policy`` returned, or ``ValueError`` naming the
+    policy and the value: an array-like of shape (2,), integer (or bool) dtype, each 0 or 1.
+
+    Floats are refused even when they are whole (``[1.0, 0.0]``), as the env refuses them: a
+    float usually means an unrounded score was returned where a decision was meant."""
+    arr = np.asarray(action)
+    ok = (
+        arr.shape == (2,)
+        and (np.issubdtype(arr.dtype, np.integer) or arr.dtype == np.bool_)
+        and bool(np.all((arr == 0) | (arr == 1)))
+    )
+    if not ok:
+        raise ValueError(
+            f"policy {policy!r} returned action={action!r} (dtype {arr.dtype}, shape "
+            f"{arr.shape}), which is invalid: must be two integers in {{0, 1}} (fuse, optimise), "
+            "e.g. np.array([1, 0], dtype=np.int64), the env's MultiDiscrete([2, 2]) action"
+        )
+    return arr.astype(np.int64)
+
+
 def discrete_to_multi(a: Any) -> np.ndarray:
     """Map a ``Discrete(4)`` action to the ``(fuse, optimise)`` pair.
 

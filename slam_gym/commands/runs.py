@@ -7,6 +7,13 @@ import os
 from slam_gym.commands.common import add_common_options
 
 
+def plot_episode_map(episode, path, title: str):
+    """BB Fig. 2 for one finished episode (:func:`slam_gym.evaluation.plots.plot_episode_map`)."""
+    from slam_gym.evaluation.plots import plot_episode_map as plot
+
+    return plot(episode, path, title)
+
+
 def int_list(text: str) -> list[int]:
     try:
         return [int(v) for v in text.split(",") if v.strip() != ""]
@@ -56,17 +63,3 @@ def print_table(args, doc, paper=None, title=None) -> None:
     from slam_gym.evaluation import format_table
 
     Console(width=160).print(format_table(doc, paper=paper, title=title))
-
-
-def plot_episode_map(episode, path, title: str):
-    """BB Fig. 2 for one finished episode: truth, confirmed features with ellipses, both paths."""
-    import numpy as np
-
-    from slam_gym.evaluation import plot_run_map
-
-    lm = episode.confirmed_landmarks()
-    return str(plot_run_map(
-        path, landmarks_true=episode.stream.landmarks_true, landmark_means=lm.means,
-        landmark_covs=lm.covs, path_true=np.array(episode.trace.true_poses),
-        path_est=np.array(episode.trace.est_poses), title=title,
-    ))

@@ -8,12 +8,19 @@ Typical use (the run function is any picklable ``run_fn(job) -> dict`` with the 
     doc = write_summary("out/", rows)                         # summary.json, table.md
     plot_success_rates(doc, "out/success.png")
 
+The whole benchmark of any policies (names, ``package.module:attribute`` references, policy
+objects) is one call, the function ``slam-gym benchmark`` runs (:mod:`.benchmarking`)::
+
+    result = benchmark(["fixed-10s", MyRule()], clutter_levels=[2], seeds=5, out="out/mine")
+    result.rows, result.summary, result.figures
+
 The output files and their keys are a public contract (DESIGN section 7). The plotting
 functions are imported lazily (matplotlib is not needed by the worker processes).
 """
 
 from typing import Any
 
+from slam_gym.evaluation.benchmarking import BenchmarkResult, benchmark
 from slam_gym.evaluation.executors import EXECUTORS, execute_job, run_jobs
 from slam_gym.evaluation.jobs import JOB_KINDS, Job, expand_grid
 from slam_gym.evaluation.results import (
@@ -39,6 +46,7 @@ from slam_gym.evaluation.summary import (
 )
 
 __all__ = [
+    "BenchmarkResult",
     "EXECUTORS",
     "JOB_KINDS",
     "REQUIRED_ROW_KEYS",
@@ -50,6 +58,7 @@ __all__ = [
     "Job",
     "ResultError",
     "ResultsWriter",
+    "benchmark",
     "execute_job",
     "expand_grid",
     "finished_keys",
@@ -57,6 +66,7 @@ __all__ = [
     "markdown_table",
     "nees_band",
     "pareto_front",
+    "plot_episode_map",
     "plot_nees",
     "plot_pareto",
     "plot_run_map",
@@ -74,6 +84,7 @@ __all__ = [
 _PLOTS = (
     "nees_band",
     "pareto_front",
+    "plot_episode_map",
     "plot_nees",
     "plot_pareto",
     "plot_run_map",

@@ -150,15 +150,17 @@ def run_policy(
     model_path=None,
     model_sha256=None,
     deterministic=None,
+    factories=None,
     **env_options,
 ):
     """Run the named interface policy in the env for one episode; (episode, env).
 
-    ``model_path``, ``model_sha256`` and ``deterministic`` are options of ``learned``
-    (:func:`make_policy`)."""
+    ``model_path``, ``model_sha256`` and ``deterministic`` are options of ``learned``,
+    ``factories`` the policies only this process knows (:func:`make_policy`)."""
     policy = make_policy(policy_name, model_path=model_path, model_sha256=model_sha256,
-                         deterministic=deterministic)
-    return run_policy_object(policy, scenario, clutter_level, seed, **env_options)
+                         deterministic=deterministic, factories=factories)
+    return run_policy_object(policy, scenario, clutter_level, seed, policy_name=policy_name,
+                             **env_options)
 
 
 def learned_options(model_path: str | None = None) -> dict:
@@ -171,13 +173,20 @@ def learned_options(model_path: str | None = None) -> dict:
         "model_sha256": model_digest(model_path)}
 
 
-def make_policy(name: str, *, model_path=None, model_sha256=None, deterministic=None):
+def make_policy(name: str, *, model_path=None, model_sha256=None, deterministic=None,
+                factories=None):
     """The policy object a job names. For ``learned``: the model at ``model_path`` (None: the
     packaged default), checked against the job's ``model_sha256`` (None: not checked; another
     digest is a ``ValueError``), acting by ``deterministic`` (None: the model's default). The
-    other policies take none of these."""
+    other policies take none of these. ``factories`` (name -> factory or policy object) holds
+    the policies a worker process cannot resolve by name (objects and names registered at run
+    time in the process that made the jobs); other names go to :func:`policies.make` (the
+    project's names, plug-ins' entry points, ``package.module:attribute`` references)."""
     import policies
+    from policies.registry import build
 
+    if factories and name in factories:
+        return build(factories[name], name, {})
     if name != "learned":
         return policies.make(name)
     from policies.learned import check_model_digest
@@ -202,14 +211,21 @@ def run_policy_object(
     on_step=None,
     w_compute=None,
     compute_clip_s=None,
+    policy_name=None,
 ):
     """Run a policy object (``act(obs, info)``, ``reset()``) for one episode; (episode, env).
 
     The world is the scenario's world for ``seed`` (the same as a system run with that seed);
     the episode ends at the end of the path or at BB's failure. ``on_step(action, info)``, if
-    given, sees every decision and the info that followed it.
+    given, sees every decision and the info that followed it. Every action is checked
+    (:func:`policies.base.check_action`): a wrong shape, dtype or value raises ``ValueError``
+    naming the policy (``policy_name``, else the object's name) and what it returned.
     """
+    from policies.base import check_action
+    from policies.registry import policy_label
     from slam_gym.envs.hybrid_slam import HybridSLAMEnv
+
+    label = policy_name or policy_label(policy)
 
     reward = {k: v for k, v in (("w_compute", w_compute), ("compute_clip_s", compute_clip_s))
               if v is not None}
@@ -226,7 +242,7 @@ def run_policy_object(
     policy.reset()
     obs, info = env.reset(seed=int(seed), options={"world_seed": int(seed)})
     while True:
-        action = policy.act(obs, info)
+        action = check_action(policy.act(obs, info), label)
         obs, _, terminated, truncated, info = env.step(action)
         if on_step is not None:
             on_step(action, info)
@@ -241,8 +257,13 @@ def episode_result(episode: Episode, stream) -> dict:
     return metrics
 
 
-def run_job(job) -> dict:
-    """The run function of the evaluation machinery (picklable, module level)."""
+def run_job(job, policy_factories=None) -> dict:
+    """The run function of the evaluation machinery (picklable, module level).
+
+    ``policy_factories`` (policy name -> factory or policy object) names the policies a worker
+    cannot resolve by name; pass it with ``functools.partial(run_job, policy_factories=...)``,
+    which pickles when the factories do (module-level classes and functions, picklable objects).
+    """
     if job.kind == "system":
         opts = _options(job.options_dict(), SYSTEM_OPTIONS, "system")
         stream = make_job_stream(job.scenario, job.clutter_level, job.seed, opts.pop("n_steps"))
@@ -252,7 +273,8 @@ def run_job(job) -> dict:
         row["total_cpu_s"] = time.process_time() - cpu_start
         return row
     opts = _options(job.options_dict(), POLICY_OPTIONS, "policy")
-    episode, env = run_policy(job.name, job.scenario, job.clutter_level, job.seed, **opts)
+    episode, env = run_policy(job.name, job.scenario, job.clutter_level, job.seed,
+                              factories=policy_factories, **opts)
     row = episode_result(episode, env.stream)
     row["return"] = env.episode_return
     row.update(summarise_records(env.compute_records, env.compute_model))

@@ -385,6 +385,17 @@ def plot_run_map(
     return _save(fig, path, dpi)
 
 
+def plot_episode_map(episode, path: str | os.PathLike, title: str) -> str:
+    """BB Fig. 2 for one finished :class:`~slam_gym.episode.Episode`: truth, confirmed features
+    with ellipses, both paths (:func:`plot_run_map`); the path as a str."""
+    lm = episode.confirmed_landmarks()
+    return str(plot_run_map(
+        path, landmarks_true=episode.stream.landmarks_true, landmark_means=lm.means,
+        landmark_covs=lm.covs, path_true=np.array(episode.trace.true_poses),
+        path_est=np.array(episode.trace.est_poses), title=title,
+    ))
+
+
 def pareto_front(points: Sequence[tuple[float, float]]) -> list[int]:
     """Indices of the points no other point dominates, both coordinates to be minimised.
 

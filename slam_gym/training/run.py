@@ -41,6 +41,7 @@ from typing import Any
 
 import numpy as np
 
+from slam_gym.training.evaluation import DEFAULT_EVAL_SEEDS
 from slam_gym.training.hyperparams import ALGO_KEYS
 
 logger = logging.getLogger(__name__)
@@ -66,7 +67,7 @@ class TrainingSetup:
     seed: int
     hyperparams: dict[str, Any]
     clutter_levels: tuple[int, ...] = (0, 1, 2, 3)
-    eval_seeds: tuple[int, ...] = (900_000, 900_001, 900_002, 900_003, 900_004)
+    eval_seeds: tuple[int, ...] = DEFAULT_EVAL_SEEDS
     eval_every: int = 25_000
     eval_workers: int = 2
     checkpoint_every: int = 25_000
@@ -200,59 +201,24 @@ holds the deterministic figures under their names and the sampled ones prefixed 
 def evaluate_snapshot(model_path: Path, setup: TrainingSetup, out: Path,
                       progress: bool = False) -> dict[str, Any]:
     """Run the saved model on the evaluation worlds with the benchmark's code, in both
-    :data:`EVAL_MODES` (DQN: deterministic only); one summary row."""
-    from slam_gym.evaluation import Job, run_jobs
-    from slam_gym.evaluation.core import POLICY_OPTIONS, run_job
+    :data:`EVAL_MODES` (DQN: deterministic only); one summary row
+    (:func:`slam_gym.training.evaluation.evaluation_record`, the callback's figures)."""
+    from slam_gym.evaluation.core import POLICY_OPTIONS
+    from slam_gym.training.evaluation import evaluate_model_file, evaluation_record
 
     env_options = {k: v for k, v in setup.env_options().items() if k in POLICY_OPTIONS}
-    options = {**env_options, "model_path": str(model_path)}
     modes = EVAL_MODES[:1] if setup.discrete else EVAL_MODES
-    jobs = {mode: [Job("policy", "learned", "brooks-bailey", level, seed,
-                       options if mode == "deterministic" else {**options, "deterministic": False})
-                   for level in setup.clutter_levels for seed in setup.eval_seeds]
-            for mode in modes}
-    every = [job for mode in modes for job in jobs[mode]]
     start = time.perf_counter()
-    rows = run_jobs(every, run_job, out, workers=min(setup.eval_workers, len(every)),
-                    executor="process" if setup.eval_workers > 1 else "serial",
-                    progress=progress)
-    failed = [r for r in rows if r.get("status") != "ok"]
-    if failed:
-        raise RuntimeError(f"evaluation of {model_path} failed in {len(failed)} runs: "
-                           f"{failed[0].get('error')}")
-    by_key = {row["key"]: row for row in rows}
-    record: dict[str, Any] = {"eval_time_s": time.perf_counter() - start}
+    record: dict[str, Any] = {}
     for mode in modes:
+        rows = evaluate_model_file(
+            model_path, out, clutter_levels=setup.clutter_levels, seeds=setup.eval_seeds,
+            env_options=env_options, deterministic=None if mode == "deterministic" else False,
+            workers=setup.eval_workers, progress=progress)
         prefix = "" if mode == "deterministic" else "sampled_"
-        summary = _summarise_rows([by_key[job.key] for job in jobs[mode]], setup.clutter_levels)
+        summary = evaluation_record(rows, setup.clutter_levels)
         record.update({prefix + k: v for k, v in summary.items()})
-    return record
-
-
-def _summarise_rows(rows: list[dict], levels) -> dict[str, float]:
-    from slam_gym.evaluation.summary import metric_values
-
-    survived = [r for r in rows if r["success"]]
-
-    def mean(key, subset=rows):
-        values = metric_values(subset, key)
-        return float(np.mean(values)) if values else math.nan
-
-    record = {
-        "success_rate": mean("success"),
-        "mean_return": mean("return"),
-        "anees": mean("anees"),
-        "map_error_m": mean("map_error_m", survived),
-        "map_completeness": mean("map_completeness"),
-        "n_fusions": mean("n_fusions"),
-        "n_optimisations": mean("n_optimisations"),
-        "interface_cpu_s": mean("interface_cpu_s"),
-        "n_episodes": len(rows),
-    }
-    for level in levels:
-        record[f"success_level_{level}"] = float(
-            np.mean([r["success"] for r in rows if r["clutter_level"] == level]))
-    return record
+    return {"eval_time_s": time.perf_counter() - start, **record}
 
 
 def chosen_mode(record: dict[str, float]) -> str:

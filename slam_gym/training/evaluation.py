@@ -1,0 +1,170 @@
+"""The benchmark's measures inside any training loop: evaluate a policy on fixed worlds.
+
+:func:`evaluate_policy` is the plain function (any RL library): it runs a policy -- an object
+with ``act(obs, info)`` and ``reset()``, a policy name or a ``package.module:attribute``
+reference -- through :func:`slam_gym.evaluation.benchmark` on fixed worlds and returns one
+record of the benchmark's metrics::
+
+    success_rate, mean_return, anees, map_error_m (runs that did not fail), map_completeness,
+    n_fusions, n_optimisations, interface_cpu_s (CPU of fusions and optimisations),
+    n_episodes, success_level_<L> per clutter level
+
+:class:`slam_gym.training.callbacks.BenchmarkEvalCallback` does the same for a
+stable-baselines3 model during ``model.learn`` (a snapshot of the model, evaluated as policy
+``learned``), and ``slam-gym train`` evaluates its snapshots with :func:`evaluate_model_file`
+and :func:`evaluation_record` too, so the three report the same figures.
+
+The default worlds (:data:`DEFAULT_EVAL_SEEDS`) are those ``slam-gym train`` evaluates on: below
+:data:`~slam_gym.envs.wrappers.TRAINING_WORLD_SEED_OFFSET`, so never trained on, and not the
+seeds 0-99 the reported benchmarks use.
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from filters.validation import require
+
+DEFAULT_EVAL_SEEDS: tuple[int, ...] = (900_000, 900_001, 900_002, 900_003, 900_004)
+"""The evaluation worlds of ``slam-gym train`` and of the callback (held out from training)."""
+
+EVAL_METRICS: tuple[str, ...] = (
+    "success_rate", "mean_return", "anees", "map_error_m", "map_completeness", "n_fusions",
+    "n_optimisations", "interface_cpu_s", "n_episodes",
+)
+"""The keys of an evaluation record (then ``success_level_<L>`` per clutter level)."""
+
+FORWARDED_ENV_OPTIONS: tuple[str, ...] = (
+    "n_particles", "decision_interval", "front_end", "back_end", "n_steps", "w_compute",
+    "compute_clip_s",
+)
+"""Env options the evaluation builds its env with (the benchmark's policy-job options)."""
+
+
+def evaluation_record(rows: Sequence[Mapping[str, Any]], levels: Iterable[int]) -> dict[str, Any]:
+    """The means of :data:`EVAL_METRICS` over benchmark rows (map error over the runs that did
+    not fail: a run that fails early keeps a small map with small errors) and the success rate
+    per clutter level."""
+    from slam_gym.evaluation.summary import metric_values
+
+    survived = [r for r in rows if r["success"]]
+
+    def mean(key, subset=rows):
+        values = metric_values(subset, key)
+        return float(np.mean(values)) if values else math.nan
+
+    record: dict[str, Any] = {
+        "success_rate": mean("success"),
+        "mean_return": mean("return"),
+        "anees": mean("anees"),
+        "map_error_m": mean("map_error_m", survived),
+        "map_completeness": mean("map_completeness"),
+        "n_fusions": mean("n_fusions"),
+        "n_optimisations": mean("n_optimisations"),
+        "interface_cpu_s": mean("interface_cpu_s"),
+        "n_episodes": len(rows),
+    }
+    for level in levels:
+        record[f"success_level_{level}"] = float(
+            np.mean([r["success"] for r in rows if r["clutter_level"] == level]))
+    return record
+
+
+def evaluation_options(env_id: str | None = None,
+                       env_kwargs: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """The env options of an evaluation from a registered env id and the keyword arguments the
+    policy was trained with (as given to ``gym.make``). ``scenario`` and ``clutter_level`` are
+    left out (the evaluation chooses its worlds), and so is ``features`` (the evaluation's env
+    shows every feature in ``info["features"]``; a model trained on a subset reads its own by
+    name, from the ``feature_names`` of its config JSON); an option the evaluation cannot forward to
+    its env (e.g. another reward weight) raises ``ValueError`` naming it, since the return would
+    then be scored under another reward than the one trained for."""
+    from slam_gym.envs import ENV_VARIANTS
+
+    kwargs: dict[str, Any] = {}
+    if env_id is not None:
+        require(env_id in ENV_VARIANTS, "env_id", env_id, f"one of {sorted(ENV_VARIANTS)}")
+        kwargs.update(ENV_VARIANTS[env_id])
+    kwargs.update(env_kwargs or {})
+    for key in ("scenario", "clutter_level", "features"):
+        kwargs.pop(key, None)
+    unknown = sorted(set(kwargs) - set(FORWARDED_ENV_OPTIONS))
+    require(not unknown, "env_kwargs", unknown,
+            f"among {FORWARDED_ENV_OPTIONS} (the options the evaluation's env takes)")
+    return kwargs
+
+
+def _check_rows(rows: Sequence[Mapping[str, Any]], what: str) -> None:
+    failed = [r for r in rows if r.get("status") != "ok"]
+    if failed:
+        raise RuntimeError(f"evaluation of {what} failed in {len(failed)} of {len(rows)} runs: "
+                           f"{failed[0].get('error')}")
+
+
+def evaluate_policy(
+    policy: Any,
+    *,
+    clutter_levels: Iterable[int] = (0, 1, 2, 3),
+    seeds: Iterable[int] = DEFAULT_EVAL_SEEDS,
+    scenario: str = "brooks-bailey",
+    env_id: str | None = None,
+    env_kwargs: Mapping[str, Any] | None = None,
+    out: str | Path | None = None,
+    workers: int = 1,
+    progress: bool = False,
+) -> dict[str, Any]:
+    """Evaluate ``policy`` (object, name or reference) on the worlds ``seeds`` x
+    ``clutter_levels``; the record of :data:`EVAL_METRICS` (see :func:`evaluation_record`).
+
+    The env is the one of ``env_id`` with ``env_kwargs`` (:func:`evaluation_options`). Runs go
+    through :func:`slam_gym.evaluation.benchmark` (``workers`` > 1: a process pool, so the
+    policy must pickle); their rows are written into ``out`` (None: a temporary folder). A run
+    that raises makes this raise ``RuntimeError`` with the first error: a training loop should
+    not go on logging the means of the runs that happened to work.
+    """
+    from slam_gym.evaluation import benchmark
+
+    levels = [int(level) for level in clutter_levels]
+    options = evaluation_options(env_id, env_kwargs)
+    with tempfile.TemporaryDirectory(prefix="slam-gym-eval-") as tmp:
+        result = benchmark(
+            [policy], clutter_levels=levels, seeds=list(seeds), scenario=scenario,
+            baselines=[], figures=False, out=out if out is not None else tmp, workers=workers,
+            executor="process" if workers > 1 else "serial", progress=progress, **options)
+    _check_rows(result.rows, repr(policy))
+    return evaluation_record(result.rows, levels)
+
+
+def evaluate_model_file(
+    model_path: str | Path,
+    out: str | Path,
+    *,
+    clutter_levels: Iterable[int],
+    seeds: Iterable[int] = DEFAULT_EVAL_SEEDS,
+    env_options: Mapping[str, Any] | None = None,
+    deterministic: bool | None = None,
+    scenario: str = "brooks-bailey",
+    workers: int = 1,
+    progress: bool = False,
+) -> list[dict[str, Any]]:
+    """The benchmark rows of a saved stable-baselines3 model (policy ``learned``, its config
+    JSON beside it) on ``seeds`` x ``clutter_levels``, written into ``out`` (resumable).
+    ``deterministic`` None: the model's own mode; False: draws from its action distribution."""
+    from slam_gym.evaluation import Job, run_jobs
+    from slam_gym.evaluation.core import run_job
+
+    options = {**(env_options or {}), "model_path": str(model_path)}
+    if deterministic is False:
+        options["deterministic"] = False
+    jobs = [Job("policy", "learned", scenario, int(level), int(seed), options)
+            for level in clutter_levels for seed in seeds]
+    rows = run_jobs(jobs, run_job, out, workers=min(workers, len(jobs)),
+                    executor="process" if workers > 1 else "serial", progress=progress)
+    _check_rows(rows, str(model_path))
+    return rows
