@@ -53,14 +53,15 @@ class LinearCost:
 
 
 # Fitted by `slam-gym speed --calibrate-compute --calibration-seeds 0,1` (docs/PERFORMANCE.md
-# gives the machine and the correlation of model and measurement); two significant figures. The
-# filter's intercept is per decision interval (its operations count all the interval's iterations).
+# gives the machine, the date, the commit and the correlation of model and measurement); two
+# significant figures. The filter's intercept is per decision interval (its operations count all
+# the interval's iterations). Refitted for issue 27's compiled pose and optimiser.
 DEFAULT_COSTS: dict[str, LinearCost] = {
-    "filter-fastslam": LinearCost(2.7e-3, 1.0e-7),
-    "filter-ekf": LinearCost(3.8e-3, 2.7e-7),
-    "fusion-ekf": LinearCost(9.9e-4, 7.5e-9),
-    "fusion-relative": LinearCost(7.0e-3, 8.3e-7),
-    "optimise": LinearCost(2.4e-3, 1.5e-6),
+    "filter-fastslam": LinearCost(4.1e-3, 1.4e-7),
+    "filter-ekf": LinearCost(7.8e-3, 6.8e-7),
+    "fusion-ekf": LinearCost(2.6e-3, 2.3e-8),
+    "fusion-relative": LinearCost(1.8e-2, 1.6e-6),
+    "optimise": LinearCost(1.4e-3, 4.4e-7),
 }
 
 
