@@ -233,6 +233,9 @@ class Scenario:
         return dataclasses.replace(self, **overrides)
 
 
+BB_COMPASS_STD_RAD = float(np.deg2rad(0.5))
+"""The compass of ``brooks-bailey-compass`` (BB 5.5 gives none; our choice)."""
+
 SQUARE_LOOP_OVERRIDES: dict = {
     "waypoint_spacing_m": 22.5, "path_length_m": 400.0, "initial_heading_spread_rad": 0.0,
 }
@@ -267,7 +270,7 @@ def _presets() -> dict[str, Scenario]:
     return {
         "brooks-bailey": bb,
         "brooks-bailey-compass": bb.replace(
-            name="brooks-bailey-compass", compass_std_rad=float(np.deg2rad(0.5))
+            name="brooks-bailey-compass", compass_std_rad=BB_COMPASS_STD_RAD
         ),
         "conte-martinelli-1": cm,
         "conte-martinelli-2": cm.replace(
