@@ -139,9 +139,9 @@ class Scenario:
         side = self.loop_side_m
         require(
             side + 2.0 * self.path_perturbation_m <= self.world_size_m,
-            "path_length_m", self.path_length_m,
+            "path_length_m, path_perturbation_m", (self.path_length_m, self.path_perturbation_m),
             f"small enough that the loop (side loop_fraction * path_length_m / 4 = {side:.1f} m, "
-            f"plus perturbation) fits in world_size_m={self.world_size_m}",
+            f"plus twice the perturbation) fits in world_size_m={self.world_size_m}",
         )
         check_range("speed_mps", self.speed_mps, 0.0, 50.0, low_open=True)
         check_range("max_turn_rate_radps", self.max_turn_rate_radps, 0.0, 20.0, low_open=True)

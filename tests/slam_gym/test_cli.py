@@ -173,3 +173,31 @@ def test_benchmark_where_every_run_fails_still_writes_its_table(tmp_path, capsys
                             "1", "--executor", "serial", "--out", str(tmp_path)])
     assert doc["summary"]["groups"][0]["success_rate"] == 0.0
     assert "pareto" not in doc["figures"] and (tmp_path / "table.md").exists()
+
+
+def test_simulate_json_reports_the_waypoint_jitter_and_the_turning(tmp_path, capsys):
+    argv = ["simulate", "--seed", "3", "--out", str(tmp_path)]
+    default = run_json(capsys, argv)
+    straight = run_json(capsys, argv + ["--path-perturbation-m", "0.5"])
+    assert default["path_perturbation_m"] == 5.0 and straight["path_perturbation_m"] == 0.5
+    # a less jittered path turns less (the 99 m loop's four corners and the start turn remain)
+    assert 6.0 < straight["total_turning_rad"] < default["total_turning_rad"] - 10.0
+    assert main(argv + ["--path-perturbation-m", "-1"]) == 2
+    assert "path_perturbation_m" in capsys.readouterr().err
+
+
+def test_reproduce_brooks_bailey_runs_the_given_waypoint_jitter(tmp_path, capsys):
+    argv = ["reproduce", "brooks-bailey", "--systems", "dead-reckoning", "--clutter-levels", "0",
+            "--trials", "1", "--seed-start", "2", "--no-figures", "--workers", "1",
+            "--out", str(tmp_path)]
+    doc = run_json(capsys, argv + ["--path-perturbation-m", "1.5"])
+    assert doc["table1"]["path_perturbation_m"] == 1.5
+    rows = read_results(tmp_path / "results.jsonl")
+    assert [r["options"] for r in rows] == [{"path_perturbation_m": 1.5}]
+    assert (tmp_path / "table1.md").read_text().startswith(
+        "World: brooks-bailey, path_perturbation_m=1.5\n")
+    # the jitter is part of the job: the scenario's default is another job, run anew
+    run_json(capsys, argv)
+    rows = read_results(tmp_path / "results.jsonl")
+    assert len(rows) == 2 and rows[1]["options"] == {}
+    assert rows[0]["iterations"] != rows[1]["iterations"]  # another path
