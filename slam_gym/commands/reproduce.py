@@ -49,6 +49,11 @@ def mean_ci95(values) -> dict:
     return {"n": int(len(v)), "mean": mean, "ci95": [mean - half, mean + half]}
 
 
+def _inside(value, interval):
+    """Whether ``value`` lies in the closed ``interval`` (None without a value)."""
+    return None if value is None else bool(interval[0] <= value <= interval[1])
+
+
 def bb_table(rows, first="hybrid", second="ekf-submap") -> dict:
     """BB Table 1 as a reviewer would ask (#14): per system, existence model and clutter level the
     success rate (Wilson 95 %), ANEES, map error, map completeness; and per level and existence
@@ -76,6 +81,8 @@ def bb_table(rows, first="hybrid", second="ekf-submap") -> dict:
             "success_rate": n_success / len(members),
             "success_ci95": list(wilson_interval(n_success, len(members))),
             "paper_success_rate": BB_TABLE1.get(system, {}).get(level),
+            "paper_inside_ci95": _inside(BB_TABLE1.get(system, {}).get(level),
+                                         wilson_interval(n_success, len(members))),
             "anees": mean_of("anees"), "map_error_m": mean_of("map_error_m"),
             "map_completeness": mean_of("map_completeness"),
         })
@@ -98,8 +105,19 @@ def bb_table(rows, first="hybrid", second="ekf-submap") -> dict:
                 "success_difference": mean_ci95(d_success),
                 "map_error_difference_m": mean_ci95(d_map),
             })
+    pooled = []
+    for model in models:
+        d_success = []
+        for level in levels:
+            a = {r["seed"]: r for r in groups.get((first, model, level), [])}
+            b = {r["seed"]: r for r in groups.get((second, model, level), [])}
+            d_success += [float(a[s]["success"] is True) - float(b[s]["success"] is True)
+                          for s in sorted(set(a) & set(b))]
+        if d_success and len([p for p in paired if p["existence_model"] == model]) > 1:
+            pooled.append({"existence_model": model, "n_pairs": len(d_success),
+                           "success_difference": mean_ci95(d_success)})
     return {"difference": f"{first} - {second}, paired by world (seed)", "rows": table,
-            "paired": paired}
+            "paired": paired, "pooled": pooled}
 
 
 def bb_table_markdown(doc: dict) -> str:
@@ -112,13 +130,15 @@ def bb_table_markdown(doc: dict) -> str:
     def ci(c, scale=1.0, d=0):
         return "-" if c is None else f"[{scale * c[0]:.{d}f}, {scale * c[1]:.{d}f}]"
 
+    inside = {None: "", True: " (inside)", False: " (outside)"}
     lines = ["| system | existence | level | n | success [Wilson 95 %] | BB | ANEES "
              "| map error (m) | completeness |", "|---|---|---|---|---|---|---|---|---|"]
     for r in doc["rows"]:
         lines.append(
             f"| {r['system']} | {r['existence_model']} | {r['clutter_level']} | {r['n']} | "
             f"{pct(r['success_rate'])} {ci(r['success_ci95'], 100)} | "
-            f"{pct(r['paper_success_rate'])} | {num(r['anees'])} | {num(r['map_error_m'])} | "
+            f"{pct(r['paper_success_rate'])}{inside[r['paper_inside_ci95']]} | "
+            f"{num(r['anees'])} | {num(r['map_error_m'])} | "
             f"{pct(r['map_completeness'])} |"
         )
     lines += ["", f"Paired differences ({doc['difference']}), mean [t 95 % CI]:", "",
@@ -131,6 +151,13 @@ def bb_table_markdown(doc: dict) -> str:
             f"{num(None if s['mean'] is None else 100 * s['mean'], 0)} pp {ci(s['ci95'], 100)} | "
             f"{num(m['mean'])} {ci(m['ci95'], 1.0, 2)} |"
         )
+    if doc.get("pooled"):
+        lines += ["", "Pooled over the levels (one pair per world and level), mean [t 95 % CI]:",
+                  "", "| existence | pairs | success difference |", "|---|---|---|"]
+        for p in doc["pooled"]:
+            s = p["success_difference"]
+            lines.append(f"| {p['existence_model']} | {p['n_pairs']} | "
+                         f"{num(100 * s['mean'], 0)} pp {ci(s['ci95'], 100)} |")
     return "\n".join(lines) + "\n"
 
 

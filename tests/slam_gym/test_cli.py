@@ -201,3 +201,22 @@ def test_reproduce_brooks_bailey_runs_the_given_waypoint_jitter(tmp_path, capsys
     rows = read_results(tmp_path / "results.jsonl")
     assert len(rows) == 2 and rows[1]["options"] == {}
     assert rows[0]["iterations"] != rows[1]["iterations"]  # another path
+
+
+def test_table1_says_whether_bb_is_inside_and_pools_the_paired_differences():
+    from slam_gym.commands.reproduce import bb_table, bb_table_markdown
+
+    rows = [{"status": "ok", "system": system, "clutter_level": level, "seed": seed,
+             "success": system == "hybrid" or seed == 0, "options": {"existence_model": "gate"},
+             "map_error_m": 1.0}
+            for seed in range(4) for level in (0, 3) for system in ("hybrid", "ekf-submap")]
+    table = bb_table(rows)
+    inside = {(r["system"], r["clutter_level"]): r["paper_inside_ci95"] for r in table["rows"]}
+    # EKF 1 / 4 (Wilson [5, 70] %): BB's 79 % outside at level 0, its 30 % inside at level 3;
+    # HYBRID 4 / 4 ([51, 100] %) holds both of BB's
+    assert inside == {("ekf-submap", 0): False, ("ekf-submap", 3): True,
+                      ("hybrid", 0): True, ("hybrid", 3): True}
+    (pooled,) = table["pooled"]
+    assert pooled["n_pairs"] == 8 and pooled["success_difference"]["mean"] == 0.75
+    text = bb_table_markdown(table)
+    assert "79 % (outside)" in text and "| gate | 8 | 75 pp" in text
