@@ -229,8 +229,12 @@ def test_unknown_scenario_and_bad_seed():
 
 def test_scenario_presets():
     assert set(scenario_names()) == {
-        "brooks-bailey", "brooks-bailey-compass", "conte-martinelli-1", "conte-martinelli-2",
+        "brooks-bailey", "brooks-bailey-calibrated", "brooks-bailey-compass",
+        "conte-martinelli-1", "conte-martinelli-2",
     }
+    calibrated = get_scenario("brooks-bailey-calibrated")
+    assert calibrated == get_scenario("brooks-bailey", path_perturbation_m=0.625).replace(
+        name="brooks-bailey-calibrated")
     bb = get_scenario("brooks-bailey", clutter_level=3)
     assert (bb.alpha, bb.beta) == (0.1, 0.06) and bb.max_range_m == 25.0
     assert get_scenario("brooks-bailey", alpha=0.5, beta=0.01).clutter_level is None
