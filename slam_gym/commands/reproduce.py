@@ -49,6 +49,11 @@ def mean_ci95(values) -> dict:
     return {"n": int(len(v)), "mean": mean, "ci95": [mean - half, mean + half]}
 
 
+def _inside(value, interval):
+    """Whether ``value`` lies in the closed ``interval`` (None without a value)."""
+    return None if value is None else bool(interval[0] <= value <= interval[1])
+
+
 def bb_table(rows, first="hybrid", second="ekf-submap") -> dict:
     """BB Table 1 as a reviewer would ask (#14): per system, existence model and clutter level the
     success rate (Wilson 95 %), ANEES, map error, map completeness; and per level and existence
@@ -76,6 +81,8 @@ def bb_table(rows, first="hybrid", second="ekf-submap") -> dict:
             "success_rate": n_success / len(members),
             "success_ci95": list(wilson_interval(n_success, len(members))),
             "paper_success_rate": BB_TABLE1.get(system, {}).get(level),
+            "paper_inside_ci95": _inside(BB_TABLE1.get(system, {}).get(level),
+                                         wilson_interval(n_success, len(members))),
             "anees": mean_of("anees"), "map_error_m": mean_of("map_error_m"),
             "map_completeness": mean_of("map_completeness"),
         })
@@ -98,8 +105,19 @@ def bb_table(rows, first="hybrid", second="ekf-submap") -> dict:
                 "success_difference": mean_ci95(d_success),
                 "map_error_difference_m": mean_ci95(d_map),
             })
+    pooled = []
+    for model in models:
+        d_success = []
+        for level in levels:
+            a = {r["seed"]: r for r in groups.get((first, model, level), [])}
+            b = {r["seed"]: r for r in groups.get((second, model, level), [])}
+            d_success += [float(a[s]["success"] is True) - float(b[s]["success"] is True)
+                          for s in sorted(set(a) & set(b))]
+        if d_success and len([p for p in paired if p["existence_model"] == model]) > 1:
+            pooled.append({"existence_model": model, "n_pairs": len(d_success),
+                           "success_difference": mean_ci95(d_success)})
     return {"difference": f"{first} - {second}, paired by world (seed)", "rows": table,
-            "paired": paired}
+            "paired": paired, "pooled": pooled}
 
 
 def bb_table_markdown(doc: dict) -> str:
@@ -112,13 +130,15 @@ def bb_table_markdown(doc: dict) -> str:
     def ci(c, scale=1.0, d=0):
         return "-" if c is None else f"[{scale * c[0]:.{d}f}, {scale * c[1]:.{d}f}]"
 
+    inside = {None: "", True: " (inside)", False: " (outside)"}
     lines = ["| system | existence | level | n | success [Wilson 95 %] | BB | ANEES "
              "| map error (m) | completeness |", "|---|---|---|---|---|---|---|---|---|"]
     for r in doc["rows"]:
         lines.append(
             f"| {r['system']} | {r['existence_model']} | {r['clutter_level']} | {r['n']} | "
             f"{pct(r['success_rate'])} {ci(r['success_ci95'], 100)} | "
-            f"{pct(r['paper_success_rate'])} | {num(r['anees'])} | {num(r['map_error_m'])} | "
+            f"{pct(r['paper_success_rate'])}{inside[r['paper_inside_ci95']]} | "
+            f"{num(r['anees'])} | {num(r['map_error_m'])} | "
             f"{pct(r['map_completeness'])} |"
         )
     lines += ["", f"Paired differences ({doc['difference']}), mean [t 95 % CI]:", "",
@@ -131,6 +151,13 @@ def bb_table_markdown(doc: dict) -> str:
             f"{num(None if s['mean'] is None else 100 * s['mean'], 0)} pp {ci(s['ci95'], 100)} | "
             f"{num(m['mean'])} {ci(m['ci95'], 1.0, 2)} |"
         )
+    if doc.get("pooled"):
+        lines += ["", "Pooled over the levels (one pair per world and level), mean [t 95 % CI]:",
+                  "", "| existence | pairs | success difference |", "|---|---|---|"]
+        for p in doc["pooled"]:
+            s = p["success_difference"]
+            lines.append(f"| {p['existence_model']} | {p['n_pairs']} | "
+                         f"{num(100 * s['mean'], 0)} pp {ci(s['ci95'], 100)} |")
     return "\n".join(lines) + "\n"
 
 
@@ -155,6 +182,12 @@ def add_parser(subparsers) -> None:
                     default="never",
                     help="optimise() schedule of the sub-map systems (BB: never)")
     bb.add_argument("--no-figures", action="store_true", help="skip the trace figures")
+    bb.add_argument("--scenario", default="brooks-bailey",
+                    help="the world (a scenario without compass; Fig. 3 uses its compass twin "
+                    "only for brooks-bailey)")
+    bb.add_argument("--path-perturbation-m", type=float, default=None,
+                    help="the waypoint jitter of the path (m; default: the scenario's), the one "
+                    "scalar that sets the path's turning (issue 28)")
     add_run_options(bb, default_out="out/reproduce-brooks-bailey")
     bb.set_defaults(run=run_brooks_bailey)
     from slam_gym.commands import reproduce_cm, reproduce_real
@@ -174,15 +207,22 @@ def run_brooks_bailey(args) -> int:
     from filters.existence import validate_existence_model
 
     models = [validate_existence_model(m) for m in name_list(args.existence_model)]
+    from slam_gym.scenarios import get_scenario
+
+    world = {} if args.path_perturbation_m is None else {
+        "path_perturbation_m": float(args.path_perturbation_m)}
+    scenario = get_scenario(args.scenario, **world)  # validates the name and the jitter
     out = out_dir(args)
 
     def options(system, model):
+        # the jitter enters a job's options (its key) only when given, so runs made before the
+        # option existed resume into the same out directory
         if system == "dead-reckoning":
-            return {}
+            return dict(world)
         if system == "fastslam":
-            return {"n_particles": args.particles, "existence_model": model}
+            return {"n_particles": args.particles, "existence_model": model} | world
         return {"n_particles": args.particles, "fusion_interval_s": args.fusion_interval_s,
-                "optimise": args.optimise, "existence_model": model}
+                "optimise": args.optimise, "existence_model": model} | world
 
     # seeds outermost: an interrupted run leaves whole worlds (every system and level), and a
     # rerun with a larger --trials into the same --out only runs the new worlds (results.jsonl)
@@ -191,7 +231,7 @@ def run_brooks_bailey(args) -> int:
         for level in levels:
             for model in models:
                 for s in systems:
-                    job = Job("system", BB_SYSTEMS[s], "brooks-bailey", level, seed,
+                    job = Job("system", BB_SYSTEMS[s], args.scenario, level, seed,
                               options(BB_SYSTEMS[s], model))
                     if job.key not in seen:
                         seen.add(job.key)
@@ -201,33 +241,46 @@ def run_brooks_bailey(args) -> int:
     doc = write_summary(out, rows, paper=paper)
     table1 = bb_table(rows)
     table1["existence_models"] = models
+    table1["scenario"] = args.scenario
+    table1["path_perturbation_m"] = scenario.path_perturbation_m
+    world_line = (f"World: {args.scenario}, path_perturbation_m={scenario.path_perturbation_m:g}"
+                  f"{'' if world else ' (the scenario default)'}")
     (out / "table1.json").write_text(json.dumps(table1, indent=2, allow_nan=False) + "\n")
     (out / "table1.md").write_text(
-        f"Existence model(s): {', '.join(models)}\n\n" + bb_table_markdown(table1)
+        f"{world_line}\n\nExistence model(s): {', '.join(models)}\n\n"
+        + bb_table_markdown(table1)
     )
     from slam_gym.evaluation import plot_success_rates
 
     figures = {"success": str(plot_success_rates(doc, out / "success_rates.png", paper=paper,
                                                  title="BB Table 1: success rate"))}
     if not args.no_figures:
-        figures.update(trace_figures(systems, args.seed_start, args.particles, out))
+        figures.update(trace_figures(systems, args.seed_start, args.particles, out,
+                                     scenario=args.scenario, **world))
     print_table(args, doc, paper=paper, title="BB Table 1 reproduced (paper in the last column)")
     emit(args, {"summary": doc, "table1": table1, "existence_models": models,
                 "figures": figures, "out": str(out)},
-         [f"existence model(s) (BB (11)): {', '.join(models)}", bb_table_markdown(table1),
+         [world_line, f"existence model(s) (BB (11)): {', '.join(models)}",
+          bb_table_markdown(table1),
           f"wrote {out / 'results.jsonl'}, summary.json, table.md, table1.md and "
           f"{len(figures)} figures"])
     return 0
 
 
-def trace_figures(systems, seed, n_particles, out) -> dict:
-    """BB Figs. 3 (compass, no clutter) and 4 (no compass): trace of the vehicle covariance."""
+def trace_figures(systems, seed, n_particles, out, scenario="brooks-bailey",
+                  **overrides) -> dict:
+    """BB Figs. 3 (compass, no clutter) and 4 (no compass): trace of the vehicle covariance.
+
+    ``scenario`` (and scenario field ``overrides``) is Fig. 4's world; Fig. 3 is the same world
+    with BB 5.5's compass."""
     from slam_gym.evaluation import plot_nees, plot_uncertainty_traces
     from slam_gym.evaluation.core import make_job_stream, run_system
+    from slam_gym.scenarios import BB_COMPASS_STD_RAD
 
     figures = {}
-    for scenario, figure in (("brooks-bailey-compass", "fig3"), ("brooks-bailey", "fig4")):
-        stream = make_job_stream(scenario, 0, seed)
+    for compass, figure in ((BB_COMPASS_STD_RAD, "fig3"), (None, "fig4")):
+        stream = make_job_stream(scenario, 0, seed, compass_std_rad=compass, **overrides)
+        name_of = f"{scenario}-compass" if compass is not None else scenario
         traces, nees_traces, episodes = {}, {}, {}
         for s in systems:
             ep = run_system(BB_SYSTEMS[s], stream, seed, n_particles=n_particles,
@@ -235,17 +288,17 @@ def trace_figures(systems, seed, n_particles, out) -> dict:
             traces[s.upper()] = np.array(ep.trace.cov_trace)
             nees_traces[s.upper()] = np.array(ep.trace.nees)
             episodes[s] = ep
-        name = f"{figure}_uncertainty_{scenario}.png"
+        name = f"{figure}_uncertainty_{name_of}.png"
         figures[figure] = str(plot_uncertainty_traces(
             traces, out / name, dt_s=stream.dt_s,
-            title=f"Vehicle uncertainty, {scenario}, clutter 0, seed {seed}",
+            title=f"Vehicle uncertainty, {name_of}, clutter 0, seed {seed}",
         ))
         figures[f"{figure}_nees"] = str(plot_nees(
-            nees_traces, out / f"{figure}_nees_{scenario}.png", dt_s=stream.dt_s,
-            title=f"Vehicle NEES, {scenario}, seed {seed}",
+            nees_traces, out / f"{figure}_nees_{name_of}.png", dt_s=stream.dt_s,
+            title=f"Vehicle NEES, {name_of}, seed {seed}",
         ))
         if figure == "fig4" and "hybrid" in episodes:
             figures["map"] = plot_episode_map(
-                episodes["hybrid"], out / "map_hybrid.png", f"HYBRID, {scenario}, seed {seed}"
+                episodes["hybrid"], out / "map_hybrid.png", f"HYBRID, {name_of}, seed {seed}"
             )
     return figures

@@ -19,6 +19,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--scenario", default="brooks-bailey", choices=scenario_names())
     p.add_argument("--clutter-level", type=int, default=None, choices=[0, 1, 2, 3])
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--path-perturbation-m", type=float, default=None,
+                   help="the waypoint jitter of the path (m; default: the scenario's), the scalar "
+                   "that sets its turning (issue 28)")
     add_common_options(p, default_out="out/simulate")
     p.set_defaults(run=run)
 
@@ -59,6 +62,7 @@ def summarise(stream) -> dict:
     return {
         "scenario": stream.name,
         "seed": stream.metadata.get("seed"),
+        "path_perturbation_m": stream.metadata["scenario"].path_perturbation_m,
         "alpha": stream.clutter.alpha,
         "beta": stream.clutter.beta,
         "path_length_m": float(np.sum(np.linalg.norm(np.diff(poses[:, :2], axis=0), axis=1))),
@@ -103,6 +107,8 @@ def run(args) -> int:
     from slam_gym.scenarios import make_stream
 
     overrides = {} if args.clutter_level is None else {"clutter_level": args.clutter_level}
+    if args.path_perturbation_m is not None:
+        overrides["path_perturbation_m"] = args.path_perturbation_m
     stream = make_stream(args.scenario, seed=args.seed, **overrides)
     means, covs = dead_reckon(stream)
     out = out_dir(args)
@@ -120,6 +126,7 @@ def run(args) -> int:
             f"(alpha={summary['alpha']}, beta={summary['beta']})",
             f"  path {summary['path_length_m']:.1f} m in {summary['iterations']} iterations, "
             f"loop closed: {summary['loop_closed']}, "
+            f"waypoint jitter {summary['path_perturbation_m']:g} m, "
             f"turning {summary['total_turning_rad']:.1f} rad, "
             f"{100 * summary['fraction_fast_turning']:.1f} % of steps faster than 0.5 rad/s",
             f"  {summary['n_landmarks']} landmarks, {summary['n_visible']} landmark-in-range "

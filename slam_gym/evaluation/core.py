@@ -12,7 +12,9 @@ System jobs (BB Table 1, CM) take options:
 fusion had touched for 60 s),
 ``back_end`` (``"ekf"``/``"relative"``), ``known_association`` (False; forced on for the ESDFs),
 ``stop_on_failure`` (True: stop at BB's failure, the outcome is known), ``n_steps`` (cut the path),
-``existence_model`` (``"gate"``/``"bb"``: the reading of BB (11), :mod:`filters.existence`).
+``existence_model`` (``"gate"``/``"bb"``: the reading of BB (11), :mod:`filters.existence`),
+``path_perturbation_m`` (None: the scenario's; else the waypoint jitter of the world's path, a
+scenario field, so the world of the job changes with it: issue 28's calibration).
 Policy jobs take ``n_particles`` (500), ``decision_interval`` (10), ``front_end``, ``back_end``,
 ``model_path``, ``model_sha256`` (the model file's :func:`policies.learned.model_digest`: a run
 checks it, so a job key names the model it was run with) and ``deterministic`` (for ``learned``);
@@ -40,6 +42,7 @@ SYSTEM_OPTIONS = {
     "stop_on_failure": True,
     "n_steps": None,
     "existence_model": "gate",
+    "path_perturbation_m": None,
 }
 POLICY_OPTIONS = {
     "n_particles": 500,
@@ -69,10 +72,12 @@ def _seeds(seed: int):
     return np.random.default_rng(np.random.SeedSequence([int(seed), 7919]))
 
 
-def make_job_stream(scenario: str, clutter_level, seed: int, n_steps=None):
+def make_job_stream(scenario: str, clutter_level, seed: int, n_steps=None, **scenario_overrides):
+    """The world of a job: scenario ``scenario`` at ``clutter_level`` for ``seed``, with the path
+    cut to ``n_steps`` and any other scenario fields overridden by name (validated)."""
     from slam_gym.scenarios import make_stream
 
-    overrides = {}
+    overrides = {k: v for k, v in scenario_overrides.items() if v is not None}
     if clutter_level is not None:
         overrides["clutter_level"] = clutter_level
     if n_steps is not None:
@@ -266,7 +271,8 @@ def run_job(job, policy_factories=None) -> dict:
     """
     if job.kind == "system":
         opts = _options(job.options_dict(), SYSTEM_OPTIONS, "system")
-        stream = make_job_stream(job.scenario, job.clutter_level, job.seed, opts.pop("n_steps"))
+        stream = make_job_stream(job.scenario, job.clutter_level, job.seed, opts.pop("n_steps"),
+                                 path_perturbation_m=opts.pop("path_perturbation_m"))
         cpu_start = time.process_time()
         episode = run_system(job.name, stream, job.seed, **opts)
         row = episode_result(episode, stream)

@@ -233,3 +233,50 @@ def test_speed_compare_exits_1_against_a_much_faster_baseline(tmp_path, capsys):
     capsys.readouterr()
     (tmp_path / "bad.json").write_text("{}")
     assert main([*args, "--compare", str(tmp_path / "bad.json")]) == 2
+
+
+def test_simulate_json_reports_the_waypoint_jitter_and_the_turning(tmp_path, capsys):
+    argv = ["simulate", "--seed", "3", "--out", str(tmp_path)]
+    default = run_json(capsys, argv)
+    straight = run_json(capsys, argv + ["--path-perturbation-m", "0.5"])
+    assert default["path_perturbation_m"] == 5.0 and straight["path_perturbation_m"] == 0.5
+    # a less jittered path turns less (the 99 m loop's four corners and the start turn remain)
+    assert 6.0 < straight["total_turning_rad"] < default["total_turning_rad"] - 10.0
+    assert main(argv + ["--path-perturbation-m", "-1"]) == 2
+    assert "path_perturbation_m" in capsys.readouterr().err
+
+
+def test_reproduce_brooks_bailey_runs_the_given_waypoint_jitter(tmp_path, capsys):
+    argv = ["reproduce", "brooks-bailey", "--systems", "dead-reckoning", "--clutter-levels", "0",
+            "--trials", "1", "--seed-start", "2", "--no-figures", "--workers", "1",
+            "--out", str(tmp_path)]
+    doc = run_json(capsys, argv + ["--path-perturbation-m", "1.5"])
+    assert doc["table1"]["path_perturbation_m"] == 1.5
+    rows = read_results(tmp_path / "results.jsonl")
+    assert [r["options"] for r in rows] == [{"path_perturbation_m": 1.5}]
+    assert (tmp_path / "table1.md").read_text().startswith(
+        "World: brooks-bailey, path_perturbation_m=1.5\n")
+    # the jitter is part of the job: the scenario's default is another job, run anew
+    run_json(capsys, argv)
+    rows = read_results(tmp_path / "results.jsonl")
+    assert len(rows) == 2 and rows[1]["options"] == {}
+    assert rows[0]["iterations"] != rows[1]["iterations"]  # another path
+
+
+def test_table1_says_whether_bb_is_inside_and_pools_the_paired_differences():
+    from slam_gym.commands.reproduce import bb_table, bb_table_markdown
+
+    rows = [{"status": "ok", "system": system, "clutter_level": level, "seed": seed,
+             "success": system == "hybrid" or seed == 0, "options": {"existence_model": "gate"},
+             "map_error_m": 1.0}
+            for seed in range(4) for level in (0, 3) for system in ("hybrid", "ekf-submap")]
+    table = bb_table(rows)
+    inside = {(r["system"], r["clutter_level"]): r["paper_inside_ci95"] for r in table["rows"]}
+    # EKF 1 / 4 (Wilson [5, 70] %): BB's 79 % outside at level 0, its 30 % inside at level 3;
+    # HYBRID 4 / 4 ([51, 100] %) holds both of BB's
+    assert inside == {("ekf-submap", 0): False, ("ekf-submap", 3): True,
+                      ("hybrid", 0): True, ("hybrid", 3): True}
+    (pooled,) = table["pooled"]
+    assert pooled["n_pairs"] == 8 and pooled["success_difference"]["mean"] == 0.75
+    text = bb_table_markdown(table)
+    assert "79 % (outside)" in text and "| gate | 8 | 75 pp" in text

@@ -229,8 +229,12 @@ def test_unknown_scenario_and_bad_seed():
 
 def test_scenario_presets():
     assert set(scenario_names()) == {
-        "brooks-bailey", "brooks-bailey-compass", "conte-martinelli-1", "conte-martinelli-2",
+        "brooks-bailey", "brooks-bailey-calibrated", "brooks-bailey-compass",
+        "conte-martinelli-1", "conte-martinelli-2",
     }
+    calibrated = get_scenario("brooks-bailey-calibrated")
+    assert calibrated == get_scenario("brooks-bailey", path_perturbation_m=0.625).replace(
+        name="brooks-bailey-calibrated")
     bb = get_scenario("brooks-bailey", clutter_level=3)
     assert (bb.alpha, bb.beta) == (0.1, 0.06) and bb.max_range_m == 25.0
     assert get_scenario("brooks-bailey", alpha=0.5, beta=0.01).clutter_level is None
@@ -411,3 +415,48 @@ def test_hybrid_front_end_keeps_its_evidence_and_fastslam_forgets():
     assert make_system("fastslam", stream, rng, n_particles=5).estimator.max_existence == 0.999
     chosen = make_system("hybrid", stream, rng, n_particles=5, front_max_existence=0.99)
     assert chosen.front_end.max_existence == 0.99
+
+
+# issue 28: the waypoint jitter is the one scalar that sets the path's turning
+@pytest.mark.parametrize("jitter", [-0.5, float("nan"), "2", 11.0])
+def test_bad_waypoint_jitter_raises_naming_it(jitter):
+    # 11 m passes the range check but the jittered 99 m loop no longer fits the 120 m world
+    with pytest.raises(ValueError, match="path_perturbation_m"):
+        get_scenario("brooks-bailey", path_perturbation_m=jitter)
+
+
+def small_bb(**overrides):
+    """A small brooks-bailey world (60 m, 5 landmarks, 200 m path) that simulates in ~0.2 s."""
+    return get_scenario("brooks-bailey", world_size_m=60.0, n_landmarks=5, path_length_m=200.0,
+                        **overrides)
+
+
+def test_waypoint_jitter_world_is_deterministic_and_only_its_path_changes():
+    a = make_stream(small_bb(path_perturbation_m=1.5), seed=4)
+    b = make_stream(small_bb(path_perturbation_m=1.5), seed=4)
+    assert np.array_equal(a.metadata["true_poses"], b.metadata["true_poses"])
+    assert all(np.array_equal(sa.z, sb.z) for sa, sb in zip(a, b, strict=True))
+    # another jitter: the same landmarks and start, waypoint offsets scaled by the jitter
+    c = make_stream(small_bb(path_perturbation_m=3.0), seed=4)
+    flat = make_stream(small_bb(path_perturbation_m=0.0), seed=4)
+    assert np.array_equal(a.landmarks_true, c.landmarks_true)
+    assert np.array_equal(a.initial_pose[:2], c.initial_pose[:2])
+
+    def start_turn(stream):  # the start heading against the direction of the first waypoint
+        w = stream.metadata["waypoints"]
+        return wrap_angle(stream.initial_pose[2] - np.arctan2(*(w[1] - w[0])[::-1]))
+
+    assert start_turn(a) == pytest.approx(start_turn(c), abs=1e-12)
+    offsets_a = a.metadata["waypoints"] - flat.metadata["waypoints"]
+    offsets_c = c.metadata["waypoints"] - flat.metadata["waypoints"]
+    np.testing.assert_allclose(offsets_c, 2.0 * offsets_a, atol=1e-9)  # nothing clipped here
+    assert np.all(np.abs(offsets_c) <= 3.0)
+
+
+def test_turning_rises_with_the_waypoint_jitter():
+    from slam_gym.world import turning_statistics
+
+    for seed in (0, 1, 2):
+        turning = [turning_statistics(make_stream(small_bb(path_perturbation_m=j), seed=seed))[
+            "total_turning_rad"] for j in (0.0, 1.5, 3.0)]
+        assert turning[0] < turning[1] < turning[2], (seed, turning)
