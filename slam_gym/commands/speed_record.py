@@ -97,14 +97,15 @@ def compare(record: dict, baseline: dict, threshold: float = REGRESSION_RATIO):
 
 
 def comparison_lines(rows, baseline: dict, threshold: float = REGRESSION_RATIO) -> list[str]:
+    width = max([len(row[0]) for row in rows] + [6]) + 2
     lines = [f"against the baseline of {baseline.get('date_utc', '?')} (commit "
              f"{str(baseline.get('commit', '?'))[:12]}); speed ratio = how many times as fast, "
              f"failing below {threshold:g}",
-             f"{'figure':<44}{'baseline':>12}{'now':>12}  {'unit':<14}{'ratio':>7}  verdict"]
+             f"{'figure':<{width}}{'baseline':>12}{'now':>12}  {'unit':<14}{'ratio':>7}  verdict"]
     def fmt(value):
         return "-" if value is None else f"{value:.4g}"
 
     for name, old, new, unit, ratio, verdict in rows:
-        lines.append(f"{name:<44}{fmt(old):>12}{fmt(new):>12}  {unit:<14}"
+        lines.append(f"{name:<{width}}{fmt(old):>12}{fmt(new):>12}  {unit:<14}"
                      f"{('-' if math.isnan(ratio) else f'{ratio:.2f}'):>7}  {verdict}")
     return lines
