@@ -342,6 +342,19 @@ def _chain_guess(arrays, x0, known_poses, known_points):
     return poses, points
 
 
+def _apply_optimum(submap_slam, pose_index, x, P) -> None:
+    """Write an optimum ``x``, ``P`` over ``[v-, features]`` back: a back-end with
+    ``apply_optimum`` (the relative one) takes it as its anchor, the EKF one as its estimate; then
+    the system's book-keeping."""
+    back = submap_slam.back_end
+    if hasattr(back, "apply_optimum"):
+        back.apply_optimum(pose_index, x, P)
+    else:
+        back.x = x
+        back.P = P
+    submap_slam._optimised()
+
+
 def _optimise_compiled(submap_slam, submaps, x0, previous, settings, min_variance, t0,
                        max_iterations: int = 200, xtol: float = 1e-10) -> OptimiseResult:
     """:func:`optimise_submaps` through :mod:`filters.submap_gauss_newton`."""
@@ -372,12 +385,7 @@ def _optimise_compiled(submap_slam, submaps, x0, previous, settings, min_varianc
     x = np.concatenate([res.poses[pose_index], res.points[columns].ravel()])
     x[2] = wrap_angle(x[2])
     P = res.covariance(arrays, pose_index, columns)
-    if hasattr(back, "apply_optimum"):
-        back.apply_optimum(pose_index, x, P)
-    else:
-        back.x = x
-        back.P = P
-    submap_slam._optimised()
+    _apply_optimum(submap_slam, pose_index, x, P)
     out = OptimiseResult(
         method="gauss-newton", n_submaps=len(submaps), pose_index=pose_index,
         iterations=res.iterations, converged=res.converged, time_s=time.perf_counter() - t0,
@@ -496,12 +504,7 @@ def optimise_submaps(
     x = np.concatenate([res.means[v_ent], res.means[f_ents, :2].ravel()])
     x[2] = wrap_angle(x[2])
     P = joint_covariance(res, [v_ent, *f_ents])
-    if hasattr(back, "apply_optimum"):
-        back.apply_optimum(pose_index, x, P)
-    else:
-        back.x = x
-        back.P = P
-    submap_slam._optimised()
+    _apply_optimum(submap_slam, pose_index, x, P)
     warm = {"poses": res.means[sp_problem.pose_entity],
             "features": {g: res.means[e, :2] for g, e in sp_problem.feature_entity.items()}}
     out = OptimiseResult(
