@@ -21,7 +21,10 @@ Observation space
     interval, metres), global features in view, global pose uncertainty, time and fusions since
     the last optimisation, clutter rate, loop-closure flag (the back-end's CM Definition 1 test
     found a closure in a fusion of the interval), local-map budget ratio, loop closures since the
-    last optimisation and stored sub-maps. ``info["features"]`` holds all of them by name.
+    last optimisation and stored sub-maps. ``info["features"]`` holds all of them by name, and
+    the env's own ``compute_price_per_s`` (= ``w_compute``), which ``features`` may also select:
+    a policy conditioned on the price of compute observes it (``w_compute`` and
+    ``compute_clip_s`` may change per episode through ``reset(options=...)``).
 
 Reward (per decision; every term is in ``info["reward_components"]``)
     ``-(w_nees (nees_over + nees_under) + w_pose pose_error_m + w_map map_ospa_m
@@ -111,7 +114,15 @@ from slam_gym.scenarios import CLUTTER_LEVELS, get_scenario, make_stream, scenar
 logger = logging.getLogger(__name__)
 
 FEATURE_NAMES: tuple[str, ...] = INTERFACE_FEATURE_NAMES
-"""The observation's features, in order (the sub-map system's interface features)."""
+"""The observation's default features, in order (the sub-map system's interface features)."""
+
+ENV_FEATURE_NAMES: tuple[str, ...] = ("compute_price_per_s",)
+"""Features of the env rather than of the filter, selectable with the ``features`` option and
+always in ``info["features"]`` (after :data:`FEATURE_NAMES`): ``compute_price_per_s`` is the
+reward's ``w_compute``, for a policy conditioned on the price of compute (issue 29)."""
+
+SELECTABLE_FEATURES: tuple[str, ...] = FEATURE_NAMES + ENV_FEATURE_NAMES
+"""Every name the ``features`` option accepts."""
 
 OBSERVATION_MAX = 1e6
 """Observations are clipped to [0, OBSERVATION_MAX] (NaN -> 0): every feature is non-negative."""
@@ -206,11 +217,11 @@ class HybridSLAMConfig:
             check_range(name, getattr(self, name), 0.0, 1e6, low_open=True)
         if self.features is not None:
             names = tuple(self.features)
-            unknown = [n for n in names if n not in FEATURE_NAMES]
+            unknown = [n for n in names if n not in SELECTABLE_FEATURES]
             require(
                 len(names) > 0 and not unknown and len(set(names)) == len(names),
                 "features", self.features,
-                f"None or distinct names among {list(FEATURE_NAMES)}"
+                f"None or distinct names among {list(SELECTABLE_FEATURES)}"
                 + (f" (unknown: {unknown})" if unknown else ""),
             )
         require(
@@ -272,7 +283,8 @@ class HybridSLAMEnv(gym.Env):
 
     #: options of ``reset(options=...)``: a world seed and fields of the config that may change
     #: between episodes without changing the spaces
-    RESET_OPTIONS = ("world_seed", "clutter_level", "alpha", "beta", "n_steps", "max_decisions")
+    RESET_OPTIONS = ("world_seed", "clutter_level", "alpha", "beta", "n_steps", "max_decisions",
+                     "w_compute", "compute_clip_s")
 
     def __init__(self, render_mode: str | None = None, **config):
         require(
@@ -475,7 +487,9 @@ class HybridSLAMEnv(gym.Env):
         missing = [n for n in FEATURE_NAMES if n not in raw]
         if missing:
             raise KeyError(f"the system did not report interface features {missing}")
-        return {name: float(raw[name]) for name in FEATURE_NAMES}
+        features = {name: float(raw[name]) for name in FEATURE_NAMES}
+        features["compute_price_per_s"] = float(self.config.w_compute)
+        return features
 
     def _observation(self, features) -> np.ndarray:
         obs = np.array([features[n] for n in self.config.observation_features], dtype=np.float64)

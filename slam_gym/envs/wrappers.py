@@ -61,6 +61,32 @@ class RandomClutterLevel(gym.Wrapper):
         return self.env.reset(seed=seed, options=options)
 
 
+class RandomComputePrice(gym.Wrapper):
+    """Each episode at a random price of compute (for a policy conditioned on the price).
+
+    The reward's ``w_compute`` (per second of modelled compute) is drawn log-uniformly from
+    ``[low, high]`` with the wrapper's own generator, seeded by ``reset(seed=...)``, and passed
+    as the reset option ``w_compute``; the env shows it as the feature ``compute_price_per_s``
+    (select it with the env's ``features`` option so the policy observes it).
+    """
+
+    def __init__(self, env, low: float, high: float):
+        super().__init__(env)
+        if not (np.isfinite(low) and np.isfinite(high) and 0 < low <= high):
+            raise ValueError(f"low, high=({low!r}, {high!r}) is invalid: must be "
+                             "0 < low <= high, finite")
+        self.low, self.high = float(low), float(high)
+        self._rng = np.random.default_rng()
+
+    def reset(self, *, seed=None, options=None):
+        if seed is not None:
+            self._rng = np.random.default_rng([int(seed), 104729])
+        options = dict(options or {})
+        price = float(np.exp(self._rng.uniform(np.log(self.low), np.log(self.high))))
+        options.setdefault("w_compute", price)
+        return self.env.reset(seed=seed, options=options)
+
+
 class LogFeatures(gym.ObservationWrapper):
     """``log1p`` of the (non-negative) features: puts seconds, metres and counts on one scale.
 

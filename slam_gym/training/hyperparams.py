@@ -9,7 +9,10 @@ An entry holds two kinds of keys:
   restricted to :data:`ENV_KWARGS`, the ones the evaluation code forwards too),
   ``initial_fuse_probability`` / ``initial_optimise_probability`` (PPO and A2C: the untrained
   policy's chance of each action per decision, set through the action head's bias; default 0.5,
-  SB3's uniform start);
+  SB3's uniform start); ``compute_price_range`` (``[low, high]``, per second of modelled compute:
+  each training episode draws the reward's ``w_compute`` log-uniformly from it and the policy
+  observes it as the feature ``compute_price_per_s``, so one policy is conditioned on the price
+  of compute; ``env_kwargs.w_compute`` stays the price its evaluations are scored at);
 * the algorithm's constructor arguments (:data:`ALGO_KEYS`), e.g. PPO's ``n_steps``.
 
 ``policy_kwargs`` is a YAML mapping (rl-zoo3 writes a Python string; a mapping needs no ``eval``).
@@ -32,7 +35,7 @@ HYPERPARAMS_DIR = Path(__file__).resolve().parent / "hyperparams"
 
 RUN_KEYS: tuple[str, ...] = (
     "n_timesteps", "n_envs", "policy", "normalize", "norm_reward", "clip_obs", "env_kwargs",
-    "initial_fuse_probability", "initial_optimise_probability",
+    "initial_fuse_probability", "initial_optimise_probability", "compute_price_range",
 )
 ENV_KWARGS: tuple[str, ...] = ("n_particles", "decision_interval", "front_end", "back_end",
                                "n_steps", "w_compute", "compute_clip_s")
@@ -145,6 +148,16 @@ def validate_hyperparams(algo: str, params: dict[str, Any], where: str = "hyperp
         value = params[key]
         if not isinstance(value, (int, float)) or isinstance(value, bool) or not 0 < value < 1:
             raise ValueError(f"{where}: {key}={value!r} is invalid: must be in (0, 1)")
+    if "compute_price_range" in params:
+        price_range = params["compute_price_range"]
+        ok = (isinstance(price_range, (list, tuple)) and len(price_range) == 2
+              and all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                      for v in price_range)
+              and 0 < price_range[0] <= price_range[1] <= 1e6)
+        if not ok:
+            raise ValueError(f"{where}: compute_price_range={price_range!r} is invalid: must be "
+                             "[low, high] with 0 < low <= high <= 1e6 (per second)")
+        params["compute_price_range"] = [float(v) for v in price_range]
     if "policy_kwargs" in params and not isinstance(params["policy_kwargs"], dict):
         raise ValueError(f"{where}: policy_kwargs={params['policy_kwargs']!r} is invalid: "
                          "must be a mapping")

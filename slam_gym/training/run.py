@@ -97,6 +97,20 @@ class TrainingSetup:
         """The env's options: the id's registered keyword arguments, then ``env_kwargs``."""
         return {**registered_kwargs(self.env_id), **self.hyperparams.get("env_kwargs", {})}
 
+    @property
+    def price_range(self) -> tuple[float, float] | None:
+        """``[low, high]`` of the price of compute drawn per training episode (None: fixed)."""
+        value = self.hyperparams.get("compute_price_range")
+        return None if value is None else (float(value[0]), float(value[1]))
+
+    @property
+    def feature_names(self) -> tuple[str, ...]:
+        """The features the policy observes: every interface feature, and the price of compute
+        when it is drawn per episode (:attr:`price_range`)."""
+        from slam_gym.envs.hybrid_slam import FEATURE_NAMES
+
+        return FEATURE_NAMES + (("compute_price_per_s",) if self.price_range else ())
+
 
 def registered_kwargs(env_id: str) -> dict[str, Any]:
     """The keyword arguments ``env_id`` is registered with (a trainable simulated id)."""
@@ -116,16 +130,25 @@ def registered_kwargs(env_id: str) -> dict[str, Any]:
 
 def make_env_fn(setup: TrainingSetup, rank: int):
     """A picklable constructor of training env ``rank`` (for ``SubprocVecEnv``)."""
-    env_id, options = setup.env_id, setup.hyperparams.get("env_kwargs", {})
-    levels, discrete = setup.clutter_levels, setup.discrete
+    env_id, options = setup.env_id, dict(setup.hyperparams.get("env_kwargs", {}))
+    levels, discrete, price_range = setup.clutter_levels, setup.discrete, setup.price_range
+    if price_range is not None:
+        options["features"] = setup.feature_names
 
     def make():
         import gymnasium as gym
 
-        from slam_gym.envs.wrappers import DiscreteActions, LogFeatures, RandomClutterLevel
+        from slam_gym.envs.wrappers import (
+            DiscreteActions,
+            LogFeatures,
+            RandomClutterLevel,
+            RandomComputePrice,
+        )
 
         env = gym.make(f"slam_gym:{env_id}", **options)
         env = RandomClutterLevel(env, levels)
+        if price_range is not None:
+            env = RandomComputePrice(env, *price_range)
         env = LogFeatures(env)
         if discrete:
             env = DiscreteActions(env)
@@ -156,8 +179,6 @@ def observation_normalisation(vec) -> dict[str, Any] | None:
 
 def model_config(setup: TrainingSetup, vec, timesteps: int, **extra) -> dict[str, Any]:
     """The JSON written beside a model: how to load it and how it was made."""
-    from slam_gym.envs.hybrid_slam import FEATURE_NAMES
-
     return {
         "command": setup.command,
         "algo": setup.algo,
@@ -169,7 +190,8 @@ def model_config(setup: TrainingSetup, vec, timesteps: int, **extra) -> dict[str
         "clutter_levels": list(setup.clutter_levels),
         "eval_seeds": list(setup.eval_seeds),
         "training_world_seeds": ">= 1000000",
-        "feature_names": list(FEATURE_NAMES),
+        "feature_names": list(setup.feature_names),
+        "compute_price_range": (list(setup.price_range) if setup.price_range else None),
         "observation_transform": "log1p",
         "observation_normalisation": observation_normalisation(vec),
         "versions": {"python": platform.python_version(), **_versions()},

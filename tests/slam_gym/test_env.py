@@ -176,7 +176,8 @@ def test_observation_matches_features_by_name_and_info_keys():
     env = make("SlamGym/HybridSLAM-v0")
     obs, info = env.reset(seed=1)
     assert obs.dtype == np.float32 and obs.shape == (len(FEATURE_NAMES),)
-    assert list(info["features"]) == list(FEATURE_NAMES)
+    assert list(info["features"]) == list(FEATURE_NAMES) + ["compute_price_per_s"]
+    assert info["features"]["compute_price_per_s"] == 1.0  # the default w_compute
     np.testing.assert_allclose(obs, [info["features"][n] for n in FEATURE_NAMES], rtol=1e-6)
     obs, reward, terminated, truncated, info = env.step(np.array([1, 1]))
     for key in ("nees", "pose_error_m", "map_error_m", "failed", "n_fusions", "n_optimisations",
@@ -535,3 +536,41 @@ def test_redundant_optimisation_is_a_free_no_op():
         assert rew_a == rew_p
         assert info_a["reward_components"] == info_p["reward_components"]
     assert n_asked == n_plain == (2, 2)  # the 2nd and the last (after a fusion): charged
+
+
+def test_price_of_compute_per_episode_is_observed_and_scored():
+    """The price of compute (w_compute) set at reset is the feature compute_price_per_s, scales the
+    reward's compute term, and a policy conditioned on it observes it (issue 29 item 4)."""
+    from slam_gym.envs.hybrid_slam import HybridSLAMEnv
+
+    features = (*FEATURE_NAMES, "compute_price_per_s")
+    env = HybridSLAMEnv(n_particles=20, n_steps=60, features=features)
+    obs, info = env.reset(seed=3, options={"w_compute": 25.0, "compute_clip_s": 0.2})
+    assert obs.shape == (len(features),) and obs[-1] == 25.0
+    assert info["features"]["compute_price_per_s"] == 25.0
+    _, reward, _, _, info = env.step(np.array([1, 0]))
+    components = info["reward_components"]
+    assert 0 < components["compute_s"] <= 0.2
+    weights = env.config.reward_weights()
+    assert weights["compute_s"] == 25.0
+    assert reward == pytest.approx(-sum(weights[k] * v for k, v in components.items()))
+    with pytest.raises(ValueError, match="features"):
+        HybridSLAMEnv(features=("compute_price", "ess_ratio"))
+
+
+def test_random_compute_price_is_seeded_and_log_uniform():
+    from slam_gym.envs.hybrid_slam import HybridSLAMEnv
+    from slam_gym.envs.wrappers import RandomComputePrice
+
+    def prices(seed):
+        env = RandomComputePrice(HybridSLAMEnv(n_particles=5, n_steps=20), 1.0, 100.0)
+        out = [env.reset(seed=seed)[1]["features"]["compute_price_per_s"]]
+        out += [env.reset()[1]["features"]["compute_price_per_s"] for _ in range(39)]
+        return np.array(out)
+
+    a, b = prices(7), prices(7)
+    np.testing.assert_array_equal(a, b)
+    assert np.all((a >= 1.0) & (a <= 100.0))
+    assert np.sum(a < 10.0) >= 10 and np.sum(a > 10.0) >= 10  # log-uniform: half below 10
+    with pytest.raises(ValueError, match="low, high"):
+        RandomComputePrice(HybridSLAMEnv(n_particles=5, n_steps=20), 10.0, 1.0)

@@ -269,3 +269,41 @@ def test_training_entries_may_set_the_rewards_price_of_compute():
     with pytest.raises(ValueError, match="w_nees"):
         validate_hyperparams("ppo", {"n_timesteps": 8, "n_envs": 1,
                                      "env_kwargs": {"w_nees": 2.0}})
+
+
+def test_a_price_conditioned_run_observes_the_price_and_its_model_reads_it_by_name(tmp_path):
+    """``compute_price_range``: each training episode at a drawn price, observed as the feature
+    ``compute_price_per_s``; the saved model lists it, and the policy acts on it by name."""
+    import policies
+    from slam_gym.training.run import make_env_fn
+
+    setup = tiny_setup()
+    params = {**setup.hyperparams, "compute_price_range": [1, 100]}
+    setup = TrainingSetup("ppo", setup.env_id, 0, validate_hyperparams("ppo", params),
+                          clutter_levels=(0,), eval_seeds=(7,), eval_every=64, eval_workers=1,
+                          checkpoint_every=64)
+    assert setup.feature_names == (*FEATURE_NAMES, "compute_price_per_s")
+    env = make_env_fn(setup, 0)()
+    prices = []
+    for seed in range(6):
+        obs, info = env.reset(seed=seed)
+        prices.append(info["features"]["compute_price_per_s"])
+        assert obs.shape == (len(FEATURE_NAMES) + 1,)
+        assert obs[-1] == pytest.approx(np.log1p(prices[-1]))  # the LogFeatures transform
+    assert min(prices) >= 1 and max(prices) <= 100 and len(set(prices)) == 6
+    config = train_run(setup, tmp_path / "run", progress=False)
+    assert config["feature_names"][-1] == "compute_price_per_s"
+    assert config["compute_price_range"] == [1.0, 100.0]
+    policy = policies.make("learned", path=str(tmp_path / "run" / "model.zip"))
+    features = dict.fromkeys(FEATURE_NAMES, 1.0)
+    with pytest.raises(ValueError, match="compute_price_per_s"):
+        policy.act(np.ones(len(FEATURE_NAMES)), {"features": features})
+    action = policy.act(None, {"features": {**features, "compute_price_per_s": 10.0}})
+    assert action.shape == (2,) and set(action) <= {0, 1}
+
+
+@pytest.mark.parametrize("price_range", [[0, 10], [10, 1], [1], "1,10"])
+def test_a_bad_price_range_raises_naming_it(price_range):
+    with pytest.raises(ValueError, match="compute_price_range"):
+        validate_hyperparams("ppo", {"n_timesteps": 8, "n_envs": 1,
+                                     "compute_price_range": price_range})
