@@ -16,6 +16,9 @@ Rules (registry names in brackets):
 * :class:`InnovationFusion` (``innovation-fusion``) -- CM's innovation test used instead as a
   *fusion* trigger: fuse when an observation of a global feature has ``||nu|| > 2 sigma``, or when
   the local map outgrows its budget, or at a maximum age (this was ``esdf-innovation`` before).
+* :class:`ThresholdOptimise` (``threshold-optimise``) -- BB's 10 s fusion, and the optimiser
+  at a fusion when one feature (heading or position uncertainty, time or fusions since the last
+  optimisation, ...) reaches a threshold: the hand rule learned policies are judged against.
 * :class:`Never` (``never``) -- pure FastSLAM (BB section 6: "if map fusion never occurs,
   HybridSLAM is identical to FastSLAM"). :class:`Always` (``always``) -- fuse at every decision,
   which approaches EKF-SLAM (BB section 6).
@@ -68,6 +71,13 @@ FLAG_ON = 0.5
 """``loop_closure_flag`` is 0.0 or 1.0; values >= 0.5 count as set."""
 
 _INF = math.inf
+
+THRESHOLD_FEATURES: tuple[str, ...] = (
+    "global_heading_std_rad", "global_position_std_m", "time_since_optimise_s",
+    "fusions_since_optimise", "innovation_ratio", "loop_closures_since_optimise",
+)
+"""Features :class:`ThresholdOptimise` may compare with its threshold: what grows while the
+global map goes without an optimisation."""
 
 
 def _reached(age_s: float, target_s: float) -> bool:
@@ -159,6 +169,39 @@ class FixedInterval(_TriggeredHeuristic):
 
     def fuse_now(self, f: Mapping[str, float]) -> bool:
         return _reached(f["local_map_age_s"], self.interval_s)
+
+
+class ThresholdOptimise(FixedInterval):
+    """BB's fusion rule with the optimiser at a fusion when one feature reaches a threshold.
+
+    Fuses as :class:`FixedInterval` (every ``interval_s``); at a fusion, also optimises when
+    ``feature >= threshold`` (the feature as observed at the decision, before the fusion). The
+    family of issue 29 item 3: the best hand rule for the optimise decision, chosen on the
+    training-time worlds (``slam-gym threshold-rule``), which learned policies are judged against.
+    ``feature`` is one of :data:`THRESHOLD_FEATURES`; threshold 0 optimises at every fusion
+    (``fixed-10s-optimise``), one above any value the feature takes never (``fixed-10s``). The
+    defaults are the rule chosen at the price 10 /s (docs/RESULTS.md, issue 29).
+    """
+
+    name = "threshold-optimise"
+
+    def __init__(
+        self,
+        *,
+        feature: str = "time_since_optimise_s",
+        threshold: float = 40.0,
+        interval_s: float = 10.0,
+    ) -> None:
+        super().__init__(interval_s=interval_s)
+        self.feature = check_choice("feature", feature, THRESHOLD_FEATURES)
+        self.threshold = check_range("threshold", threshold, 0.0, _INF)
+        self.required_features = (*self.required_features, self.feature)
+        self.options = {"interval_s": self.interval_s, "feature": self.feature,
+                        "threshold": self.threshold}
+
+    def decide(self, f: Mapping[str, float]) -> tuple[bool, bool]:
+        fuse = self.fuse_now(f)
+        return fuse, fuse and f[self.feature] >= self.threshold
 
 
 class Always(_TriggeredHeuristic):
@@ -518,6 +561,7 @@ HEURISTICS: Mapping[str, type[HeuristicPolicy]] = MappingProxyType(
             InnovationFusion,
             Never,
             Always,
+            ThresholdOptimise,
             AdaptiveDiversity,
             ImminentClosure,
         )
@@ -537,4 +581,6 @@ __all__ = [
     "Never",
     "HEURISTICS",
     "OptimiseTrigger",
+    "THRESHOLD_FEATURES",
+    "ThresholdOptimise",
 ]

@@ -6,7 +6,7 @@ import argparse
 import importlib
 import sys
 
-COMMAND_MODULES = ("simulate", "reproduce", "benchmark", "train", "speed")
+COMMAND_MODULES = ("simulate", "reproduce", "benchmark", "train", "threshold-rule", "speed")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -17,7 +17,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in COMMAND_MODULES:
-        importlib.import_module(f"slam_gym.commands.{name}").add_parser(subparsers)
+        module = importlib.import_module(f"slam_gym.commands.{name.replace('-', '_')}")
+        module.add_parser(subparsers)
     return parser
 
 

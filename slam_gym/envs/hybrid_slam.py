@@ -82,10 +82,13 @@ Which id to use
 ``info`` also carries ``nees``, ``pose_error_m``, ``map_error_m`` (CM's map error of the matched
 features; None while no feature stands for a landmark), ``map_completeness`` (None while no
 landmark was detected), ``failed``, ``n_fusions``, ``n_optimisations`` and
-``iteration``; with ``info_compute_time=True`` also ``filter_time_s``, the filter's wall-clock
-time so far. It is off by default because a wall-clock time can never repeat,
-and the same seed must give the same infos (Gymnasium's checker compares them); the time is always
-in ``env.unwrapped.episode.compute_time_s`` and in every evaluation result.
+``iteration``. ``env.episode_compute_term_s`` is the seconds of compute the episode's return
+charged so far: the return at another ``w_compute`` (same ``compute_clip_s``) is
+``episode_return + (w_compute - w') x episode_compute_term_s``, which is how a rule's return is
+scored at several prices from one run. With ``info_compute_time=True`` also ``filter_time_s``,
+the filter's wall-clock time so far. It is off by default because a wall-clock time can never
+repeat, and the same seed must give the same infos (Gymnasium's checker compares them); the
+time is always in ``env.unwrapped.episode.compute_time_s`` and in every evaluation result.
 
 Seeding: ``reset(seed=s)`` seeds ``self.np_random``; the world seed (unless given in
 ``options["world_seed"]``) and the filter's generator are drawn from it, so the same seed gives the
@@ -306,6 +309,7 @@ class HybridSLAMEnv(gym.Env):
         self.compute_records: list[tuple[str, float, float]] = []
         self.episode: Episode | None = None
         self.episode_return = 0.0
+        self.episode_compute_term_s = 0.0
         self.stream = None
         self.n_decisions = 0
         self._nees_band = nees_band(1)
@@ -347,6 +351,7 @@ class HybridSLAMEnv(gym.Env):
         self.filter_seed = filter_seed
         self.n_decisions = 0
         self.episode_return = 0.0
+        self.episode_compute_term_s = 0.0
         self.compute_records = []
         # run the first interval so the observation describes a local map
         self._reset_nees, _ = self._run_interval()
@@ -410,6 +415,10 @@ class HybridSLAMEnv(gym.Env):
         }
         reward = -sum(w * components[k] for k, w in c.reward_weights().items())
         self.episode_return += reward
+        # what the return charges at w_compute per second: the decision's clipped compute and,
+        # at a failure that ends the episode, the clip for every remaining decision
+        self.episode_compute_term_s += components["compute_s"] + (
+            self._remaining_decisions() * c.compute_clip_s if ends_here else 0.0)
         terminated = bool(ep.done or (failed and self.terminate_on_failure))
         truncated = bool(
             not terminated and c.max_decisions is not None and self.n_decisions >= c.max_decisions

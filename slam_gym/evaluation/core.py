@@ -283,5 +283,7 @@ def run_job(job, policy_factories=None) -> dict:
                               factories=policy_factories, **opts)
     row = episode_result(episode, env.stream)
     row["return"] = env.episode_return
+    row["compute_term_s"] = env.episode_compute_term_s
+    row["w_compute"] = env.config.w_compute
     row.update(summarise_records(env.compute_records, env.compute_model))
     return row

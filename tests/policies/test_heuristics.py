@@ -89,6 +89,31 @@ def optimise_times(history):
 
 
 # ------------------------------------------------------------------------------------------------
+# threshold-optimise (issue 29 item 3)
+# ------------------------------------------------------------------------------------------------
+def test_threshold_optimise_fuses_like_bb_and_optimises_only_at_fusions_above_the_threshold():
+    policy = policies.make("threshold-optimise", feature="time_since_optimise_s", threshold=25.0)
+    history = FakeInterface().run(policy, 100, time_since_optimise_s=0.0)
+    assert fusion_times(history) == [10.0 * k for k in range(1, 11)]
+    # optimise at the first fusion where >= 25 s passed since the last optimisation: 30, 60, 90
+    assert optimise_times(history) == [30.0, 60.0, 90.0]
+
+
+@pytest.mark.parametrize("threshold, expected", [(0.0, "every"), (1e9, "never")])
+def test_threshold_optimise_ends_are_the_papers_rules(threshold, expected):
+    rule = policies.make("threshold-optimise", feature="global_heading_std_rad",
+                         threshold=threshold)
+    reference = policies.make("fixed-10s-optimise" if expected == "every" else "fixed-10s")
+
+    def schedule(t):
+        return {"global_heading_std_rad": 0.001 * t}
+
+    a = FakeInterface(schedule).run(rule, 60)
+    b = FakeInterface(schedule).run(reference, 60)
+    assert [x[2].tolist() for x in a] == [x[2].tolist() for x in b]
+
+
+# ------------------------------------------------------------------------------------------------
 # fixed-interval / fixed-10s (BB section 6)
 # ------------------------------------------------------------------------------------------------
 def test_fixed_10s_fuses_exactly_at_age_10_and_again_10s_after_the_reset():
@@ -401,6 +426,9 @@ def test_imminent_closure_reset_clears_the_latch():
         ("imminent-closure", {"rise_count": 0}, "rise_count"),
         ("imminent-closure", {"rise_count": 2.5}, "rise_count"),
         ("imminent-closure", {"extended_interval_s": 5.0}, "extended_interval_s"),
+        ("threshold-optimise", {"feature": "ess_ratio"}, "feature"),
+        ("threshold-optimise", {"threshold": -0.5}, "threshold"),
+        ("threshold-optimise", {"threshold": float("nan")}, "threshold"),
     ],
 )
 def test_bad_option_raises_value_error_naming_field_value_and_range(name, options, field):

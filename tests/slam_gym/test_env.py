@@ -574,3 +574,24 @@ def test_random_compute_price_is_seeded_and_log_uniform():
     assert np.sum(a < 10.0) >= 10 and np.sum(a > 10.0) >= 10  # log-uniform: half below 10
     with pytest.raises(ValueError, match="low, high"):
         RandomComputePrice(HybridSLAMEnv(n_particles=5, n_steps=20), 10.0, 1.0)
+
+
+def test_return_at_another_price_follows_from_the_compute_term():
+    """A run's return at price w' is its return at w plus (w - w') x compute_term_s (the same
+    actions at every price: a rule's decisions do not depend on the price)."""
+    from slam_gym.envs.hybrid_slam import HybridSLAMEnv
+
+    def play(w_compute):
+        env = HybridSLAMEnv(n_particles=20, n_steps=200, w_compute=w_compute, compute_clip_s=0.05)
+        env.reset(seed=5)
+        done, k = False, 0
+        while not done:
+            k += 1
+            _, _, terminated, truncated, _ = env.step(np.array([k % 3 == 0, k % 6 == 0]))
+            done = terminated or truncated
+        return env.episode_return, env.episode_compute_term_s
+
+    r1, term1 = play(1.0)
+    r7, term7 = play(7.0)
+    assert term1 == term7 > 0
+    assert r7 == pytest.approx(r1 + (1.0 - 7.0) * term1, rel=1e-12, abs=1e-9)

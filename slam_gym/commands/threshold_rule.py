@@ -1,0 +1,168 @@
+"""``slam-gym threshold-rule``: choose the best threshold rule for the optimise decision.
+
+The family (issue 29 item 3, :class:`policies.heuristics.ThresholdOptimise`): BB's fusion every
+10 s and, at a fusion, the optimiser when one feature reaches a threshold; its two ends are
+``fixed-10s`` (never optimise) and ``fixed-10s-optimise`` (at every fusion). Every rule of the
+grid runs once on the training-time worlds (by default the training evaluation worlds
+900000-900004 at each clutter level: never the reported worlds) at the price ``--run-price``; a
+rule's decisions do not depend on the price, so its return at every price of ``--prices`` is
+recomputed from the compute its return charged (``compute_term_s``,
+:class:`slam_gym.envs.hybrid_slam.HybridSLAMEnv`). The rule with the highest mean return at each
+price is chosen.
+
+Writes ``OUT/results.jsonl`` (the benchmark's rows, resumable), ``OUT/candidates.md`` (every rule's
+mean return per price, success, map error, optimisations, interface CPU) and ``OUT/chosen.json``
+(per price: the chosen rule's feature, threshold and mean return).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from slam_gym.commands.common import add_common_options, emit, out_dir
+from slam_gym.commands.runs import int_list
+
+DEFAULT_GRID: Mapping[str, tuple[float, ...]] = {
+    "global_heading_std_rad": (0.005, 0.01, 0.02, 0.04),
+    "time_since_optimise_s": (20.0, 40.0, 80.0, 160.0),
+    "global_position_std_m": (0.5, 1.0, 2.0, 4.0),
+}
+"""The grid declared in docs/RESULTS.md (issue 29) before any run."""
+
+DEFAULT_PRICES = "1,10,100"
+
+
+def add_parser(subparsers) -> None:
+    from slam_gym.training.evaluation import DEFAULT_EVAL_SEEDS
+
+    p = subparsers.add_parser(
+        "threshold-rule",
+        help="choose the best threshold rule for the optimise decision on training-time worlds")
+    p.add_argument("--prices", default=DEFAULT_PRICES,
+                   help="prices of compute (w_compute, per second) to choose a rule at")
+    p.add_argument("--run-price", type=float, default=10.0,
+                   help="the price the runs are scored at (the others are recomputed)")
+    p.add_argument("--compute-clip-s", type=float, default=0.2,
+                   help="the reward's per-decision clip of compute (s)")
+    p.add_argument("--seeds", default=",".join(str(s) for s in DEFAULT_EVAL_SEEDS),
+                   help="worlds per level (default: the training-time evaluation worlds)")
+    p.add_argument("--clutter-levels", default="0,1,2,3")
+    p.add_argument("--particles", type=int, default=500)
+    p.add_argument("--n-steps", type=int, default=None, help="cut every path (quick looks)")
+    p.add_argument("--workers", type=int, default=2)
+    add_common_options(p, default_out="out/threshold-rule")
+    p.set_defaults(run=run)
+
+
+def candidates(grid: Mapping[str, Sequence[float]] = DEFAULT_GRID) -> dict[str, Any]:
+    """Rule name -> policy object: the grid's rules and the family's two ends."""
+    import policies
+
+    rules: dict[str, Any] = {"fixed-10s": policies.make("fixed-10s"),
+                             "fixed-10s-optimise": policies.make("fixed-10s-optimise")}
+    for feature, thresholds in grid.items():
+        for threshold in thresholds:
+            rules[rule_name(feature, threshold)] = policies.make(
+                "threshold-optimise", feature=feature, threshold=float(threshold))
+    return rules
+
+
+def rule_name(feature: str, threshold: float) -> str:
+    return f"threshold-optimise[{feature}>={float(threshold):g}]"
+
+
+def return_at_price(row: Mapping[str, Any], price: float) -> float:
+    """A run's return at ``price`` from its return at the price it ran at (same clip)."""
+    return float(row["return"]) + (float(row["w_compute"]) - price) * float(row["compute_term_s"])
+
+
+def score(rows: Sequence[Mapping[str, Any]], prices: Sequence[float]) -> list[dict[str, Any]]:
+    """Per rule: mean return at every price and the benchmark's other means."""
+    by_rule: dict[str, list[Mapping[str, Any]]] = {}
+    for row in rows:
+        if row.get("status") != "ok":
+            raise RuntimeError(f"run {row.get('key')} failed: {row.get('error')}")
+        by_rule.setdefault(row["policy"], []).append(row)
+    table = []
+    for name, group in by_rule.items():
+        survived = [r["map_error_m"] for r in group
+                    if r["success"] and r.get("map_error_m") is not None]
+        table.append({
+            "rule": name,
+            "n_episodes": len(group),
+            **{f"mean_return_at_{p:g}": float(np.mean([return_at_price(r, p) for r in group]))
+               for p in prices},
+            "success_rate": float(np.mean([r["success"] for r in group])),
+            "map_error_m": float(np.mean(survived)) if survived else math.nan,
+            "n_optimisations": float(np.mean([r["n_optimisations"] for r in group])),
+            "interface_cpu_s": float(np.mean([r["fusion_cpu_s"] + r["optimise_cpu_s"]
+                                              for r in group])),
+        })
+    return table
+
+
+def choose(table: Sequence[Mapping[str, Any]], prices: Sequence[float],
+           rules: Mapping[str, Any]) -> dict[str, Any]:
+    """Per price, the rule with the highest mean return (ties: the first in grid order)."""
+    order = list(rules)
+    chosen = {}
+    for p in prices:
+        key = f"mean_return_at_{p:g}"
+        best = max(table, key=lambda r: (r[key], -order.index(r["rule"])))
+        options = getattr(rules[best["rule"]], "options", {})
+        chosen[f"{p:g}"] = {"rule": best["rule"], "mean_return": best[key],
+                            "feature": options.get("feature"),
+                            "threshold": options.get("threshold")}
+    return chosen
+
+
+def markdown(table: Sequence[Mapping[str, Any]], prices: Sequence[float]) -> str:
+    head = ["rule", *[f"return at {p:g} /s" for p in prices], "success", "map error (m)",
+            "optimisations", "interface CPU (s)"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in table:
+        cells = [r["rule"], *[f"{r[f'mean_return_at_{p:g}']:.0f}" for p in prices],
+                 f"{r['success_rate']:.0%}", f"{r['map_error_m']:.2f}",
+                 f"{r['n_optimisations']:.1f}", f"{r['interface_cpu_s']:.2f}"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def run(args) -> int:
+    from filters.validation import require
+    from slam_gym.envs.wrappers import TRAINING_WORLD_SEED_OFFSET
+    from slam_gym.evaluation import benchmark
+
+    prices = [float(v) for v in args.prices.split(",") if v.strip()]
+    require(bool(prices) and all(p >= 0 for p in prices), "prices", args.prices,
+            "comma-separated non-negative numbers")
+    seeds = int_list(args.seeds)
+    require(bool(seeds) and all(0 <= s < TRAINING_WORLD_SEED_OFFSET for s in seeds), "seeds",
+            args.seeds, f"seeds in [0, {TRAINING_WORLD_SEED_OFFSET})")
+    out = out_dir(args)
+    rules = candidates()
+    result = benchmark(rules, clutter_levels=int_list(args.clutter_levels), seeds=seeds,
+                       n_particles=args.particles, n_steps=args.n_steps,
+                       w_compute=args.run_price, compute_clip_s=args.compute_clip_s,
+                       baselines=[], figures=False, out=out, workers=args.workers,
+                       executor="process" if args.workers > 1 else "serial",
+                       progress=not args.quiet and not args.json)
+    table = score(result.rows, prices)
+    table.sort(key=lambda r: list(rules).index(r["rule"]))
+    chosen = choose(table, prices, rules)
+    (Path(out) / "candidates.md").write_text(markdown(table, prices))
+    doc = {"prices": prices, "run_price": args.run_price, "compute_clip_s": args.compute_clip_s,
+           "seeds": seeds, "clutter_levels": int_list(args.clutter_levels), "chosen": chosen,
+           "candidates": table}
+    (Path(out) / "chosen.json").write_text(json.dumps(doc, indent=2) + "\n")
+    emit(args, doc, [markdown(table, prices).rstrip(),
+                     *[f"price {p}: {c['rule']} (mean return {c['mean_return']:.0f})"
+                       for p, c in chosen.items()],
+                     f"wrote {out}/candidates.md, chosen.json"])
+    return 0
