@@ -6,7 +6,8 @@ import argparse
 import importlib
 import sys
 
-COMMAND_MODULES = ("simulate", "reproduce", "benchmark", "train", "threshold-rule", "speed")
+COMMAND_MODULES = ("simulate", "reproduce", "benchmark", "train", "threshold-rule", "front",
+                   "speed")
 
 
 def build_parser() -> argparse.ArgumentParser:

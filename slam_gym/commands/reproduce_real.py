@@ -114,6 +114,8 @@ MRCLAM_OPTIONS = {
     "gate_chi2": None,
     "optimise": "never",
     "robust_kernel": None,
+    "w_compute": None,
+    "compute_clip_s": None,
 }
 #: MRCLAM options that change the stream (the loader's sensor calibration)
 MRCLAM_STREAM_OPTIONS = (
@@ -171,6 +173,11 @@ def add_parser(targets) -> None:
         "skipped if no model is installed",
     )
     mr.add_argument("--model-path", default=None, help="model zip for the learned policy")
+    mr.add_argument("--w-compute", type=float, default=None,
+                    help="the policies' price of compute per second (a policy conditioned on "
+                    "the price observes it; default: the env's)")
+    mr.add_argument("--compute-clip-s", type=float, default=None,
+                    help="the reward's per-decision clip of compute (default: the env's)")
     mr.add_argument(
         "--known-association", action="store_true",
         help="also run each system with known association, where it has that mode",
@@ -377,6 +384,9 @@ def run_mrclam(args) -> int:
                                "decision_interval": DECISION_INTERVAL}
                 if p == "learned":
                     opts |= learned
+                opts |= {k: v for k, v in (("w_compute", args.w_compute),
+                                           ("compute_clip_s", args.compute_clip_s))
+                         if v is not None}
                 jobs.append(Job("policy", p, scenario, None, seed, opts))
     require(bool(jobs), "--systems/--policies", "", "at least one system or usable policy")
     out = out_dir(args)
@@ -608,11 +618,13 @@ def run_mrclam_policy(
     known_association=False, fusion_interval_s=FUSION_INTERVAL_S,
     noise_window_s=None, sensor_bias_correction=None, motion_compensation=None,
     corrections=True, calibration_s=DEFAULT_CALIBRATION_S, landmark_density_per_m2=None,
-    gate_chi2=None, optimise="never", robust_kernel=None,
+    gate_chi2=None, optimise="never", robust_kernel=None, w_compute=None, compute_clip_s=None,
 ) -> dict:
     """HYBRID driven by interface policy ``name`` in :class:`MRCLAMEnv` over one robot (the
     calibration and FastSLAM options as in :func:`run_mrclam_system`; the policy decides when
-    to optimise, so ``optimise`` must stay ``"never"``)."""
+    to optimise, so ``optimise`` must stay ``"never"``). ``w_compute`` and ``compute_clip_s``
+    (None: the env's defaults) set the reward's price of compute, which a policy conditioned on
+    it observes (``compute_price_per_s``)."""
     from slam_gym.envs.mrclam import MRCLAMEnv
     from slam_gym.evaluation.core import make_policy
 
@@ -631,6 +643,8 @@ def run_mrclam_policy(
         motion_compensation=motion_compensation, corrections=corrections,
         calibration_s=calibration_s,
         front_end_options=fastslam_options(landmark_density_per_m2, gate_chi2),
+        **{k: v for k, v in (("w_compute", w_compute), ("compute_clip_s", compute_clip_s))
+           if v is not None},
     )
     policy.reset()
     obs, info = env.reset(seed=int(seed))

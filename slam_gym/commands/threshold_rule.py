@@ -27,6 +27,7 @@ import numpy as np
 
 from slam_gym.commands.common import add_common_options, emit, out_dir
 from slam_gym.commands.runs import int_list
+from slam_gym.evaluation.front import interface_cpu_s, return_at_price
 
 DEFAULT_GRID: Mapping[str, tuple[float, ...]] = {
     "global_heading_std_rad": (0.005, 0.01, 0.02, 0.04),
@@ -77,11 +78,6 @@ def rule_name(feature: str, threshold: float) -> str:
     return f"threshold-optimise[{feature}>={float(threshold):g}]"
 
 
-def return_at_price(row: Mapping[str, Any], price: float) -> float:
-    """A run's return at ``price`` from its return at the price it ran at (same clip)."""
-    return float(row["return"]) + (float(row["w_compute"]) - price) * float(row["compute_term_s"])
-
-
 def score(rows: Sequence[Mapping[str, Any]], prices: Sequence[float]) -> list[dict[str, Any]]:
     """Per rule: mean return at every price and the benchmark's other means."""
     by_rule: dict[str, list[Mapping[str, Any]]] = {}
@@ -101,8 +97,7 @@ def score(rows: Sequence[Mapping[str, Any]], prices: Sequence[float]) -> list[di
             "success_rate": float(np.mean([r["success"] for r in group])),
             "map_error_m": float(np.mean(survived)) if survived else math.nan,
             "n_optimisations": float(np.mean([r["n_optimisations"] for r in group])),
-            "interface_cpu_s": float(np.mean([r["fusion_cpu_s"] + r["optimise_cpu_s"]
-                                              for r in group])),
+            "interface_cpu_s": float(np.mean([interface_cpu_s(r) for r in group])),
         })
     return table
 

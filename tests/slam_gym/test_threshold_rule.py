@@ -6,7 +6,8 @@ import json
 import pytest
 
 from slam_gym.cli import main
-from slam_gym.commands.threshold_rule import DEFAULT_GRID, return_at_price
+from slam_gym.commands.threshold_rule import DEFAULT_GRID
+from slam_gym.evaluation.front import return_at_price
 
 
 def test_every_rule_runs_once_and_the_best_is_chosen_per_price(tmp_path):

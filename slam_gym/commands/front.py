@@ -1,0 +1,140 @@
+"""``slam-gym front``: a learned policy at several prices of compute against the rules.
+
+Runs, on the same worlds (``--seeds`` from ``--seed-start`` at each clutter level; by default
+400-419, worlds no policy ran on before issue 29), the rules ``--rules`` once (at the price
+``--run-price``: their decisions do not depend on it) and the learned model ``--model`` at every
+price of ``--prices`` (a policy conditioned on the price acts on it). The threshold rules chosen
+per price by ``slam-gym threshold-rule`` (``--threshold-rules OUT/chosen.json``) join the rules.
+
+At each price, every policy is paired world by world with ``fixed-10s-optimise`` (success, map
+error, interface CPU) and its return with the best threshold rule's; the learned policy gets the
+verdict of issue 29's goal (:func:`slam_gym.evaluation.front.goal`). Writes ``OUT/front.json``,
+``OUT/front.md`` (one table per price) and ``OUT/front.png`` (success and map error against
+interface CPU), with the benchmark's rows under ``OUT/rules`` and ``OUT/learned-<price>``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from slam_gym.commands.common import add_common_options, emit, out_dir
+from slam_gym.commands.runs import int_list, name_list
+
+REFERENCE = "fixed-10s-optimise"
+DEFAULT_RULES = "fixed-10s,fixed-10s-optimise,esdf-innovation"
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "front", help="a learned policy at several prices of compute against the rules, paired")
+    p.add_argument("--model", required=True, help="the learned model zip")
+    p.add_argument("--prices", default="1,10,100", help="prices of compute (w_compute, /s)")
+    p.add_argument("--run-price", type=float, default=10.0,
+                   help="the price the rules run at (their returns at the others are recomputed)")
+    p.add_argument("--compute-clip-s", type=float, default=0.2)
+    p.add_argument("--rules", default=DEFAULT_RULES, help="rule names (must include "
+                   f"{REFERENCE}, the reference)")
+    p.add_argument("--threshold-rules", default=None,
+                   help="chosen.json of `slam-gym threshold-rule` (the best rule per price)")
+    p.add_argument("--clutter-levels", default="0,1,2,3")
+    p.add_argument("--seeds", type=int, default=20, help="worlds per level")
+    p.add_argument("--seed-start", type=int, default=400)
+    p.add_argument("--particles", type=int, default=500)
+    p.add_argument("--n-steps", type=int, default=None, help="cut every path (quick looks)")
+    p.add_argument("--workers", type=int, default=2)
+    add_common_options(p, default_out="out/front")
+    p.set_defaults(run=run)
+
+
+def _threshold_rules(path: str | None) -> dict[str, dict[str, Any]]:
+    """Price -> the chosen threshold rule's name and options (from ``chosen.json``)."""
+    if path is None:
+        return {}
+    doc = json.loads(Path(path).read_text())
+    return {price: c for price, c in doc["chosen"].items()}
+
+
+def run(args) -> int:
+    import policies
+    from filters.validation import require
+    from slam_gym.evaluation import benchmark
+    from slam_gym.evaluation.front import compare, goal, plot_front
+
+    prices = [float(v) for v in args.prices.split(",") if v.strip()]
+    require(bool(prices), "prices", args.prices, "at least one price")
+    rule_names = name_list(args.rules)
+    require(REFERENCE in rule_names, "rules", args.rules, f"a list including {REFERENCE}")
+    chosen = _threshold_rules(args.threshold_rules)
+    rules: dict[str, Any] = {name: policies.make(name) for name in rule_names}
+    for c in chosen.values():
+        if c["feature"] is not None and c["rule"] not in rules:
+            rules[c["rule"]] = policies.make("threshold-optimise", feature=c["feature"],
+                                             threshold=float(c["threshold"]))
+        elif c["rule"] not in rules:  # an end of the family: fixed-10s or fixed-10s-optimise
+            rules[c["rule"]] = policies.make(c["rule"])
+    out = out_dir(args)
+    common = dict(clutter_levels=int_list(args.clutter_levels), seeds=args.seeds,
+                  seed_start=args.seed_start, n_particles=args.particles, n_steps=args.n_steps,
+                  compute_clip_s=args.compute_clip_s, baselines=[], figures=False,
+                  workers=args.workers, executor="process" if args.workers > 1 else "serial",
+                  progress=not args.quiet and not args.json)
+    rule_rows = benchmark(rules, w_compute=args.run_price, out=out / "rules", **common).rows
+    by_rule = {name: [r for r in rule_rows if r["policy"] == name] for name in rules}
+    model = str(Path(args.model).expanduser().resolve())
+    learned_rows = {
+        price: benchmark(["learned"], model=model, w_compute=price,
+                         out=out / f"learned-{price:g}", **common).rows
+        for price in prices}
+
+    reference = by_rule[REFERENCE]
+    doc: dict[str, Any] = {"model": model, "prices": prices, "seeds": args.seeds,
+                           "seed_start": args.seed_start, "compute_clip_s": args.compute_clip_s,
+                           "by_price": {}}
+    lines = []
+    points = []
+    for price in prices:
+        best = chosen.get(f"{price:g}", {}).get("rule")
+        best_rows = by_rule.get(best) if best else None
+        table = {}
+        for name, rows in [*by_rule.items(), (f"learned @ {price:g}/s", learned_rows[price])]:
+            table[name] = compare(rows, reference, price, return_reference=best_rows)
+        learned = table[f"learned @ {price:g}/s"]
+        verdict = goal(learned) if best_rows is not None else None
+        doc["by_price"][f"{price:g}"] = {"best_threshold_rule": best, "policies": table,
+                                         "goal": verdict}
+        lines += [f"\n### Price {price:g} /s (return differences against {best or 'n/a'})\n",
+                  _markdown(table), f"goal: {verdict}"]
+        points.append({"label": f"learned @ {price:g}/s", "learned": True, **learned})
+    ref_at = doc["by_price"][f"{prices[0]:g}"]["policies"]
+    points = [{"label": name, **ref_at[name]} for name in rules] + points
+    figure = plot_front(points, out / "front.png", title=(
+        f"Learned policy at prices {', '.join(f'{p:g}' for p in prices)} /s and the rules: "
+        f"{args.seeds} worlds per level from seed {args.seed_start} "
+        f"(bars: paired 95 % interval against {REFERENCE})"))
+    (out / "front.json").write_text(json.dumps(doc, indent=2, default=float) + "\n")
+    (out / "front.md").write_text("\n".join(lines).lstrip() + "\n")
+    emit(args, doc, [*lines, f"wrote {out}/front.json, front.md, {figure.name}"])
+    return 0
+
+
+def _fmt_ci(ci, digits=0) -> str:
+    return "" if ci is None else f" [{ci[0]:+.{digits}f}, {ci[1]:+.{digits}f}]"
+
+
+def _markdown(table: dict[str, dict[str, Any]]) -> str:
+    head = ["policy", "success", f"vs {REFERENCE} (pp)", "map error (m)", "paired diff (m)",
+            "interface CPU (s)", "CPU ratio", "optimisations", "return", "return diff"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for name, r in table.items():
+        lines.append("| " + " | ".join([
+            name, f"{r['success_rate']:.0%}",
+            f"{r['success_diff_pp']:+.0f}{_fmt_ci(r['success_diff_ci_pp'])}",
+            f"{r['map_error_m']:.2f}",
+            f"{r['map_error_diff_m']:+.2f}{_fmt_ci(r['map_error_diff_ci_m'], 2)}",
+            f"{r['interface_cpu_s']:.2f}", f"{r['interface_cpu_ratio']:.2f}",
+            f"{r['n_optimisations']:.1f}", f"{r['mean_return']:.0f}",
+            f"{r['return_diff']:+.0f}{_fmt_ci(r['return_diff_ci'])}",
+        ]) + " |")
+    return "\n".join(lines)
