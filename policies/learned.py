@@ -123,6 +123,51 @@ def _configured(model_path: Path, key: str, default: Any) -> Any:
         raise ValueError(f"config {config} is invalid: must be a JSON object ({exc})") from exc
 
 
+class ModelProvenanceWarning(UserWarning):
+    """A learned model was trained on another system than the code that loads it (or records no
+    fingerprint of the system it was trained on)."""
+
+
+provenance_logger = logging.getLogger("policies.provenance")
+"""Where a model whose fingerprint differs from the code's is reported (WARNING)."""
+
+
+def _config(model_path: Path) -> dict[str, Any] | None:
+    """The config JSON beside the model (None: there is none)."""
+    config = model_path.with_suffix(".json")
+    if not config.is_file():
+        return None
+    try:
+        data = json.loads(config.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"config {config} is invalid: must be a JSON object ({exc})") from exc
+    require(isinstance(data, dict), "config", str(config), "a JSON object")
+    return data
+
+
+def check_model_provenance(path: str | Path | None = None) -> dict[str, Any]:
+    """Compare the fingerprint a model records (its config JSON's ``fingerprint``) with the
+    current code's for the same env options (:mod:`slam_gym.training.provenance`; computed once
+    per env options in a process); ``{"checked": True, "matches": bool, "differences": [...]}``.
+    A mismatch, or a model that records no fingerprint, is logged as a WARNING on
+    ``policies.provenance`` and warned as :class:`ModelProvenanceWarning`, naming what differs."""
+    import warnings
+
+    from slam_gym.training.provenance import model_provenance
+
+    model_path = _resolve_path(path)
+    result = model_provenance(_config(model_path))
+    provenance = {"checked": True, "matches": bool(result["matches"]),
+                  "differences": list(result["differences"])}
+    if not provenance["matches"]:
+        message = (f"learned model {model_path} does not match the code it runs on (it was "
+                   "trained on a different system; its decisions may not mean what they did): "
+                   + "; ".join(provenance["differences"]))
+        provenance_logger.warning("%s", message)
+        warnings.warn(message, ModelProvenanceWarning, stacklevel=3)
+    return provenance
+
+
 def _normalisation(stats: Any) -> tuple[np.ndarray, np.ndarray, float] | None:
     """(mean, std, clip) of the config's ``observation_normalisation`` (VecNormalize's running
     statistics, saved by ``slam-gym train``), or None."""
@@ -174,6 +219,13 @@ class LearnedPolicy(Policy):
     model is loaded on
     construction, so a missing file or a model with the wrong spaces fails at ``policies.make``
     rather than mid-episode.
+
+    Provenance: on loading (``check_provenance=True``, the default) the fingerprint of the
+    system the model was trained on (its config's ``fingerprint``, written by ``slam-gym
+    train``) is compared with the current code's for the model's env options
+    (:func:`check_model_provenance`); a difference, or a model without a fingerprint, is warned
+    naming what differs. ``policy.provenance`` holds ``checked``, ``matches`` (None when not
+    checked) and ``differences``.
     """
 
     name = "learned"
@@ -187,8 +239,11 @@ class LearnedPolicy(Policy):
         sample_seed: int = 0,
         device: str = "cpu",
         observation_transform: str | None = None,
+        check_provenance: bool = True,
     ) -> None:
         super().__init__()
+        require(isinstance(check_provenance, bool), "check_provenance", check_provenance,
+                "True or False")
         require(
             isinstance(sample_seed, int) and not isinstance(sample_seed, bool) and sample_seed >= 0,
             "sample_seed", sample_seed, "a non-negative integer",
@@ -260,6 +315,9 @@ class LearnedPolicy(Policy):
                 len(self.feature_names),
                 f"{self.observation_shape[0]} names, the model's observation size",
             )
+        self.provenance: dict[str, Any] = (
+            check_model_provenance(model_path) if check_provenance
+            else {"checked": False, "matches": None, "differences": []})
         logger.info("loaded %s model from %s", algo.upper(), model_path)
 
     def reset(self) -> None:

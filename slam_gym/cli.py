@@ -7,7 +7,7 @@ import importlib
 import sys
 
 COMMAND_MODULES = ("simulate", "reproduce", "benchmark", "train", "threshold-rule", "front",
-                   "speed")
+                   "fingerprint", "speed")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -30,7 +30,9 @@ MRCLAM (UTIAS, Leung et al. IJRR 2011), one job per (system, robot, association 
   (``terminate_on_failure=False``), one decision per second; rows have ``policy`` = the policy
   and ``driven_system`` = ``"hybrid"``. ``learned`` is skipped with a note when no model is
   installed (``policies.make("learned")`` raises ``FileNotFoundError``); ``--model-path`` gives
-  one.
+  one. Its rows carry ``model_matches_code`` and ``model_differences`` (the model's fingerprint
+  against the code's, :mod:`slam_gym.training.provenance`); ``real_table.md`` marks a model that
+  does not match with a footnote.
 * ``--noise-scale`` multiplies the calibrated range and bearing std (see
   :func:`slam_gym.envs.mrclam.mrclam_stream`): MRCLAM's camera errors are strongly correlated in
   time, which white-noise filters do not model.
@@ -626,7 +628,7 @@ def run_mrclam_policy(
     (None: the env's defaults) set the reward's price of compute, which a policy conditioned on
     it observes (``compute_price_per_s``)."""
     from slam_gym.envs.mrclam import MRCLAMEnv
-    from slam_gym.evaluation.core import make_policy
+    from slam_gym.evaluation.core import make_policy, provenance_fields
 
     require(not known_association, "known_association", known_association,
             "False for policies (the env has no known-association mode)")
@@ -655,6 +657,7 @@ def run_mrclam_policy(
     row = _mrclam_result(env.episode, env.stream, robot, "unknown")
     row["driven_system"] = "hybrid"
     row.update(_calibration_fields(locals()))
+    row.update(provenance_fields(policy))
     env.close()
     return row
 
@@ -770,7 +773,10 @@ def _md(header, body) -> str:
 
 def mrclam_table(rows) -> str:
     """Per (system or policy, robot, association): the MRCLAM metrics (means over seeds),
-    then the means over robots."""
+    then the means over robots. A policy whose model does not match the code (rows'
+    ``model_matches_code``) is marked with a footnote."""
+    from slam_gym.evaluation.summary import MISMATCH_MARK, group_provenance, provenance_footnote
+
     ok = [r for r in rows if r.get("status") == "ok"]
     header = ["system", "robot", "association", "n", "map error (m)", "pose RMSE (m)",
               "pose RMSE held out (m)", "ANEES", "NEES in band", "BB success", "features",
@@ -778,6 +784,8 @@ def mrclam_table(rows) -> str:
 
     def cells(label, robot, assoc, members):
         successes = [bool(r["success"]) for r in members if r.get("success") is not None]
+        if any(r.get("model_matches_code") is False for r in members):
+            label = f"{label} {MISMATCH_MARK}"
         return [
             label, robot, assoc, len(members),
             _fmt(_mean(members, "map_error_m")), _fmt(_mean(members, "pose_rmse_m")),
@@ -799,6 +807,9 @@ def mrclam_table(rows) -> str:
     errors = [r for r in rows if r.get("status") != "ok"]
     parts = ["## Per robot", "", _md(header, body), "", "## Mean over robots", "",
              _md(header, body_all)]
+    footnote = provenance_footnote([group_provenance(m) for m in overall.values()])
+    if footnote:
+        parts += ["", footnote]
     if errors:
         parts += ["", f"{len(errors)} runs errored (excluded): "
                   + "; ".join(f"{_label(r)} {r.get('scenario')}: {r.get('error')}"

@@ -18,7 +18,9 @@ scenario field, so the world of the job changes with it: issue 28's calibration)
 Policy jobs take ``n_particles`` (500), ``decision_interval`` (10), ``front_end``, ``back_end``,
 ``model_path``, ``model_sha256`` (the model file's :func:`policies.learned.model_digest`: a run
 checks it, so a job key names the model it was run with) and ``deterministic`` (for ``learned``);
-the env ends an episode at BB's failure. ``w_compute`` and ``compute_clip_s`` (None: the env's
+the env ends an episode at BB's failure. A learned policy's rows carry ``model_matches_code`` and
+``model_differences`` (:func:`provenance_fields`: whether the model's fingerprint matches the code
+that ran it). ``w_compute`` and ``compute_clip_s`` (None: the env's
 defaults) change the reward's price of compute, so a policy trained under another price is
 evaluated (its return) under the reward it was trained for.
 """
@@ -202,6 +204,17 @@ def make_policy(name: str, *, model_path=None, model_sha256=None, deterministic=
     return policies.make("learned", **kwargs)
 
 
+def provenance_fields(policy) -> dict:
+    """The row fields of a policy that records its provenance (a learned model:
+    :attr:`policies.learned.LearnedPolicy.provenance`): ``model_matches_code`` (True, False, or
+    None when not checked) and ``model_differences`` (what differs, named); {} for the others."""
+    provenance = getattr(policy, "provenance", None)
+    if not isinstance(provenance, dict):
+        return {}
+    return {"model_matches_code": provenance.get("matches"),
+            "model_differences": list(provenance.get("differences") or [])}
+
+
 def run_policy_object(
     policy,
     scenario: str,
@@ -279,9 +292,13 @@ def run_job(job, policy_factories=None) -> dict:
         row["total_cpu_s"] = time.process_time() - cpu_start
         return row
     opts = _options(job.options_dict(), POLICY_OPTIONS, "policy")
-    episode, env = run_policy(job.name, job.scenario, job.clutter_level, job.seed,
-                              factories=policy_factories, **opts)
+    policy = make_policy(job.name, model_path=opts.pop("model_path"),
+                         model_sha256=opts.pop("model_sha256"),
+                         deterministic=opts.pop("deterministic"), factories=policy_factories)
+    episode, env = run_policy_object(policy, job.scenario, job.clutter_level, job.seed,
+                                     policy_name=job.name, **opts)
     row = episode_result(episode, env.stream)
+    row.update(provenance_fields(policy))
     row["return"] = env.episode_return
     row["compute_term_s"] = env.episode_compute_term_s
     row["w_compute"] = env.config.w_compute

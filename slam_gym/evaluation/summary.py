@@ -203,10 +203,44 @@ def summarise(
                                                     "return"))
             group["return_succeeded"] = _mean(metric_values([r for r in judged if r["success"]],
                                                        "return"))
+        group.update(group_provenance(ok))
         if paper is not None:
             group["paper_success_rate"] = paper_rate(paper, name, level)
         summary.append(group)
     return summary
+
+
+MISMATCH_MARK = "†"
+"""Marks a learned policy's row whose model does not match the code (its fingerprint differs)."""
+
+
+def group_provenance(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """``model_matches_code`` (False if any run's model did not match the code, True if every run's
+    did, None if unchecked) and the distinct ``model_differences``, for rows that carry them (a
+    learned policy's); {} for the others."""
+    marked = [r for r in rows if "model_matches_code" in r]
+    if not marked:
+        return {}
+    values = [r.get("model_matches_code") for r in marked]
+    matches = False if False in values else (True if all(v is True for v in values) else None)
+    differences: list[str] = []
+    for r in marked:
+        differences += [d for d in r.get("model_differences") or [] if d not in differences]
+    return {"model_matches_code": matches, "model_differences": differences}
+
+
+def provenance_footnote(groups: Sequence[Mapping[str, Any]]) -> str | None:
+    """The footnote of :data:`MISMATCH_MARK` when a group's model does not match the code."""
+    stale = [g for g in groups if g.get("model_matches_code") is False]
+    if not stale:
+        return None
+    differences: list[str] = []
+    for g in stale:
+        differences += [d for d in g.get("model_differences") or [] if d not in differences]
+    shown = "; ".join(differences[:3]) + ("; ..." if len(differences) > 3 else "")
+    return (f"{MISMATCH_MARK} the model was trained on a different system: its fingerprint does "
+            f"not match this code ({shown}); its rows do not show what the policy learned on "
+            "this system (`slam-gym fingerprint MODEL`).")
 
 
 def summary_document(
@@ -307,7 +341,8 @@ def table_cells(
     body = []
     for g in groups:
         level = g.get("clutter_level")
-        cells = [_kind_name(g)[1]]
+        cells = [_kind_name(g)[1] + (f" {MISMATCH_MARK}" if g.get("model_matches_code") is False
+                                     else "")]
         cells += [str(g.get("scenario"))] if show_scenario else []
         if show_options:
             cells.append(", ".join(f"{k}={v}" for k, v in (g.get("options") or {}).items()))
@@ -346,7 +381,9 @@ def markdown_table(
         return "| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |"
 
     align = ["---"] + ["---:"] * (len(header) - 1)
-    return "\n".join([line(header), "|" + "|".join(align) + "|", *map(line, body)]) + "\n"
+    footnote = provenance_footnote(_groups(summary))
+    return "\n".join([line(header), "|" + "|".join(align) + "|", *map(line, body)]
+                     + (["", footnote] if footnote else [])) + "\n"
 
 
 def format_table(
@@ -358,10 +395,11 @@ def format_table(
 ) -> Any:
     """A ``rich.table.Table`` for the console, or aligned plain text with ``rich=False``."""
     header, body = table_cells(summary, paper=paper)
+    footnote = provenance_footnote(_groups(summary))
     if rich:
         from rich.table import Table
 
-        table = Table(title=title)
+        table = Table(title=title, caption=footnote)
         for i, name in enumerate(header):
             table.add_column(name, justify="left" if i == 0 else "right")
         for cells in body:
@@ -375,6 +413,7 @@ def format_table(
 
     out = [title] if title else []
     out += [line(header), "  ".join("-" * w for w in widths), *map(line, body)]
+    out += [footnote] if footnote else []
     return "\n".join(out)
 
 

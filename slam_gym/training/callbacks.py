@@ -98,6 +98,7 @@ class BenchmarkEvalCallback(BaseCallback):
         kwargs = dict(env_kwargs or {})
         self.feature_names = kwargs.pop("features", None)
         self.env_options = evaluation_options(env_id, kwargs)
+        self.env_id = env_id
         self.clutter_levels = tuple(int(level) for level in clutter_levels)
         self.seeds = tuple(int(seed) for seed in seeds)
         require(bool(self.clutter_levels) and bool(self.seeds), "clutter_levels and seeds",
@@ -130,7 +131,10 @@ class BenchmarkEvalCallback(BaseCallback):
     def save_snapshot(self, path: Path) -> Path:
         """Save the model and the JSON :class:`policies.learned.LearnedPolicy` needs to act as
         it does in training; returns the zip's path."""
+        from slam_gym.training.provenance import DEFAULT_ENV_ID, system_fingerprint
         from slam_gym.training.run import observation_normalisation
+
+        env_id = self.env_id or DEFAULT_ENV_ID
 
         path.parent.mkdir(parents=True, exist_ok=True)
         self.model.save(path)
@@ -140,7 +144,9 @@ class BenchmarkEvalCallback(BaseCallback):
             "observation_normalisation": observation_normalisation(
                 self.model.get_vec_normalize_env()),
             "deterministic": self.deterministic,
+            "env_id": env_id,
             "env_options": self.env_options,
+            "fingerprint": system_fingerprint(env_id, self.env_options),
         }
         if self.feature_names is not None:
             config["feature_names"] = list(self.feature_names)

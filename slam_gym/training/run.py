@@ -2,7 +2,8 @@
 
 The run lives in its own directory::
 
-    model.zip, model.json        the final model and everything needed to repeat and load it
+    model.zip, model.json        the final model and everything needed to repeat and load it,
+                                 with the fingerprint of the system it was trained on
     checkpoints/                 model_<t>.zip + vecnormalize_<t>.pkl (+ replay_<t>.pkl for DQN)
     logs/progress_<t0>.csv       SB3's logger (losses, rollout returns), one file per segment
     logs/monitor_<t0>.monitor.csv  every training episode: return, length, failed, fusions, ...
@@ -178,7 +179,11 @@ def observation_normalisation(vec) -> dict[str, Any] | None:
 
 
 def model_config(setup: TrainingSetup, vec, timesteps: int, **extra) -> dict[str, Any]:
-    """The JSON written beside a model: how to load it and how it was made."""
+    """The JSON written beside a model: how to load it and how it was made, and the fingerprint
+    of the system it was trained on (:mod:`slam_gym.training.provenance`: computed once per env
+    options in a process), which :class:`policies.learned.LearnedPolicy` checks on loading."""
+    from slam_gym.training.provenance import system_fingerprint
+
     return {
         "command": setup.command,
         "algo": setup.algo,
@@ -195,6 +200,7 @@ def model_config(setup: TrainingSetup, vec, timesteps: int, **extra) -> dict[str
         "observation_transform": "log1p",
         "observation_normalisation": observation_normalisation(vec),
         "versions": {"python": platform.python_version(), **_versions()},
+        "fingerprint": system_fingerprint(setup.env_id, setup.env_options()),
         **extra,
     }
 

@@ -1,0 +1,81 @@
+"""``slam-gym fingerprint``: does a learned model match the code it runs on? (issue 29, item 1)
+
+Compares the system fingerprint a model records in its config JSON (``model.json``, written by
+``slam-gym train``; :mod:`slam_gym.training.provenance`) with the current code's for the model's
+env options, and prints whether they match and, if not, what differs. Exit status 0 when the
+model matches, 1 when it does not (or records no fingerprint).
+
+``--stamp`` writes the current fingerprint into the model's JSON instead: for a model trained on
+this very code whose JSON predates fingerprints (or was copied without one). Stamping asserts
+that the model was trained on this code; the fingerprint then carries ``"stamped": true``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+
+from slam_gym.commands.common import emit
+
+logger = logging.getLogger(__name__)
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "fingerprint",
+        help="whether a learned model matches the code (its system fingerprint); --stamp it")
+    p.add_argument("model", nargs="?", default=None,
+                   help="model zip (default: the packaged learned-default.zip)")
+    p.add_argument("--stamp", action="store_true",
+                   help="write the current fingerprint into the model's JSON (only for a model "
+                        "trained on this code)")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
+    p.set_defaults(run=run)
+
+
+def run(args) -> int:
+    from policies.learned import _config, _resolve_path
+    from slam_gym.training.provenance import compare_fingerprints, system_fingerprint
+
+    try:
+        path = _resolve_path(args.model)
+    except FileNotFoundError as exc:
+        raise ValueError(f"MODEL={args.model!r} is invalid: {exc}") from exc
+    config = _config(path)
+    if config is None:
+        raise ValueError(f"MODEL={str(path)!r} is invalid: it has no config JSON "
+                         f"({path.with_suffix('.json').name}, written by slam-gym train), so "
+                         "the env options it was trained under are unknown")
+    saved = config.get("fingerprint")
+    if args.stamp:
+        current = system_fingerprint(config.get("env_id"), config.get("env_options"))
+        current["stamped"] = True
+        replaced = compare_fingerprints(saved, current) if saved is not None else []
+        if replaced:
+            logger.warning("%s: replacing a fingerprint that differs from the code's: %s", path,
+                           "; ".join(replaced))
+        config["fingerprint"] = current
+        target = path.with_suffix(".json")
+        tmp = target.with_name(target.name + ".tmp")
+        tmp.write_text(json.dumps(config, indent=2) + "\n")
+        tmp.replace(target)
+        emit(args, {"model": str(path), "stamped": True, "fingerprint": current,
+                    "replaced_differences": replaced},
+             [f"{path}: stamped with the current fingerprint {current['digest'][:16]} "
+              f"(env options {current['env_options']}; {current['cpu_s']:.2f} s CPU)"])
+        return 0
+    if isinstance(saved, dict) and "env_options" in saved:
+        current = system_fingerprint(saved.get("env_id"), saved.get("env_options"))
+    else:
+        current = system_fingerprint(config.get("env_id"), config.get("env_options"))
+    differences = compare_fingerprints(saved, current)
+    matches = not differences
+    if matches:
+        lines = [f"{path}: matches the code (fingerprint {current['digest'][:16]}, env options "
+                 f"{current['env_options']})"]
+    else:
+        lines = [f"{path}: does NOT match the code (trained on a different system):",
+                 *(f"  - {d}" for d in differences)]
+    emit(args, {"model": str(path), "matches": matches, "differences": differences,
+                "fingerprint": current, "saved_fingerprint": saved}, lines)
+    return 0 if matches else 1
