@@ -1,6 +1,6 @@
 """Ship the best of several ``slam-gym train`` outputs as the default learned policy (#15).
 
-Usage: python scripts/ship_model.py TRAIN_OUT [TRAIN_OUT ...]
+Usage: python scripts/ship_model.py [--force] TRAIN_OUT [TRAIN_OUT ...]
 e.g.   python scripts/ship_model.py out/train15/ppo out/train15/a2c
 
 Each TRAIN_OUT is the ``--out`` of one ``slam-gym train`` (one algorithm, several seeds): its
@@ -14,6 +14,11 @@ the YAML entry it was trained with (``learned-default.yml``, rl-zoo3 layout: ``s
 --hyperparams`` reads it back) and its algorithm's training curves over every seed
 (``learned-default_training_curves.png``); every candidate's curves are also copied to
 ``docs/figures/training_curves_<algo>.png``.
+
+A model whose system fingerprint (its ``model.json``'s ``fingerprint``,
+:mod:`slam_gym.training.provenance`) does not match the code it would ship with is refused,
+naming what differs (exit 1): it was trained on another system. ``--force`` ships it anyway,
+with a warning (the packaged-model test then fails until a matching model ships).
 """
 
 from __future__ import annotations
@@ -48,16 +53,34 @@ def candidates(outs: list[Path]) -> list[dict]:
     return found
 
 
+def provenance_differences(config: dict) -> list[str]:
+    """What differs between the system a model config records and the current code's (empty: it
+    matches)."""
+    from slam_gym.training.provenance import compare_fingerprints, fingerprint_of_config
+
+    return compare_fingerprints(config.get("fingerprint"), fingerprint_of_config(config))
+
+
 def main(argv: list[str]) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
+    force = "--force" in argv
+    argv = [a for a in argv if a != "--force"]
     if not argv:
         print(__doc__)
         return 2
     found = candidates([Path(a) for a in argv])
     best = max(found, key=lambda c: (c["mean_return"], c["success_rate"]))
     source = Path(best["out"]) / "model.zip"
-    shutil.copyfile(source, TARGET)
     config = json.loads(source.with_suffix(".json").read_text())
+    differences = provenance_differences(config)
+    if differences:
+        message = (f"{source} does not match the code it would ship with (trained on a different "
+                   "system): " + "; ".join(differences))
+        if not force:
+            logger.error("%s\nnot shipped (retrain on this code, or --force)", message)
+            return 1
+        logger.warning("%s\nshipping it anyway (--force)", message)
+    shutil.copyfile(source, TARGET)
     config["chosen_among_algorithms"] = found
     config["shipped_by"] = "python scripts/ship_model.py " + " ".join(argv)
     TARGET.with_suffix(".json").write_text(json.dumps(config, indent=2) + "\n")

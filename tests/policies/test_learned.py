@@ -320,6 +320,22 @@ def test_the_shipped_model_loads_acts_and_says_how_it_was_made():
         policy.act(None, {"features": {}})
 
 
+def test_the_packaged_default_model_matches_the_code():
+    """The shipped model was trained on the system this code is: its recorded fingerprint (a
+    fixed seeded rollout of the env under its env options) equals the code's. Fails when the
+    filters, features or reward change under a shipped model: retrain and ship it (or, for a
+    model trained on this code whose JSON predates fingerprints, `slam-gym fingerprint --stamp`)."""
+    import json
+
+    from slam_gym.training.provenance import compare_fingerprints, fingerprint_of_config
+
+    config = json.loads(learned.DEFAULT_MODEL_PATH.with_suffix(".json").read_text())
+    differences = compare_fingerprints(config.get("fingerprint"), fingerprint_of_config(config))
+    assert not differences, (
+        f"the packaged model {learned.DEFAULT_MODEL_PATH.name} does not match the code it ships "
+        "with (trained on a different system): " + "; ".join(differences))
+
+
 def test_model_digest_identifies_the_file_and_a_stale_digest_is_rejected(ppo_zip, a2c_zip):
     digest = learned.model_digest(ppo_zip)
     assert len(digest) == 16 and digest == learned.model_digest(str(ppo_zip))

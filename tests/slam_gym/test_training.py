@@ -109,7 +109,10 @@ def test_a_run_writes_logs_evaluations_and_a_loadable_model(tmp_path):
     assert config["timesteps"] == 96 and config["feature_names"] == list(FEATURE_NAMES)
     stats = config["observation_normalisation"]
     assert len(stats["mean"]) == len(FEATURE_NAMES) and min(stats["var"]) >= 0
+    # the system it was trained on, which the policy checks on loading (provenance)
+    assert config["fingerprint"]["env_options"] == {"n_particles": 5}
     policy = policies.make("learned", path=str(run / "model.zip"))
+    assert policy.provenance["matches"] is True
     action = policy.act(np.ones(len(FEATURE_NAMES)), {"features": dict.fromkeys(FEATURE_NAMES,
                                                                              1.0)})
     assert action.shape == (2,) and set(action) <= {0, 1}

@@ -1,0 +1,333 @@
+"""Provenance of learned models (issue 29 item 1): the system fingerprint, its comparison, the
+fingerprint in model.json, the check on loading, `slam-gym fingerprint`, and the rows and tables
+that mark a model trained on another system."""
+
+from __future__ import annotations
+
+import json
+import logging
+
+import numpy as np
+import pytest
+
+from slam_gym.cli import main
+from slam_gym.envs.hybrid_slam import HybridSLAMEnv
+from slam_gym.training import provenance
+from slam_gym.training.provenance import (
+    compare_fingerprints,
+    scheduled_action,
+    system_fingerprint,
+    system_options,
+)
+
+CHEAP = {"n_particles": 5}
+"""Env options of a cheap rollout (the fingerprint is a function of the options)."""
+
+
+@pytest.fixture
+def fresh_cache(monkeypatch):
+    """An empty fingerprint cache for the test (and the process's own afterwards)."""
+    monkeypatch.setattr(provenance, "_CACHE", {})
+
+
+def perturbed_step(monkeypatch, factor: float, feature: str | None = None) -> None:
+    """Make the env's rewards (and one feature, or all) ``factor`` times what they are: float
+    noise for a factor of 1 + 1e-9, a behaviour change for 1 + 1e-2."""
+    original = HybridSLAMEnv.step
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = original(self, action)
+        features = {k: (v * factor if feature in (None, k) and v is not None else v)
+                    for k, v in info["features"].items()}
+        return obs, reward * factor, terminated, truncated, dict(info, features=features)
+
+    monkeypatch.setattr(HybridSLAMEnv, "step", step)
+
+
+def test_the_fingerprint_repeats_and_exercises_fusion_and_the_optimiser():
+    first = system_fingerprint("SlamGym/HybridSLAM-v0", CHEAP, cache=False)
+    second = system_fingerprint("SlamGym/HybridSLAM-v0", CHEAP, cache=False)
+    assert first["digest"] == second["digest"] and len(first["digest"]) == 64
+    assert compare_fingerprints(first, second) == []
+    summary = first["summary"]
+    assert summary["decisions"] == provenance.ROLLOUT_DECISIONS and not summary["failed"]
+    # fusion every 5 decisions, optimisation with every other and once between fusions
+    assert summary["n_fusions"] == 12 and summary["n_optimisations"] == 7
+    assert [scheduled_action(d).tolist() for d in (5, 10, 12, 37)] == [[1, 0], [1, 1], [0, 1],
+                                                                      [0, 1]]
+    assert first["env_options"] == CHEAP and first["env_id"] == "SlamGym/HybridSLAM-v0"
+    assert "compute_price_per_s" in first["feature_names"]
+    json.dumps(first, allow_nan=False)  # plain JSON, as model.json holds it
+
+
+def test_the_cache_holds_one_fingerprint_per_system(fresh_cache):
+    a = system_fingerprint("SlamGym/HybridSLAM-v0", CHEAP)
+    # the same system by another id, and options the rollout sets itself: one computation
+    b = system_fingerprint("SlamGym/HybridSLAM-Light-v0", {"n_particles": 5, "n_steps": 50,
+                                                           "features": ["ess_ratio"]})
+    assert len(provenance._CACHE) == 1 and a["digest"] == b["digest"]
+    a["summary"]["return"] = 0.0  # callers get their own copy
+    assert system_fingerprint("SlamGym/HybridSLAM-v0", CHEAP)["summary"]["return"] != 0.0
+
+
+def test_rounding_lets_float_noise_pass(fresh_cache, monkeypatch):
+    clean = system_fingerprint("SlamGym/HybridSLAM-v0", CHEAP)
+    perturbed_step(monkeypatch, 1.0 + 1e-9)
+    noisy = system_fingerprint("SlamGym/HybridSLAM-v0", CHEAP, cache=False)
+    assert noisy["digest"] == clean["digest"]
+    assert compare_fingerprints(clean, noisy) == []
+    assert provenance._fmt(1.234567e-3) == provenance._fmt(1.234567e-3 * (1 + 1e-12)) == "0.001235"
+    assert provenance._fmt(-0.0) == provenance._fmt(0.0) == "0"
+
+
+def test_a_behaviour_change_changes_the_fingerprint_and_is_named(fresh_cache, monkeypatch):
+    clean = system_fingerprint("SlamGym/HybridSLAM-v0", CHEAP)
+    perturbed_step(monkeypatch, 1.01, feature="global_heading_std_rad")
+    changed = system_fingerprint("SlamGym/HybridSLAM-v0", CHEAP, cache=False)
+    assert changed["digest"] != clean["digest"]
+    differences = compare_fingerprints(clean, changed)
+    assert differences[0].startswith("digest: " + clean["digest"][:16])
+    assert any(d.startswith("return: ") for d in differences)
+    assert any(d.startswith("mean_global_heading_std_rad: ") for d in differences)
+    assert not any(d.startswith("mean_ess_ratio") for d in differences)  # only what changed
+    assert any("the rollouts part in decisions 1-20" in d for d in differences)
+
+
+@pytest.mark.parametrize("options, named", [
+    ({"n_particles": 6}, "n_particles"),
+    ({"n_particles": 5, "w_map": 2.0}, "w_map"),
+])
+def test_another_system_has_another_fingerprint(options, named):
+    base = system_fingerprint("SlamGym/HybridSLAM-v0", CHEAP)
+    other = system_fingerprint("SlamGym/HybridSLAM-v0", options)
+    assert other["digest"] != base["digest"]
+    differences = compare_fingerprints(base, other)
+    assert any(d.startswith("env options: ") and named in d for d in differences)
+    assert any(d.startswith("return: ") for d in differences)
+
+
+def test_comparisons_name_a_missing_fingerprint_another_version_and_features():
+    current = system_fingerprint("SlamGym/HybridSLAM-v0", CHEAP)
+    assert "no system fingerprint" in compare_fingerprints(None, current)[0]
+    assert "version" in compare_fingerprints(dict(current, version=0), current)[0]
+    fewer = dict(current, feature_names=current["feature_names"][:-1], digest="0" * 64)
+    assert any("feature names: added ['compute_price_per_s']" in d
+               for d in compare_fingerprints(fewer, current))
+    # only the digest differs: said to be below the rounding
+    assert "rounding" in compare_fingerprints(dict(current, digest="0" * 64), current)[-1]
+
+
+@pytest.mark.parametrize("env_id, options, field", [
+    ("SlamGym/MRCLAM-v0", {}, "env_id"),
+    ("SlamGym/Nope-v0", {}, "env_id"),
+    ("SlamGym/HybridSLAM-v0", {"n_particles": 0}, "n_particles"),
+    ("SlamGym/HybridSLAM-v0", {"w_mapp": 1.0}, "w_mapp"),
+    ("SlamGym/HybridSLAM-v0", [("n_particles", 5)], "env_options"),
+])
+def test_bad_systems_raise_naming_the_field(env_id, options, field):
+    with pytest.raises(ValueError, match=field):
+        system_options(env_id, options)
+
+
+# ------------------------------------------------------------------------------------------------
+# model.json, loading, the command, rows and tables
+# ------------------------------------------------------------------------------------------------
+def tiny_setup():
+    from slam_gym.training.hyperparams import validate_hyperparams
+    from slam_gym.training.run import TrainingSetup
+
+    params = validate_hyperparams("ppo", {
+        "n_timesteps": 64, "n_envs": 1, "normalize": False,
+        "env_kwargs": {"n_particles": 5, "n_steps": 120},
+        "n_steps": 32, "batch_size": 32, "n_epochs": 1, "policy_kwargs": {"net_arch": [8]},
+    })
+    return TrainingSetup("ppo", "SlamGym/HybridSLAM-v0", 0, params, clutter_levels=(2,),
+                         eval_seeds=(7,))
+
+
+def save_untrained(path):
+    """An untrained PPO model of the env, saved as `slam-gym train` saves its models."""
+    from stable_baselines3 import PPO
+
+    from slam_gym.training.run import make_env_fn, save_model
+
+    setup = tiny_setup()
+    model = PPO("MlpPolicy", make_env_fn(setup, 0)(), n_steps=32, batch_size=32, seed=0,
+                device="cpu", policy_kwargs={"net_arch": [8]})
+    return save_model(model, model.get_env(), setup, path, 0)
+
+
+@pytest.fixture
+def model_zip(tmp_path):
+    return save_untrained(tmp_path / "model.zip")
+
+
+@pytest.fixture
+def stale_zip(tmp_path, monkeypatch):
+    """A model saved by 'older code': the same env with its rewards 1 % larger."""
+    with monkeypatch.context() as patched:
+        patched.setattr(provenance, "_CACHE", {})
+        perturbed_step(patched, 1.01)
+        path = save_untrained(tmp_path / "stale" / "model.zip")
+    return path
+
+
+def test_a_saved_model_records_the_fingerprint_of_its_system(model_zip):
+    config = json.loads(model_zip.with_suffix(".json").read_text())
+    saved = config["fingerprint"]
+    assert saved["env_id"] == "SlamGym/HybridSLAM-v0"
+    assert saved["env_options"] == {"n_particles": 5}  # n_steps is the rollout's own
+    assert saved == system_fingerprint("SlamGym/HybridSLAM-v0", config["env_options"])
+
+
+def test_loading_a_matching_model_is_silent(model_zip, caplog):
+    import policies
+
+    with caplog.at_level(logging.WARNING, logger="policies.provenance"):
+        policy = policies.make("learned", path=str(model_zip))
+    assert policy.provenance == {"checked": True, "matches": True, "differences": []}
+    assert not [r for r in caplog.records if r.name == "policies.provenance"]
+
+
+def test_loading_a_model_of_another_system_warns_naming_the_difference(stale_zip, caplog):
+    import policies
+    from policies.learned import ModelProvenanceWarning
+
+    with caplog.at_level(logging.WARNING, logger="policies.provenance"), \
+            pytest.warns(ModelProvenanceWarning, match="does not match the code"):
+        policy = policies.make("learned", path=str(stale_zip))
+    assert policy.provenance["matches"] is False
+    assert any(d.startswith("return: ") for d in policy.provenance["differences"])
+    logged = [r.getMessage() for r in caplog.records if r.name == "policies.provenance"]
+    assert len(logged) == 1 and str(stale_zip) in logged[0] and "return: " in logged[0]
+    unchecked = policies.make("learned", path=str(stale_zip), check_provenance=False)
+    assert unchecked.provenance == {"checked": False, "matches": None, "differences": []}
+    with pytest.raises(ValueError, match="check_provenance"):
+        policies.make("learned", path=str(stale_zip), check_provenance="no")
+
+
+def test_a_model_without_a_fingerprint_warns(model_zip):
+    import policies
+    from policies.learned import ModelProvenanceWarning
+
+    config = json.loads(model_zip.with_suffix(".json").read_text())
+    del config["fingerprint"]
+    model_zip.with_suffix(".json").write_text(json.dumps(config))
+    with pytest.warns(ModelProvenanceWarning, match="no system fingerprint"):
+        policy = policies.make("learned", path=str(model_zip))
+    assert policy.provenance["matches"] is False
+
+
+def test_the_fingerprint_command_reports_and_stamps(stale_zip, tmp_path, capsys):
+    assert main(["fingerprint", str(stale_zip)]) == 1
+    out = capsys.readouterr().out
+    assert "does NOT match the code" in out and "  - return: " in out
+    assert main(["fingerprint", str(stale_zip), "--json"]) == 1
+    payload = json.loads(capsys.readouterr().out)
+    assert payload["matches"] is False and payload["differences"][0].startswith("digest: ")
+    # a model trained on this code whose JSON predates fingerprints: stamp it, then it matches
+    assert main(["fingerprint", str(stale_zip), "--stamp"]) == 0
+    assert "stamped" in capsys.readouterr().out
+    stamped = json.loads(stale_zip.with_suffix(".json").read_text())["fingerprint"]
+    assert stamped["stamped"] is True and stamped["env_options"] == {"n_particles": 5}
+    assert main(["fingerprint", str(stale_zip)]) == 0
+    assert "matches the code" in capsys.readouterr().out
+    bare = tmp_path / "bare.zip"
+    bare.write_bytes(stale_zip.read_bytes())
+    assert main(["fingerprint", str(bare)]) == 2
+    assert "MODEL" in capsys.readouterr().err
+    assert main(["fingerprint", str(tmp_path / "missing.zip")]) == 2
+
+
+def test_benchmark_rows_carry_whether_the_model_matches_the_code(model_zip, stale_zip):
+    from slam_gym.evaluation import Job
+    from slam_gym.evaluation.core import learned_options, run_job
+
+    def row(policy, **options):
+        return run_job(Job("policy", policy, "brooks-bailey", 2, 3,
+                           {"n_particles": 5, "n_steps": 40, **options}))
+
+    matching = row("learned", **learned_options(str(model_zip)))
+    assert matching["model_matches_code"] is True and matching["model_differences"] == []
+    with pytest.warns(UserWarning):
+        stale = row("learned", **learned_options(str(stale_zip)))
+    assert stale["model_matches_code"] is False
+    assert any(d.startswith("return: ") for d in stale["model_differences"])
+    assert "model_matches_code" not in row("fixed-10s")
+
+
+def test_reproduce_mrclam_rows_carry_whether_the_model_matches_the_code(stale_zip):
+    from realdata import MRCLAM_DIR
+
+    from slam_gym.commands.reproduce_real import run_mrclam_policy
+
+    with pytest.warns(UserWarning):
+        row = run_mrclam_policy("learned", 5, 0, data=str(MRCLAM_DIR), max_steps=50,
+                                n_particles=20, model_path=str(stale_zip))
+    assert row["model_matches_code"] is False
+    assert any(d.startswith("return: ") for d in row["model_differences"])
+    rule = run_mrclam_policy("fixed-10s", 5, 0, data=str(MRCLAM_DIR), max_steps=50,
+                             n_particles=20)
+    assert "model_matches_code" not in rule
+
+
+def _row(policy, matches, level=0, differences=()):
+    row = {"policy": policy, "scenario": "brooks-bailey", "clutter_level": level, "seed": 1,
+           "status": "ok", "success": True, "map_error_m": 1.0, "n_fusions": 3}
+    if matches is not None or differences:
+        row.update(model_matches_code=matches, model_differences=list(differences))
+    return row
+
+
+def test_tables_mark_a_learned_row_whose_model_does_not_match():
+    from slam_gym.evaluation import summarise
+    from slam_gym.evaluation.summary import markdown_table
+
+    rows = [_row("fixed-10s", None), _row("learned", False, differences=["return: 1 -> 2"]),
+            _row("learned", True, level=1)]
+    groups = summarise(rows)
+    assert "model_matches_code" not in groups[0]
+    assert groups[1]["model_matches_code"] is False and groups[2]["model_matches_code"] is True
+    table = markdown_table(groups)
+    assert "| learned † | 0 |" in table and "| learned | 1 |" in table
+    assert "| fixed-10s | 0 |" in table
+    footnote = table.strip().splitlines()[-1]
+    assert footnote.startswith("† the model was trained on a different system")
+    assert "return: 1 -> 2" in footnote
+    assert "†" not in markdown_table(summarise([rows[0], rows[2]]))
+
+
+def test_the_mrclam_table_marks_a_model_that_does_not_match():
+    from slam_gym.commands.reproduce_real import mrclam_table
+
+    rows = [dict(_row("learned", False, differences=["digest: a != b"]), robot=1,
+                 association="unknown", driven_system="hybrid"),
+            dict(_row("fixed-10s", None), robot=1, association="unknown",
+                 driven_system="hybrid")]
+    table = mrclam_table(rows)
+    assert "| hybrid + learned † | 1 |" in table and "| hybrid + fixed-10s | 1 |" in table
+    assert "† the model was trained on a different system" in table
+    assert "†" not in mrclam_table(rows[1:])
+
+
+def test_ship_model_refuses_a_model_of_another_system(stale_zip, tmp_path, monkeypatch):
+    import importlib.util
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[2] / "scripts" / "ship_model.py"
+    spec = importlib.util.spec_from_file_location("ship_model", script)
+    ship = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(ship)
+    monkeypatch.setattr(ship, "TARGET", tmp_path / "shipped" / "learned-default.zip")
+    monkeypatch.setattr(ship, "FIGURES", tmp_path / "figures")
+    (tmp_path / "shipped").mkdir()
+    out = stale_zip.parent
+    (out / "summary.json").write_text(json.dumps({
+        "chosen_seed": 0, "algo": "ppo", "seeds": [0],
+        "final_evaluation": {"0": {"mean_return": -1.0, "success_rate": 1.0, "mode": "sampled"}},
+    }))
+    assert ship.main([str(out)]) == 1
+    assert not ship.TARGET.exists()
+    assert ship.main(["--force", str(out)]) == 0
+    assert ship.TARGET.is_file()
+    assert np.isfinite(json.loads(ship.TARGET.with_suffix(".json").read_text())["timesteps"])
