@@ -61,6 +61,7 @@ def run(args) -> int:
     from filters.validation import require
     from slam_gym.evaluation import benchmark
     from slam_gym.evaluation.front import compare, goal, plot_front
+    from slam_gym.evaluation.summary import group_provenance, provenance_footnote
 
     prices = [float(v) for v in args.prices.split(",") if v.strip()]
     require(bool(prices), "prices", args.prices, "at least one price")
@@ -89,9 +90,12 @@ def run(args) -> int:
         for price in prices}
 
     reference = by_rule[REFERENCE]
+    provenance = group_provenance([r for rows in learned_rows.values() for r in rows
+                                   if r.get("status") == "ok"])
+    stale = provenance.get("model_matches_code") is False
     doc: dict[str, Any] = {"model": model, "prices": prices, "seeds": args.seeds,
                            "seed_start": args.seed_start, "compute_clip_s": args.compute_clip_s,
-                           "by_price": {}}
+                           **provenance, "by_price": {}}
     lines = []
     points = []
     for price in prices:
@@ -105,8 +109,11 @@ def run(args) -> int:
         doc["by_price"][f"{price:g}"] = {"best_threshold_rule": best, "policies": table,
                                          "goal": verdict}
         lines += [f"\n### Price {price:g} /s (return differences against {best or 'n/a'})\n",
-                  _markdown(table), f"goal: {verdict}"]
+                  _markdown(table, marked={f"learned @ {price:g}/s"} if stale else ()),
+                  f"goal: {verdict}"]
         points.append({"label": f"learned @ {price:g}/s", "learned": True, **learned})
+    footnote = provenance_footnote([provenance])
+    lines += ["", footnote] if footnote else []
     ref_at = doc["by_price"][f"{prices[0]:g}"]["policies"]
     points = [{"label": name, **ref_at[name]} for name in rules] + points
     figure = plot_front(points, out / "front.png", title=(
@@ -123,13 +130,17 @@ def _fmt_ci(ci, digits=0) -> str:
     return "" if ci is None else f" [{ci[0]:+.{digits}f}, {ci[1]:+.{digits}f}]"
 
 
-def _markdown(table: dict[str, dict[str, Any]]) -> str:
+def _markdown(table: dict[str, dict[str, Any]], marked=()) -> str:
+    """The table of one price; the names in ``marked`` (a model that does not match the code)
+    get :data:`~slam_gym.evaluation.summary.MISMATCH_MARK`."""
+    from slam_gym.evaluation.summary import MISMATCH_MARK
+
     head = ["policy", "success", f"vs {REFERENCE} (pp)", "map error (m)", "paired diff (m)",
             "interface CPU (s)", "CPU ratio", "optimisations", "return", "return diff"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for name, r in table.items():
         lines.append("| " + " | ".join([
-            name, f"{r['success_rate']:.0%}",
+            f"{name} {MISMATCH_MARK}" if name in marked else name, f"{r['success_rate']:.0%}",
             f"{r['success_diff_pp']:+.0f}{_fmt_ci(r['success_diff_ci_pp'])}",
             f"{r['map_error_m']:.2f}",
             f"{r['map_error_diff_m']:+.2f}{_fmt_ci(r['map_error_diff_ci_m'], 2)}",

@@ -91,3 +91,6 @@ def test_front_command_runs_rules_once_and_the_model_at_every_price(tmp_path):
         assert {json.loads(x)["w_compute"] for x in rows} == {float(price)}
     assert (out / "front.png").stat().st_size > 0 and "### Price 1 /s" in (
         out / "front.md").read_text()
+    # the model was trained on this code: its rows match, nothing is marked
+    assert doc["model_matches_code"] is True and doc["model_differences"] == []
+    assert "†" not in (out / "front.md").read_text()

@@ -310,6 +310,18 @@ def test_the_mrclam_table_marks_a_model_that_does_not_match():
     assert "†" not in mrclam_table(rows[1:])
 
 
+def test_the_front_table_marks_a_model_that_does_not_match():
+    from slam_gym.commands.front import _markdown
+
+    r = {"success_rate": 0.5, "success_diff_pp": 0.0, "success_diff_ci_pp": None,
+         "map_error_m": 1.0, "map_error_diff_m": 0.0, "map_error_diff_ci_m": None,
+         "interface_cpu_s": 1.0, "interface_cpu_ratio": 1.0, "n_optimisations": 2.0,
+         "mean_return": -10.0, "return_diff": 0.0, "return_diff_ci": None}
+    table = {"fixed-10s": r, "learned @ 1/s": r}
+    assert "| learned @ 1/s † |" in _markdown(table, marked={"learned @ 1/s"})
+    assert "†" not in _markdown(table)
+
+
 def test_ship_model_refuses_a_model_of_another_system(stale_zip, tmp_path, monkeypatch):
     import importlib.util
     from pathlib import Path
