@@ -8,10 +8,10 @@ optimisation** now (CM III.C). Never fusing is pure FastSLAM; fusing every 10 s 
 Action space
     ``MultiDiscrete([2, 2])``: (fuse now?, optimise now?). Decisions apply at the current time,
     before the next ``decision_interval`` iterations run. :class:`DiscreteActions` wraps it as
-    ``Discrete(4)`` with ``a = 2 * fuse + optimise`` for DQN. An optimisation with nothing fused
-    since the last one (or before any fusion) is *redundant*: the optimum is the one already
-    applied, so it changes nothing (not even the time since the last optimisation), is not
-    counted in ``n_optimisations`` and costs nothing in ``compute_s``.
+    ``Discrete(4)`` with ``a = 2 * fuse + optimise`` for DQN and MaskablePPO. An optimisation
+    with nothing fused since the last one (or before any fusion) is *redundant*: the optimum is
+    the one already applied, so it changes nothing (not even the time since the last
+    optimisation), is not counted in ``n_optimisations`` and costs nothing in ``compute_s``.
 
 Action masks (sb3-contrib's ``MaskablePPO``; issue 29 item 2)
     ``env.optimisation_is_redundant()`` says, before a decision, whether optimising without
