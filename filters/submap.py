@@ -47,7 +47,7 @@ from filters.geometry import transform_point, wrap_angle
 from filters.interface_features import INTERFACE_FEATURE_NAMES
 from filters.models import observe
 from filters.optimiser import ROBUST_KERNELS
-from filters.submap_optimise import optimise_submaps
+from filters.submap_optimise import optimisation_is_redundant, optimise_submaps
 from filters.types import FusionReport, GaussianMap, LandmarkEstimate
 from filters.validation import check_range, require
 
@@ -263,6 +263,13 @@ class SubmapSLAM:
         system's ``robust_kernel`` (None, ``"huber"``, ``"cauchy"``) unless ``robust`` is given."""
         options.setdefault("robust", self.robust_kernel)
         return optimise_submaps(self, method, **options)
+
+    def optimisation_is_redundant(self, method: str = "gauss-newton", **options) -> bool:
+        """Whether :meth:`optimise` with these arguments would be redundant now: nothing fused
+        since the optimum applied last (or nothing fused at all), so it would change nothing and
+        be charged nothing (:func:`filters.submap_optimise.optimisation_is_redundant`)."""
+        options.setdefault("robust", self.robust_kernel)
+        return optimisation_is_redundant(self, method, **options)
 
     def _optimised(self):
         """Book-keeping after an optimisation (for the optimiser's implementation)."""

@@ -423,6 +423,43 @@ def _warm_start(sp_problem, previous, settings):
     return known
 
 
+def _settings(method, min_variance, options, x0, P0) -> tuple:
+    """What an optimum depends on besides the sub-maps (:attr:`OptimiseResult.settings`)."""
+    return (method, float(min_variance), repr(sorted(options.items())), x0.tobytes(),
+            None if P0 is None else np.asarray(P0, dtype=float).tobytes())
+
+
+def _redundant(submap_slam, settings: tuple) -> bool:
+    """The one test of a redundant optimisation (:func:`optimise_submaps`): nothing fused at
+    all, or nothing fused since the optimum applied last with the same ``settings``."""
+    if not submap_slam.submaps:
+        return True
+    previous = getattr(submap_slam, "last_optimum", None)
+    return (
+        previous is not None and previous.settings == settings
+        and previous.n_submaps == len(submap_slam.submaps)
+        and getattr(submap_slam, "_fusions_since_optimise", 1) == 0
+    )
+
+
+def optimisation_is_redundant(
+    submap_slam,
+    method: str = "gauss-newton",
+    *,
+    initial_pose=None,
+    initial_pose_cov=None,
+    min_variance: float = DEFAULT_MIN_VARIANCE,
+    solver: str = "compiled",
+    **options,
+) -> bool:
+    """Whether :func:`optimise_submaps` with these arguments would be a redundant call now (it
+    would change nothing and be charged nothing): the same test, without running anything. An
+    action mask built on it is exact (issue 29 item 2)."""
+    require(method in METHODS, "method", method, f"one of {METHODS}")
+    x0, P0 = _initial_pose_of(submap_slam.back_end, initial_pose, initial_pose_cov)
+    return _redundant(submap_slam, _settings(method, min_variance, options, x0, P0))
+
+
 def optimise_submaps(
     submap_slam,
     method: str = "gauss-newton",
@@ -460,14 +497,10 @@ def optimise_submaps(
     back = submap_slam.back_end
     submaps = list(submap_slam.submaps)
     x0, P0 = _initial_pose_of(back, initial_pose, initial_pose_cov)
-    settings = (method, float(min_variance), repr(sorted(options.items())), x0.tobytes(),
-                None if P0 is None else np.asarray(P0, dtype=float).tobytes())
+    settings = _settings(method, min_variance, options, x0, P0)
     previous = getattr(submap_slam, "last_optimum", None)
-    if not submaps or (
-        previous is not None and previous.settings == settings
-        and previous.n_submaps == len(submaps)
-        and getattr(submap_slam, "_fusions_since_optimise", 1) == 0
-    ):  # redundant: the state stays as it is, to the bit (module docstring)
+    if _redundant(submap_slam, settings):
+        # redundant: the state stays as it is, to the bit (module docstring)
         if previous is None or not submaps:
             x, P, ids = back.x, back.P, back.ids
         else:

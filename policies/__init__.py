@@ -41,6 +41,7 @@ from policies.base import (
     INTERFACE_FEATURES,
     HeuristicPolicy,
     Policy,
+    discrete_action_mask,
     discrete_to_multi,
     multi_to_discrete,
 )
@@ -146,6 +147,7 @@ __all__ = [
     "Policy",
     "PolicyRegistry",
     "available",
+    "discrete_action_mask",
     "discrete_to_multi",
     "make",
     "multi_to_discrete",

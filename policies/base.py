@@ -156,6 +156,14 @@ def discrete_to_multi(a: Any) -> np.ndarray:
     return np.array([value // 2, value % 2], dtype=np.int64)
 
 
+def discrete_action_mask(optimise_redundant: bool) -> np.ndarray:
+    """The valid ``Discrete(4)`` actions at a decision: all but ``1`` (optimise only) when the
+    env says the optimisation would be redundant (``info["optimise_redundant"]``: nothing fused
+    since the last optimum, so optimising alone is a no-op). The env's wrapper computes the
+    same mask (``slam_gym.envs.wrappers.discrete_action_mask``; a test checks they agree)."""
+    return np.array([True, not bool(optimise_redundant), True, True])
+
+
 def multi_to_discrete(pair: Any) -> int:
     """Inverse of :func:`discrete_to_multi`: ``(fuse, optimise) -> 2 * fuse + optimise``."""
     arr = np.asarray(pair)

@@ -5,10 +5,17 @@
 env's observation vector; it never reads ``info``. stable-baselines3 (and torch) are imported only
 when a model is loaded, so ``import policies`` stays light.
 
-Algorithms: PPO (default of ``slam-gym train``), A2C and DQN. Without ``algo`` the algorithm is
-read from the zip's ``data`` entry: DQN saves a ``stable_baselines3.dqn`` policy class, PPO is the
-actor-critic model with a ``clip_range``, A2C the one without. An explicit ``algo`` that
-contradicts the zip raises ``ValueError``.
+Algorithms: PPO (default of ``slam-gym train``), A2C, DQN and sb3-contrib's MaskablePPO
+(``maskable-ppo``; sb3-contrib is needed only to load such a model). Without ``algo`` the
+algorithm is read from the zip's ``data`` entry: DQN saves a ``stable_baselines3.dqn`` policy
+class, MaskablePPO a ``sb3_contrib.common.maskable`` one, PPO is the actor-critic model with a
+``clip_range``, A2C the one without. An explicit ``algo`` that contradicts the zip raises
+``ValueError``.
+
+Masks: a MaskablePPO model acts with the env's exact ``Discrete(4)`` mask at every decision, as
+it was trained: "optimise only" is excluded when ``info["optimise_redundant"]`` says it would be
+a no-op (:func:`policies.base.discrete_action_mask`), both for the mode and for sampled actions.
+Without that key in ``info`` (an env of another kind) it acts unmasked.
 
 Action spaces: a model trained on the env itself has ``MultiDiscrete([2, 2])`` and its action is
 the (fuse, optimise) pair; a model trained through the env's ``Discrete(4)`` wrapper (DQN) acts in
@@ -28,7 +35,13 @@ from typing import Any
 
 import numpy as np
 
-from policies.base import N_DISCRETE_ACTIONS, Policy, discrete_to_multi, require
+from policies.base import (
+    N_DISCRETE_ACTIONS,
+    Policy,
+    discrete_action_mask,
+    discrete_to_multi,
+    require,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -38,7 +51,7 @@ MODELS_DIR = Path(__file__).resolve().parent / "models"
 DEFAULT_MODEL_PATH = MODELS_DIR / "learned-default.zip"
 """The model ``policies.make("learned")`` loads when no ``path`` is given."""
 
-ALGORITHMS: tuple[str, ...] = ("ppo", "a2c", "dqn")
+ALGORITHMS: tuple[str, ...] = ("ppo", "a2c", "dqn", "maskable-ppo")
 """Values of the ``algo`` option (case-insensitive)."""
 
 _TRAIN_HINT = (
@@ -85,7 +98,7 @@ def check_model_digest(path: str | Path | None, expected: str | None) -> None:
 
 
 def detect_algorithm(path: str | Path) -> str:
-    """Read which algorithm saved a stable-baselines3 zip: ``"ppo"``, ``"a2c"`` or ``"dqn"``."""
+    """Read which algorithm saved a stable-baselines3 zip: one of :data:`ALGORITHMS`."""
     try:
         with zipfile.ZipFile(path) as archive:
             data = json.loads(archive.read("data"))
@@ -98,6 +111,8 @@ def detect_algorithm(path: str | Path) -> str:
     module = policy_class.get("__module__", "") if isinstance(policy_class, dict) else ""
     if ".dqn." in module or "exploration_final_eps" in data:
         return "dqn"
+    if ".maskable." in module:
+        return "maskable-ppo"
     if "clip_range" in data:
         return "ppo"
     if "gae_lambda" in data:
@@ -190,6 +205,13 @@ def _algorithm_class(algo: str):
     """The stable-baselines3 class for ``algo`` (imported here, lazily)."""
     import stable_baselines3
 
+    if algo == "maskable-ppo":
+        try:
+            from sb3_contrib import MaskablePPO
+        except ImportError as exc:
+            raise ImportError("a MaskablePPO model needs sb3-contrib: pip install "
+                              "slam-gym[contrib] (or pip install sb3-contrib)") from exc
+        return MaskablePPO
     classes = {
         "ppo": stable_baselines3.PPO,
         "a2c": stable_baselines3.A2C,
@@ -323,13 +345,30 @@ class LearnedPolicy(Policy):
     def reset(self) -> None:
         self._rng = np.random.default_rng(self.sample_seed)
 
-    def _sample(self, x: np.ndarray) -> np.ndarray:
-        """A draw of (fuse, optimise) from the policy's distribution with the own generator."""
+    @property
+    def maskable(self) -> bool:
+        """Whether the model acts with action masks (MaskablePPO)."""
+        return self.algo == "maskable-ppo"
+
+    def action_mask(self, info: Mapping[str, Any] | None) -> np.ndarray | None:
+        """The ``Discrete(4)`` mask a MaskablePPO model acts with at this decision (module
+        docstring), or None (another algorithm, or no ``optimise_redundant`` in ``info``)."""
+        if not self.maskable or info is None or "optimise_redundant" not in info:
+            return None
+        return discrete_action_mask(bool(info["optimise_redundant"]))
+
+    def _sample(self, x: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
+        """A draw of (fuse, optimise) from the policy's distribution with the own generator
+        (MaskablePPO: the distribution with ``mask`` applied)."""
         import torch
 
         with torch.no_grad():
             obs, _ = self.model.policy.obs_to_tensor(x)
-            heads = self.model.policy.get_distribution(obs).distribution
+            if self.maskable:
+                dist = self.model.policy.get_distribution(obs, action_masks=mask)
+            else:
+                dist = self.model.policy.get_distribution(obs)
+            heads = dist.distribution
         heads = heads if isinstance(heads, list) else [heads]
         draws = [self._rng.choice(len(p), p=p / p.sum())
                  for p in (h.probs[0].numpy().astype(np.float64) for h in heads)]
@@ -384,9 +423,13 @@ class LearnedPolicy(Policy):
         if self.normalisation is not None:
             mean, std, clip = self.normalisation
             x = np.clip((x - mean) / std, -clip, clip).astype(np.float32)
+        mask = self.action_mask(info)
         if not self.deterministic:
-            return self._sample(x)
-        action, _ = self.model.predict(x, deterministic=True)
+            return self._sample(x, mask)
+        if self.maskable:
+            action, _ = self.model.predict(x, deterministic=True, action_masks=mask)
+        else:
+            action, _ = self.model.predict(x, deterministic=True)
         if self.discrete:
             return discrete_to_multi(action)
         return np.asarray(action, dtype=np.int64).reshape(2)

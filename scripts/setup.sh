@@ -24,7 +24,7 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   .venv/bin/python -m pip install --quiet --upgrade pip
   # torch first, pinned to the CPU build, then everything else under the same constraint
   .venv/bin/python -m pip install --quiet -c constraints.txt "torch==2.13.0"
-  .venv/bin/python -m pip install --quiet -c constraints.txt -e ".[test,ray]"
+  .venv/bin/python -m pip install --quiet -c constraints.txt -e ".[test,ray,contrib]"
   # compile the numba kernels now (numba caches them in __pycache__), not in the first env reset
   # of the first process (~8 s): a few decisions of each back-end, fusing and optimising
   .venv/bin/python -c 'import numpy as np; from slam_gym.envs.hybrid_slam import HybridSLAMEnv

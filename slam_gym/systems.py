@@ -91,6 +91,13 @@ class System:
             raise ValueError(f"system={self.name!r} has nothing to optimise")
         return self.estimator.optimise()
 
+    def optimisation_is_redundant(self) -> bool:
+        """Whether :meth:`optimise` now would be a redundant no-op (nothing fused since the
+        optimum applied last): the estimator's own test; False for one that has none (asking
+        it to optimise is then never known to be free)."""
+        test = getattr(self.estimator, "optimisation_is_redundant", None)
+        return bool(test()) if test is not None else False
+
     def interface_features(self) -> dict[str, float]:
         if not hasattr(self.estimator, "interface_features"):
             raise ValueError(f"system={self.name!r} is not a sub-map system")

@@ -13,17 +13,25 @@ At the end ``OUT/summary.{json,md}`` gives the spread of the seeds' final evalua
 seed chosen on those training-time evaluation worlds, ``OUT/training_curves.png`` the curves, and
 ``OUT/model.zip`` / ``model.json`` is a copy of the chosen seed's model, loadable with
 ``policies.make("learned", path="OUT/model.zip")``.
+
+``--prices 1,10,100`` makes it a sweep (issue 29 item 7, :mod:`slam_gym.training.sweep`): every
+(price, seed) is an independent resumable job (``OUT/price-<p>/seed-<s>/``, trained and
+evaluated at ``w_compute = p``, with ``--compute-clip-s`` when given) run through the
+benchmark's executors (``--executor serial|process|ray``, ``--workers N``, ``--ray-address``);
+a rerun skips the finished jobs; each price gets the summary, curves and chosen model above in
+``OUT/price-<p>/``, and ``OUT/sweep.{json,md}`` puts the prices side by side. Without
+``--prices`` the seeds train here, one after the other, as before.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import sys
 from pathlib import Path
 
 from slam_gym.commands.common import add_common_options, emit, out_dir
 from slam_gym.commands.runs import int_list
+from slam_gym.evaluation.executors import EXECUTORS
 from slam_gym.training.hyperparams import ALGOS, load_hyperparams, parse_overrides
 
 logger = logging.getLogger(__name__)
@@ -59,6 +67,17 @@ def add_parser(subparsers) -> None:
     p.add_argument("--checkpoint-every", type=int, default=25_000)
     p.add_argument("--resume", action="store_true",
                    help="continue unfinished seeds from their newest checkpoints")
+    p.add_argument("--compute-clip-s", type=float, default=None,
+                   help="the reward's clip of compute per decision (s; default: the env's)")
+    p.add_argument("--prices", default=None,
+                   help="a sweep: prices of compute (per s), each x every seed an independent "
+                        "resumable job in OUT/price-<p>/seed-<s>/")
+    p.add_argument("--executor", choices=EXECUTORS, default=None,
+                   help="how a sweep runs its jobs (default process)")
+    p.add_argument("--workers", type=int, default=None,
+                   help="jobs of a sweep at once (default: cores / n_envs)")
+    p.add_argument("--ray-address", default=None,
+                   help="a sweep on an existing Ray cluster (executor ray; OUT must be shared)")
     add_common_options(p, default_out="out/train")
     p.set_defaults(run=run)
 
@@ -74,19 +93,29 @@ def build_hyperparams(args) -> dict:
         env_kwargs["n_particles"] = args.particles
     if args.n_steps is not None:
         env_kwargs["n_steps"] = args.n_steps
+    if args.compute_clip_s is not None:
+        env_kwargs["compute_clip_s"] = args.compute_clip_s
     if env_kwargs:
         overrides["env_kwargs"] = {**overrides.get("env_kwargs", {}), **env_kwargs}
     return load_hyperparams(args.algo, args.env, args.hyperparams, overrides)
 
 
 def run(args) -> int:
-    from slam_gym.training.report import plot_curves, write_summary
-    from slam_gym.training.run import TrainingSetup, copy_model, train_run
+    from slam_gym.training.report import summarise_runs
+    from slam_gym.training.run import TrainingSetup, train_run
 
     params = build_hyperparams(args)
     seeds = int_list(args.seeds)
     if not seeds or len(set(seeds)) != len(seeds):
         raise ValueError(f"seeds={args.seeds!r} is invalid: must be distinct integers")
+    if args.prices is not None:
+        return run_sweep_command(args, params, seeds)
+    for field in ("executor", "workers", "ray_address"):
+        if getattr(args, field) is not None:
+            raise ValueError(
+                f"{field}={getattr(args, field)!r} is invalid without --prices: the jobs of a "
+                "sweep (prices x seeds) go through executors; without --prices the seeds train "
+                "here, one after the other")
     out = out_dir(args)
     runs = {}
     for seed in seeds:
@@ -103,14 +132,9 @@ def run(args) -> int:
                        params["n_timesteps"], run_dir)
         train_run(setup, run_dir, resume=args.resume, progress=not args.quiet and not args.json)
         runs[seed] = run_dir
-    doc = write_summary(out, args.algo, runs)
-    curves = plot_curves(out / "training_curves.png", runs,
+    doc = summarise_runs(out, args.algo, runs,
                          title=f"{args.algo.upper()} on {args.env}, seeds {seeds}")
-    chosen = copy_model(runs[doc["chosen_seed"]], out / "model.zip")
-    chosen_config = json.loads(chosen.with_suffix(".json").read_text())
-    chosen_config["chosen_among_seeds"] = doc["seeds"]
-    chosen_config["chosen_by"] = doc["chosen_by"]
-    chosen.with_suffix(".json").write_text(json.dumps(chosen_config, indent=2) + "\n")
+    chosen, curves = out / "model.zip", out / "training_curves.png"
     spread = doc["spread"]
     emit(args, {"summary": doc, "model": str(chosen), "curves": str(curves)}, [
         (Path(out) / "summary.md").read_text().rstrip(),
@@ -119,3 +143,39 @@ def run(args) -> int:
         f"wrote {chosen} (+ .json), {curves}, summary.json, summary.md",
     ])
     return 0
+
+
+def run_sweep_command(args, params: dict, seeds: list[int]) -> int:
+    """``--prices``: seeds x prices as jobs through the executors (:mod:`slam_gym.training.sweep`);
+    exit status 1 when a job errored (its error is in ``sweep.md`` and ``results.jsonl``)."""
+    import os
+
+    from slam_gym.training.sweep import SweepSpec, parse_prices, run_sweep
+
+    prices = parse_prices(args.prices)
+    workers = args.workers or max(1, (os.cpu_count() or 1) // params["n_envs"])
+    if workers < 1:
+        raise ValueError(f"workers={workers} is invalid: must be >= 1")
+    executor = args.executor or "process"
+    if args.ray_address and executor != "ray":
+        raise ValueError(f"ray_address={args.ray_address!r} is invalid with executor="
+                         f"{executor!r}: give --executor ray")
+    out = out_dir(args)
+    spec = SweepSpec(
+        algo=args.algo, env_id=args.env, hyperparams=params, out=str(out.resolve()),
+        clutter_levels=tuple(int_list(args.clutter_levels)),
+        eval_seeds=tuple(int_list(args.eval_seeds)), eval_every=args.eval_every,
+        eval_workers=args.eval_workers or params["n_envs"],
+        checkpoint_every=args.checkpoint_every, compute_clip_s=args.compute_clip_s,
+        command="slam-gym " + " ".join(sys.argv[1:]))
+    logger.warning("sweep of %s: %d prices x %d seeds = %d jobs (%s, %d at once) into %s",
+                   args.algo.upper(), len(prices), len(seeds), len(prices) * len(seeds),
+                   executor, workers, out)
+    doc = run_sweep(spec, prices, seeds, executor=executor, workers=workers,
+                    ray_address=args.ray_address, progress=not args.quiet and not args.json)
+    emit(args, {"sweep": doc, "sweep_md": str(out / "sweep.md")}, [
+        (out / "sweep.md").read_text().rstrip(),
+        f"wrote {out / 'sweep.json'}, {out / 'sweep.md'} and per price summary.md, "
+        "training_curves.png, model.zip",
+    ])
+    return 1 if doc["n_errors"] else 0

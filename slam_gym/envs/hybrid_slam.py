@@ -8,10 +8,22 @@ optimisation** now (CM III.C). Never fusing is pure FastSLAM; fusing every 10 s 
 Action space
     ``MultiDiscrete([2, 2])``: (fuse now?, optimise now?). Decisions apply at the current time,
     before the next ``decision_interval`` iterations run. :class:`DiscreteActions` wraps it as
-    ``Discrete(4)`` with ``a = 2 * fuse + optimise`` for DQN. An optimisation with nothing fused
-    since the last one (or before any fusion) is *redundant*: the optimum is the one already
-    applied, so it changes nothing (not even the time since the last optimisation), is not
-    counted in ``n_optimisations`` and costs nothing in ``compute_s``.
+    ``Discrete(4)`` with ``a = 2 * fuse + optimise`` for DQN and MaskablePPO. An optimisation
+    with nothing fused since the last one (or before any fusion) is *redundant*: the optimum is
+    the one already applied, so it changes nothing (not even the time since the last
+    optimisation), is not counted in ``n_optimisations`` and costs nothing in ``compute_s``.
+
+Action masks (sb3-contrib's ``MaskablePPO``; issue 29 item 2)
+    ``env.optimisation_is_redundant()`` says, before a decision, whether optimising without
+    fusing would be that no-op (the optimiser's own test, so it is exact); it is also
+    ``info["optimise_redundant"]``. ``action_masks()`` (and ``info["action_mask"]``) is the mask
+    of the env's own space in ``MaskablePPO``'s layout, one flag per value of each dimension:
+    ``[fuse=0, fuse=1, optimise=0, optimise=1]``. That layout masks each dimension on its own,
+    and "optimise" is a no-op only *without* a fusion (fuse-then-optimise always optimises the
+    sub-map just fused), so the exact factorised mask is all True. The mask that bites is
+    :class:`~slam_gym.envs.wrappers.DiscreteActions`' over ``Discrete(4)``: ``a = 1`` (optimise
+    only) is masked exactly when it would be redundant; fusing is never a no-op (it always
+    stores a sub-map and restarts the local map), so nothing else is ever masked.
 
 Observation space
     ``Box(0, 1e6, (F,), float32)``: the interface features named by the ``features`` option
@@ -81,9 +93,10 @@ Which id to use
 
 ``info`` also carries ``nees``, ``pose_error_m``, ``map_error_m`` (CM's map error of the matched
 features; None while no feature stands for a landmark), ``map_completeness`` (None while no
-landmark was detected), ``failed``, ``n_fusions``, ``n_optimisations`` and
-``iteration``. ``env.episode_compute_term_s`` is the seconds of compute the episode's return
-charged so far: the return at another ``w_compute`` (same ``compute_clip_s``) is
+landmark was detected), ``failed``, ``n_fusions``, ``n_optimisations``,
+``iteration``, ``optimise_redundant`` and ``action_mask`` (above).
+``env.episode_compute_term_s`` is the seconds of compute the episode's return charged so far:
+the return at another ``w_compute`` (same ``compute_clip_s``) is
 ``episode_return + (w_compute - w') x episode_compute_term_s``, which is how a rule's return is
 scored at several prices from one run. With ``info_compute_time=True`` also ``filter_time_s``,
 the filter's wall-clock time so far. It is off by default because a wall-clock time can never
@@ -428,6 +441,19 @@ class HybridSLAMEnv(gym.Env):
             self.render()
         return self._observation(features), float(reward), terminated, truncated, info
 
+    def optimisation_is_redundant(self) -> bool:
+        """Whether optimising now without fusing would be a redundant no-op (nothing fused since
+        the optimum applied last, or nothing fused yet): no change of state, no count, no charge
+        (module docstring). False before :meth:`reset`."""
+        return self.episode is not None and self.system.optimisation_is_redundant()
+
+    def action_masks(self) -> np.ndarray:
+        """The valid actions in ``MaskablePPO``'s layout for ``MultiDiscrete([2, 2])``:
+        ``[fuse=0, fuse=1, optimise=0, optimise=1]``, all True (module docstring: a factorised
+        mask cannot forbid "optimise" without forbidding "fuse and optimise", which is never a
+        no-op; :class:`~slam_gym.envs.wrappers.DiscreteActions` masks exactly)."""
+        return np.ones(4, dtype=bool)
+
     def _record(self, kind_ops, cpu_start_s: float) -> float:
         """Keep ``(kind, ops, measured CPU s)`` for calibration; return the modelled seconds."""
         kind, ops = kind_ops
@@ -521,6 +547,8 @@ class HybridSLAMEnv(gym.Env):
             "n_optimisations": ep.n_optimisations,
             "iteration": ep.iteration,
             "world_seed": self.world_seed,
+            "optimise_redundant": self.optimisation_is_redundant(),
+            "action_mask": self.action_masks(),
         }
         if self.config.info_compute_time:
             info["filter_time_s"] = float(ep.compute_time_s)

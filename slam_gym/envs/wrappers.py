@@ -19,8 +19,23 @@ def discrete_to_multi(action: int) -> np.ndarray:
     return np.array([a // 2, a % 2], dtype=np.int64)
 
 
+def discrete_action_mask(optimise_redundant: bool) -> np.ndarray:
+    """The exact mask of ``Discrete(4)`` (``a = 2 fuse + optimise``): ``a = 1`` (optimise only)
+    is invalid exactly when the optimisation would be redundant (a no-op, env docstring); the
+    other three are never no-ops (``a = 3`` optimises the sub-map it has just fused).
+
+    The same as ``policies.base.discrete_action_mask`` (a test checks they agree).
+    """
+    return np.array([True, not bool(optimise_redundant), True, True])
+
+
 class DiscreteActions(gym.ActionWrapper):
-    """Offers the env's ``MultiDiscrete([2, 2])`` actions as ``Discrete(4)`` (for DQN)."""
+    """Offers the env's ``MultiDiscrete([2, 2])`` actions as ``Discrete(4)`` (DQN, MaskablePPO).
+
+    :meth:`action_masks` (found through ``get_wrapper_attr``, as sb3-contrib's
+    ``get_action_masks`` and SB3's vector envs look it up) and ``info["action_mask"]`` give the
+    exact ``Discrete(4)`` mask (:func:`discrete_action_mask`), replacing the env's factorised one.
+    """
 
     def __init__(self, env):
         super().__init__(env)
@@ -28,6 +43,24 @@ class DiscreteActions(gym.ActionWrapper):
 
     def action(self, action):
         return discrete_to_multi(action)
+
+    def action_masks(self) -> np.ndarray:
+        redundant = self.env.get_wrapper_attr("optimisation_is_redundant")()
+        return discrete_action_mask(redundant)
+
+    def reset(self, *, seed=None, options=None):
+        obs, info = self.env.reset(seed=seed, options=options)
+        return obs, self._with_mask(info)
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = super().step(action)
+        return obs, reward, terminated, truncated, self._with_mask(info)
+
+    @staticmethod
+    def _with_mask(info):
+        if "optimise_redundant" not in info:
+            return info
+        return {**info, "action_mask": discrete_action_mask(info["optimise_redundant"])}
 
 
 TRAINING_WORLD_SEED_OFFSET = 1_000_000

@@ -16,8 +16,10 @@ from typing import Any
 
 from filters.validation import require
 
-#: The two kinds of job: a SLAM system run on its own schedule, or an interface policy in the env.
-JOB_KINDS = ("system", "policy")
+#: The kinds of job: a SLAM system run on its own schedule, an interface policy in the env, or
+#: one training run of a learned policy (a ``slam-gym train`` sweep: name = algorithm,
+#: scenario = env id, seed = training seed; :mod:`slam_gym.training.sweep`).
+JOB_KINDS = ("system", "policy", "training")
 
 _SCALAR_TYPES = (str, int, float, bool, type(None))
 
@@ -54,11 +56,12 @@ def normalise_options(options: Mapping[str, Any] | Iterable[tuple[str, Any]] | N
 class Job:
     """One run to do.
 
-    ``kind`` is ``"system"`` (a SLAM system on its own fusion schedule, e.g. BB Table 1) or
-    ``"policy"`` (an interface policy driving the env); ``name`` is the system or policy name;
-    ``clutter_level`` is the scenario's clutter level (BB 5.2: 0-3) or ``None`` where it does not
-    apply (real data); ``options`` is a tuple of ``(key, value)`` pairs sorted by key (a mapping is
-    accepted and normalised), e.g. ``(("particles", 500),)``.
+    ``kind`` is ``"system"`` (a SLAM system on its own fusion schedule, e.g. BB Table 1),
+    ``"policy"`` (an interface policy driving the env) or ``"training"`` (a training run);
+    ``name`` is the system or policy name (the algorithm of a training run); ``clutter_level``
+    is the scenario's clutter level (BB 5.2: 0-3) or ``None`` where it does not apply (real
+    data, training); ``options`` is a tuple of ``(key, value)`` pairs sorted by key (a mapping
+    is accepted and normalised), e.g. ``(("particles", 500),)``.
     """
 
     kind: str
@@ -124,7 +127,7 @@ class Job:
     def from_row(cls, row: Mapping[str, Any]) -> Job:
         """Rebuild the job a results row came from (exactly one of ``system``/``policy``)."""
         kinds = [k for k in JOB_KINDS if row.get(k) is not None]
-        require(len(kinds) == 1, "row kind", kinds, "exactly one of 'system' or 'policy' set")
+        require(len(kinds) == 1, "row kind", kinds, f"exactly one of {JOB_KINDS} set")
         return cls(
             kind=kinds[0],
             name=row[kinds[0]],

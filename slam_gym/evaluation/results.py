@@ -169,7 +169,7 @@ def check_row(row: Mapping[str, Any]) -> None:
     """Raise :class:`ResultError` unless ``row`` has every key of the public contract."""
     kinds = [k for k in JOB_KINDS if k in row]
     if len(kinds) != 1:
-        raise ResultError(f"row needs exactly one of 'system' or 'policy', has {kinds}")
+        raise ResultError(f"row needs exactly one of {JOB_KINDS}, has {kinds}")
     missing = [k for k in REQUIRED_ROW_KEYS if k not in row]
     if missing:
         raise ResultError(f"row is missing required keys: {', '.join(missing)}")

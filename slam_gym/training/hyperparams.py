@@ -7,10 +7,12 @@ An entry holds two kinds of keys:
   (``SubprocVecEnv`` workers), ``policy`` (SB3 policy name), ``normalize`` / ``norm_reward`` /
   ``clip_obs`` (``VecNormalize``, saved with the model), ``env_kwargs`` (options of the env,
   restricted to :data:`ENV_KWARGS`, the ones the evaluation code forwards too),
-  ``initial_fuse_probability`` / ``initial_optimise_probability`` (PPO and A2C: the untrained
-  policy's chance of each action per decision, set through the action head's bias; default 0.5,
-  SB3's uniform start); ``compute_price_range`` (``[low, high]``, per second of modelled compute:
-  each training episode draws the reward's ``w_compute`` log-uniformly from it and the policy
+  ``initial_fuse_probability`` / ``initial_optimise_probability`` (PPO, A2C and MaskablePPO: the
+  untrained policy's chance of each action per decision, set through the action head's bias;
+  default 0.5, SB3's uniform start; MaskablePPO's one ``Discrete(4)`` head starts at the product
+  of the two, renormalised over the actions the mask leaves); ``compute_price_range``
+  (``[low, high]``, per second of modelled compute: each training episode draws the reward's
+  ``w_compute`` log-uniformly from it and the policy
   observes it as the feature ``compute_price_per_s``, so one policy is conditioned on the price
   of compute; ``env_kwargs.w_compute`` stays the price its evaluations are scored at);
 * the algorithm's constructor arguments (:data:`ALGO_KEYS`), e.g. PPO's ``n_steps``.
@@ -28,7 +30,10 @@ from typing import Any
 
 import yaml
 
-ALGOS: tuple[str, ...] = ("ppo", "a2c", "dqn")
+ALGOS: tuple[str, ...] = ("ppo", "a2c", "dqn", "maskable-ppo")
+"""``maskable-ppo`` is sb3-contrib's ``MaskablePPO`` on the env's ``Discrete(4)`` actions with the
+redundant optimisation masked (:class:`slam_gym.envs.wrappers.DiscreteActions`); sb3-contrib is
+the optional dependency ``pip install slam-gym[contrib]``."""
 
 HYPERPARAMS_DIR = Path(__file__).resolve().parent / "hyperparams"
 """The packaged YAML files, one per algorithm."""
@@ -43,8 +48,10 @@ ENV_KWARGS: tuple[str, ...] = ("n_particles", "decision_interval", "front_end", 
 
 _ON_POLICY = ("learning_rate", "n_steps", "gamma", "gae_lambda", "ent_coef", "vf_coef",
               "max_grad_norm", "policy_kwargs", "normalize_advantage")
+_PPO = _ON_POLICY + ("batch_size", "n_epochs", "clip_range", "clip_range_vf", "target_kl")
 ALGO_KEYS: dict[str, tuple[str, ...]] = {
-    "ppo": _ON_POLICY + ("batch_size", "n_epochs", "clip_range", "clip_range_vf", "target_kl"),
+    "ppo": _PPO,
+    "maskable-ppo": _PPO,
     "a2c": _ON_POLICY + ("rms_prop_eps", "use_rms_prop"),
     "dqn": ("learning_rate", "buffer_size", "learning_starts", "batch_size", "tau", "gamma",
             "train_freq", "gradient_steps", "target_update_interval", "exploration_fraction",

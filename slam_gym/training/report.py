@@ -151,3 +151,21 @@ def plot_curves(out_png: Path, runs: dict[int, Path], title: str) -> Path:
     fig.savefig(out_png, dpi=110)
     plt.close(fig)
     return out_png
+
+
+def summarise_runs(out: Path, algo: str, runs: dict[int, Path], title: str) -> dict[str, Any]:
+    """What ``slam-gym train`` writes for its seeds, into ``out``: ``summary.{json,md}``,
+    ``training_curves.png`` and the chosen seed's model as ``model.zip`` / ``model.json`` (with
+    ``chosen_among_seeds`` and ``chosen_by``). Returns the summary document."""
+    from slam_gym.training.run import copy_model
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    doc = write_summary(out, algo, runs)
+    plot_curves(out / "training_curves.png", runs, title=title)
+    chosen = copy_model(runs[doc["chosen_seed"]], out / "model.zip")
+    config = json.loads(chosen.with_suffix(".json").read_text())
+    config["chosen_among_seeds"] = doc["seeds"]
+    config["chosen_by"] = doc["chosen_by"]
+    chosen.with_suffix(".json").write_text(json.dumps(config, indent=2) + "\n")
+    return doc

@@ -92,7 +92,14 @@ class TrainingSetup:
 
     @property
     def discrete(self) -> bool:
-        return self.algo == "dqn"
+        """Whether the policy acts in ``Discrete(4)`` (the env's ``DiscreteActions`` wrapper)."""
+        return self.algo in ("dqn", "maskable-ppo")
+
+    @property
+    def samples(self) -> bool:
+        """Whether the policy has a sampled evaluation mode (every algorithm but DQN, whose only
+        stochastic mode is epsilon-greedy exploration)."""
+        return self.algo != "dqn"
 
     def env_options(self) -> dict[str, Any]:
         """The env's options: the id's registered keyword arguments, then ``env_kwargs``."""
@@ -206,9 +213,14 @@ def model_config(setup: TrainingSetup, vec, timesteps: int, **extra) -> dict[str
 
 
 def _versions() -> dict[str, str]:
-    from importlib.metadata import version
+    from importlib.metadata import PackageNotFoundError, version
 
-    return {pkg: version(pkg) for pkg in ("stable-baselines3", "torch", "gymnasium", "numpy")}
+    out = {pkg: version(pkg) for pkg in ("stable-baselines3", "torch", "gymnasium", "numpy")}
+    try:
+        out["sb3-contrib"] = version("sb3-contrib")
+    except PackageNotFoundError:
+        pass
+    return out
 
 
 def save_model(model, vec, setup: TrainingSetup, path: Path, timesteps: int, **extra) -> Path:
@@ -235,7 +247,7 @@ def evaluate_snapshot(model_path: Path, setup: TrainingSetup, out: Path,
     from slam_gym.training.evaluation import evaluate_model_file, evaluation_record
 
     env_options = {k: v for k, v in setup.env_options().items() if k in POLICY_OPTIONS}
-    modes = EVAL_MODES[:1] if setup.discrete else EVAL_MODES
+    modes = EVAL_MODES if setup.samples else EVAL_MODES[:1]
     start = time.perf_counter()
     record: dict[str, Any] = {}
     for mode in modes:
@@ -270,7 +282,7 @@ def complete_evaluations(run_dir: Path, setup: TrainingSetup) -> list[dict[str, 
     """Evaluate every snapshot of ``eval.csv`` in the modes it lacks (runs trained before the
     sampled mode existed); the rows already there are reused (``run_jobs`` resumes)."""
     log = read_eval_log(run_dir)
-    if setup.discrete or all(np.isfinite(r.get("sampled_mean_return", math.nan)) for r in log):
+    if not setup.samples or all(np.isfinite(r.get("sampled_mean_return", math.nan)) for r in log):
         return log
     (run_dir / "eval.csv").unlink()
     for row in log:
@@ -350,8 +362,10 @@ def set_initial_action_probabilities(model, params: dict[str, Any]) -> None:
 
     SB3 initialises the action head with weights of gain 0.01 and zero bias, so the untrained
     policy picks each action with probability ~0.5 whatever it observes. Setting the bias of
-    each ``Discrete(2)`` head to ``(0, logit p)`` starts it at probability ~p instead; the
-    weights, and so what the policy learns from the features, are untouched.
+    each ``Discrete(2)`` head to ``(0, logit p)`` starts it at probability ~p instead; a
+    ``Discrete(4)`` head (MaskablePPO) gets the logarithms of the joint chances of the four
+    pairs (the two independent). The weights, and so what the policy learns from the features,
+    are untouched.
     """
     import torch
 
@@ -360,6 +374,16 @@ def set_initial_action_probabilities(model, params: dict[str, Any]) -> None:
     if all(p is None for p in probabilities):
         return
     bias = model.policy.action_net.bias
+    if not _multi_discrete(model):
+        # one Discrete(4) head (a = 2 fuse + optimise): the logits of the product of the two
+        # chances (an action masked at a decision leaves the others in the same ratios)
+        fuse, optimise = (0.5 if p is None else float(p) for p in probabilities)
+        joint = [(1 - fuse) * (1 - optimise), (1 - fuse) * optimise, fuse * (1 - optimise),
+                 fuse * optimise]
+        with torch.no_grad():
+            for a, q in enumerate(joint):
+                bias[a] = math.log(q)
+        return
     with torch.no_grad():
         for head, p in enumerate(probabilities):
             if p is not None:
@@ -367,9 +391,22 @@ def set_initial_action_probabilities(model, params: dict[str, Any]) -> None:
                 bias[2 * head + 1] = math.log(p / (1.0 - p))
 
 
+def _multi_discrete(model) -> bool:
+    from gymnasium import spaces
+
+    return isinstance(model.action_space, spaces.MultiDiscrete)
+
+
 def _algorithm(algo: str):
     import stable_baselines3
 
+    if algo == "maskable-ppo":
+        try:
+            from sb3_contrib import MaskablePPO
+        except ImportError as exc:
+            raise ImportError("algo='maskable-ppo' needs sb3-contrib: pip install "
+                              "slam-gym[contrib] (or pip install sb3-contrib)") from exc
+        return MaskablePPO
     return {"ppo": stable_baselines3.PPO, "a2c": stable_baselines3.A2C,
             "dqn": stable_baselines3.DQN}[algo]
 
@@ -451,7 +488,7 @@ def train_run(setup: TrainingSetup, run_dir: Path, *, resume: bool = False,
         folder.mkdir(exist_ok=True)
         if params["normalize"]:
             model.get_vec_normalize_env().save(str(folder / f"vecnormalize_{t}.pkl"))
-        if setup.discrete:
+        if setup.algo == "dqn":
             model.save_replay_buffer(str(folder / f"replay_{t}.pkl"))
         model.save(folder / f"model_{t}.zip")  # last: its presence marks a whole checkpoint
         for old in folder.glob("*.*"):  # keep the newest two checkpoints
