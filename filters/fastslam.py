@@ -60,7 +60,8 @@ the few particles that drew *clutter* for a false alarm escape the miss factor (
 scan at BB's level 1) that all others pay, and take over the cloud within a few scans. At 500
 particles this left a median of 6-7 ancestors (since the restart) per local map at levels 1-2
 and made the local pose over-confident at fusion in 22 % of local maps (11 % with this rule, as
-with known association; docs/RESULTS.md, "Local maps at fusion").
+with known association; measured with the 0.999 clip,
+docs/results/history.md, "Local maps at fusion with FastSLAM's 0.999 existence clip").
 
 Why the missed-detection terms matter: without them a particle holding two features for one
 landmark (created when it sampled *new feature* for a poorly predicted observation) collects the
@@ -87,15 +88,14 @@ exactly 0, and a feature at p = 1 could never decay; it also keeps ``1 - alpha e
 Every ``cull_interval_steps`` updates, features with existence below ``cull_threshold`` are removed.
 
 The clip is also a memory limit: at ``max_existence = 0.999`` (log-odds 6.9) the evidence of any
-number of detections is forgotten after the misses that take log-odds 6.9 to 2.9 (p = 0.95).
-With a small per-step detection probability that is short: on Victoria Park (alpha = 0.107 per
-40 Hz step) 36 steps, 0.9 s, without a detection un-confirm any tree, and 1168 of 2004 local
-features, many seen ten times or more, were below 0.95 at fusion and not fused (docs/RESULTS.md,
+number of detections is forgotten after the misses that take log-odds 6.9 to 2.9 (p = 0.95). With a
+small per-step detection probability that is short: on Victoria Park (alpha = 0.107 per 40 Hz step)
+36 steps, 0.9 s, without a detection un-confirm any tree, and 1168 of 2004 local features, many
+seen ten times or more, were below 0.95 at fusion and not fused (docs/results/real_data.md,
 "Victoria Park"). The default 0.999 is kept for a long-lived map (FASTSLAM), where forgetting lets
-a feature be un-confirmed when the evidence changes; a front-end whose map restarts every local
-map has nothing to forget within BB's 10 s, and HYBRID builds it with
-:data:`LOCAL_MAP_MAX_EXISTENCE` (1 - 1e-9, the float guard; BB gives no clip, and the EKF
-front-end of EKF sub-mapping has none).
+a feature be un-confirmed when the evidence changes; a front-end whose map restarts every local map
+has nothing to forget within BB's 10 s, and HYBRID builds it with :data:`LOCAL_MAP_MAX_EXISTENCE`
+(1 - 1e-9, the float guard; BB gives no clip, and the EKF front-end of EKF sub-mapping has none).
 
 Correspondences (BB 3.1) are voted per observation, with the weights after that observation
 (:func:`filters.conversion.vote_all`); all features modified or created by the
@@ -116,7 +116,8 @@ relative to the local map's start (fixed early in the local map, by the few surv
 represented by those few lineages only. Their spread then underestimates the posterior's and the
 weighted mean carries a Monte Carlo error of its own: with known association, converted local
 poses were over-confident at 11 % of fusions at 500 particles (6 % at 2000), with an empirical
-mean square error 1.4-1.7 times the reported variance (docs/RESULTS.md, "Local maps at fusion").
+mean square error 1.4-1.7 times the reported variance (measured with the 0.999 clip,
+docs/results/history.md, "Local maps at fusion with FastSLAM's 0.999 existence clip").
 :meth:`to_gaussian` and :meth:`pose` therefore add the lineage term of
 :func:`filters.conversion.lineage_covariance` (the Chan & Lai 2013 estimate of the variance of
 the particle mean, with the small-sample correction of a weighted variance from few lineages).

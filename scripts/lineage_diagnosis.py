@@ -12,8 +12,8 @@ lineages (1 / sum of squared lineage weights) at fusion, the per-component mean 
 the local pose over its reported variance, the share of over-confident fusions by lineage count,
 and by the effective degrees of freedom ``nu`` of :func:`filters.conversion.small_sample_factor`.
 SEEDS is a count or a range FIRST-LAST (inclusive).
-FastSLAM keeps the filter's default existence clip 0.999, with which the figures in
-docs/RESULTS.md were measured (HYBRID's front-end now uses the float guard,
+FastSLAM keeps the filter's default existence clip 0.999, with which its figures in
+docs/results/history.md were measured (HYBRID's front-end now uses the float guard,
 :data:`filters.fastslam.LOCAL_MAP_MAX_EXISTENCE`; ``scripts/local_pose_nees.py`` measures both).
 """
 

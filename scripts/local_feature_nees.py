@@ -9,8 +9,8 @@ every fusion each converted feature's mean and marginal
 covariance are compared with its landmark's true position in the frame of the true pose at the
 local map's start. SEEDS is a count (seeds 0 .. SEEDS-1). The reference for the same measurement
 on MRCLAM is ``scripts/mrclam_optimise_diagnosis.py`` (docs/RESULTS.md, issue 16 item 3).
-FastSLAM keeps the filter's default existence clip 0.999, with which the figures in
-docs/RESULTS.md were measured (HYBRID's front-end now uses the float guard,
+FastSLAM keeps the filter's default existence clip 0.999, with which its figures in
+docs/results/history.md were measured (HYBRID's front-end now uses the float guard,
 :data:`filters.fastslam.LOCAL_MAP_MAX_EXISTENCE`; ``scripts/local_pose_nees.py`` measures both).
 """
 

@@ -9,8 +9,9 @@ factor, ``small_sample_correction=False``), fastslam-no-lineage (BB (7) alone,
 ``sample_clutter=True``, with both corrections) or ekf; ``known`` gives FastSLAM the true
 associations. FastSLAM is built as HYBRID's front-end (existence clip
 :data:`filters.fastslam.LOCAL_MAP_MAX_EXISTENCE`); a FastSLAM name ending in ``+clip`` keeps the
-filter's default clip 0.999 instead (how the figures of docs/RESULTS.md before issue 16's
-front-end change were measured).
+filter's default clip 0.999 instead (how the figures in docs/results/history.md,
+"Local maps at fusion with FastSLAM's 0.999 existence clip", were measured; the current ones in
+docs/RESULTS.md, "Local maps at fusion", are without it).
 """
 
 import logging

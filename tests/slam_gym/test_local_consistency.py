@@ -90,10 +90,10 @@ def test_fastslam_local_maps_at_fusion_are_inside_the_band_at_90_percent():
     never used to design the conversion), 2000 steps, 1280 fusions. With the lineage term and
     the small-sample factor the local pose lies inside the two-sided 95 % band at >= 90 % of
     fusions and over it at <= 5 % (nominal 2.5 %). Measured here 93.3 % / 2.6 % with the
-    front-end's float-guard existence clip (over seeds 28-59 the same); with FastSLAM's 0.999
-    clip, the front-end before issue 16 item 4, 91.2 % / 3.5 % (with the lineage term alone
-    88.8 % / 8.3 %), and over seeds 28-59 (2560 fusions) 92.2 % / 3.2 % (89.7 % / 8.1 %)
-    (docs/RESULTS.md)."""
+    front-end's float-guard existence clip (over seeds 28-59 the same; docs/RESULTS.md, "Local
+    maps at fusion", re-measured 2026-11-25); with FastSLAM's 0.999 clip, the front-end before
+    issue 16 item 4, 91.2 % / 3.5 % (with the lineage term alone 88.8 % / 8.3 %), and over seeds
+    28-59 (2560 fusions) 92.2 % / 3.2 % (89.7 % / 8.1 %) (docs/results/history.md)."""
     v = _fastslam_nees(range(4), seeds=range(28, 44), n_steps=2000)
     assert len(v) == 1280
     assert np.mean((v >= LO) & (v <= HI)) >= 0.90
