@@ -627,6 +627,7 @@ def run_mrclam_policy(
     to optimise, so ``optimise`` must stay ``"never"``). ``w_compute`` and ``compute_clip_s``
     (None: the env's defaults) set the reward's price of compute, which a policy conditioned on
     it observes (``compute_price_per_s``)."""
+    from slam_gym.compute_cost import summarise_records
     from slam_gym.envs.mrclam import MRCLAMEnv
     from slam_gym.evaluation.core import make_policy, provenance_fields
 
@@ -656,6 +657,11 @@ def run_mrclam_policy(
             break
     row = _mrclam_result(env.episode, env.stream, robot, "unknown")
     row["driven_system"] = "hybrid"
+    # the return and the interface's compute as the benchmark's policy rows carry them
+    row["return"] = env.episode_return
+    row["compute_term_s"] = env.episode_compute_term_s
+    row["w_compute"] = env.config.w_compute
+    row.update(summarise_records(env.compute_records, env.compute_model))
     row.update(_calibration_fields(locals()))
     row.update(provenance_fields(policy))
     env.close()
