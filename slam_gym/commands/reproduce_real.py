@@ -846,10 +846,55 @@ def victoria_park_table(rows) -> str:
     return out
 
 
+PAIRED_REFERENCE = "fixed-10s-optimise"
+
+
+def mrclam_paired_table(rows) -> str | None:
+    """Every interface policy against ``fixed-10s-optimise`` on the same robots and seeds (all
+    runs, BB's failure rule or not): map error, pose RMSE and interface CPU, each the paired
+    difference with its t 95 % interval (:func:`slam_gym.evaluation.front.compare_all_runs`).
+    None when the reference did not run or any policy run did not finish."""
+    from slam_gym.evaluation.front import compare_all_runs
+
+    policy_rows = [r for r in rows if r.get("driven_system") == "hybrid"]
+    if any(r.get("status") != "ok" for r in policy_rows):
+        return None
+    by_policy: dict[str, list] = {}
+    for r in policy_rows:
+        by_policy.setdefault(r["policy"], []).append(r)
+    reference = by_policy.get(PAIRED_REFERENCE)
+    if reference is None:
+        return None
+
+    def ci(c, key, digits):
+        lo, hi = c[f"{key}_diff_ci"] or (math.nan, math.nan)
+        return f"{c[f'{key}_diff']:+.{digits}f} [{lo:+.{digits}f}, {hi:+.{digits}f}]"
+
+    lines = [f"Paired against `{PAIRED_REFERENCE}` (same robot and seed; every run):", "",
+             "| policy | runs | map error (m) | diff (m) | pose RMSE (m) | diff (m) "
+             "| interface CPU (s) | CPU ratio | fusions | optimisations |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for name, members in by_policy.items():
+        try:
+            c = compare_all_runs(members, reference)
+        except ValueError:  # not the reference's runs (an interrupted run): no pairing
+            continue
+        lines.append(
+            f"| {name} | {c['n_runs']} | {c['map_error_m']:.2f} | {ci(c, 'map_error_m', 2)} "
+            f"| {c['pose_rmse_m']:.2f} | {ci(c, 'pose_rmse_m', 2)} | {c['interface_cpu_s']:.2f} "
+            f"| {c['interface_cpu_ratio']:.2f} | {c['n_fusions']:.0f} "
+            f"| {c['n_optimisations']:.0f} |")
+    return "\n".join(lines)
+
+
 def write_real_table(out, rows, target: str, notes) -> str:
-    """Write ``real_table.md`` (title, table, notes); returns its text."""
+    """Write ``real_table.md`` (title, table, the policies paired with
+    ``fixed-10s-optimise`` when it ran, notes); returns its text."""
     if target == "mrclam":
         title, table = "# MRCLAM: systems on real data", mrclam_table(rows)
+        paired = mrclam_paired_table(rows)
+        if paired:
+            table = f"{table}\n\n{paired}"
     else:
         title, table = "# Victoria Park: systems on real data", victoria_park_table(rows)
     text = "\n".join([title, "", table, "", *(f"- {n}" for n in notes), ""])

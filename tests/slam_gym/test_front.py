@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from slam_gym.evaluation.front import compare, goal, return_at_price
+from slam_gym.evaluation.front import compare, compare_all_runs, goal, return_at_price
 
 
 def row(level, seed, success, map_error, cpu, ret, term=1.0, w=10.0, n_opt=0):
@@ -39,6 +39,25 @@ def test_compare_refuses_unpaired_or_failed_runs():
     bad = [dict(r, status="error") for r in ref]
     with pytest.raises(ValueError, match="reference"):
         compare(ref, bad, price=1.0)
+
+
+def test_compare_all_runs_pairs_robots_and_seeds_failed_runs_included():
+    def real(robot, seed, success, map_error, rmse, cpu):
+        return {**row(None, seed, success, map_error, cpu, -1.0),
+                "scenario": f"mrclam:robot{robot}", "pose_rmse_m": rmse}
+    ref = [real(r, s, True, 1.0, 0.5, 0.6) for r in (1, 2) for s in (0, 1)]
+    # the same seed on two robots is two runs, not one world seen twice
+    mine = [real(1, 0, False, 3.0, 1.5, 0.2), real(1, 1, True, 1.0, 0.5, 0.2),
+            real(2, 0, True, 0.5, 0.25, 0.2), real(2, 1, True, 0.5, 0.25, 0.2)]
+    c = compare_all_runs(mine, ref)
+    assert c["n_runs"] == 4 and c["success_rate"] == 0.75
+    assert c["map_error_m_diff"] == pytest.approx(np.mean([2.0, 0.0, -0.5, -0.5]))
+    assert c["pose_rmse_m_diff"] == pytest.approx(np.mean([1.0, 0.0, -0.25, -0.25]))
+    lo, hi = c["map_error_m_diff_ci"]
+    assert lo < c["map_error_m_diff"] < hi
+    assert c["interface_cpu_ratio"] == pytest.approx(0.2 / 0.6)
+    with pytest.raises(ValueError, match="rows"):
+        compare_all_runs(mine[:3], ref)
 
 
 def test_goal_reached_only_when_all_four_hold():

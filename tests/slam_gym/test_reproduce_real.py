@@ -257,3 +257,20 @@ def test_victoria_park_hybrid_maps_each_tree_once_on_a_stream_that_drifted_befor
     pairs = len(cKDTree(trees).query_pairs(1.0))
     assert pairs < 20
     assert row["n_trees"] - pairs >= 0.9 * 203
+
+
+def test_mrclam_paired_table_pairs_each_policy_with_fixed_10s_optimise():
+    def row(policy, robot, seed, map_error, cpu):
+        return {"status": "ok", "driven_system": "hybrid", "policy": policy,
+                "scenario": f"mrclam:robot{robot}", "clutter_level": None, "seed": seed,
+                "success": True, "map_error_m": map_error, "pose_rmse_m": map_error / 2,
+                "fusion_cpu_s": cpu, "optimise_cpu_s": cpu, "n_fusions": 80,
+                "n_optimisations": 10}
+    ref = [row("fixed-10s-optimise", r, s, 1.0, 0.5) for r in (1, 2) for s in (0, 1)]
+    rule = [row("fixed-10s", r, s, 1.0 + 0.1 * r, 0.25) for r in (1, 2) for s in (0, 1)]
+    text = rr.mrclam_paired_table(ref + rule)
+    line = next(ln for ln in text.splitlines() if ln.startswith("| fixed-10s |"))
+    cells = [c.strip() for c in line.strip("|").split("|")]
+    assert cells[1] == "4" and cells[3].startswith("+0.15")  # mean of +0.1, +0.1, +0.2, +0.2
+    assert cells[7] == "0.50"  # interface CPU ratio
+    assert rr.mrclam_paired_table(rule) is None  # no reference, no pairing
