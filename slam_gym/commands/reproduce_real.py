@@ -97,6 +97,9 @@ REAL_TABLE_FILENAME = "real_table.md"
 #: figure data kept in the rows: one point per second of the path
 PATH_EVERY_S = 1.0
 
+POLICY_ONLY_OPTIONS = ("w_compute", "compute_clip_s")
+"""MRCLAM job options that only a policy run takes."""
+
 MRCLAM_OPTIONS = {
     "data": None,
     "known_association": False,
@@ -494,6 +497,9 @@ def run_real_job(job) -> dict:
         opts = _options(job.options_dict(), MRCLAM_OPTIONS)
         if job.kind == "policy":
             return run_mrclam_policy(job.name, robot, job.seed, **opts)
+        for key in POLICY_ONLY_OPTIONS:  # the reward's price: a system run has no reward
+            require(opts.pop(key) is None, key, job.options_dict().get(key),
+                    "unset for a system run (it prices a policy's reward)")
         return run_mrclam_system(job.name, robot, job.seed, **opts)
     require(job.scenario == VP_SCENARIO, "scenario", job.scenario,
             f"'{MRCLAM_PREFIX}N' or '{VP_SCENARIO}'")

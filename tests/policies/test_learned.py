@@ -306,13 +306,20 @@ def test_the_shipped_model_loads_acts_and_says_how_it_was_made():
     shipped_yaml = learned.DEFAULT_MODEL_PATH.with_suffix(".yml")
     assert load_hyperparams(config["algo"], config["env_id"], shipped_yaml) == config["hyperparams"]
     assert learned.DEFAULT_MODEL_PATH.with_name("learned-default_training_curves.png").is_file()
-    features = dict.fromkeys(INTERFACE_FEATURES, 0.0)
-    action = policy.act(np.zeros(len(INTERFACE_FEATURES), dtype=np.float32), {"features": features})
+    from slam_gym.envs.hybrid_slam import ENV_FEATURE_NAMES
+
+    every_feature = (*INTERFACE_FEATURES, *ENV_FEATURE_NAMES)  # what info["features"] holds
+    features = dict.fromkeys(every_feature, 0.0)
+    features["compute_price_per_s"] = 10.0
+    action = policy.act(np.zeros(len(every_feature), dtype=np.float32), {"features": features})
     assert action.shape == (2,) and action.dtype == np.int64
-    # it reads the features it was trained on, by name, whatever the env's observation holds
-    assert set(policy.feature_names) <= set(INTERFACE_FEATURES)
+    # it reads the features it was trained on, by name, whatever the env's observation holds;
+    # a model trained over a range of prices of compute reads the price (issue 29)
+    assert set(policy.feature_names) <= set(every_feature)
+    assert ("compute_price_per_s" in policy.feature_names) == bool(
+        config.get("compute_price_range"))
     assert len(policy.feature_names) == policy.observation_shape[0]
-    others = [n for n in INTERFACE_FEATURES if n not in policy.feature_names]
+    others = [n for n in every_feature if n not in policy.feature_names]
     shifted = dict(features, **dict.fromkeys(others, 5.0))
     policy.reset()  # a sampling policy replays its draws after a reset
     assert policy.act(None, {"features": shifted}).tolist() == action.tolist()
