@@ -128,14 +128,9 @@ OBSERVATION_TRANSFORMS: tuple[str, ...] = ("none", "log1p")
 
 
 def _configured(model_path: Path, key: str, default: Any) -> Any:
-    """The ``key`` of the config JSON beside the model, else ``default``."""
-    config = model_path.with_suffix(".json")
-    if not config.is_file():
-        return default
-    try:
-        return json.loads(config.read_text()).get(key, default)
-    except (json.JSONDecodeError, AttributeError) as exc:
-        raise ValueError(f"config {config} is invalid: must be a JSON object ({exc})") from exc
+    """The ``key`` of the config JSON beside the model (:func:`_config`), else ``default``."""
+    config = _config(model_path)
+    return default if config is None else config.get(key, default)
 
 
 class ModelProvenanceWarning(UserWarning):
