@@ -6,9 +6,10 @@ env's observation vector; it never reads ``info``. stable-baselines3 (and torch)
 when a model is loaded, so ``import policies`` stays light.
 
 Algorithms: PPO (default of ``slam-gym train``), A2C, DQN and sb3-contrib's MaskablePPO
-(``maskable-ppo``; sb3-contrib is needed only to load such a model). Without ``algo`` the
-algorithm is read from the zip's ``data`` entry: DQN saves a ``stable_baselines3.dqn`` policy
-class, MaskablePPO a ``sb3_contrib.common.maskable`` one, PPO is the actor-critic model with a
+(``maskable-ppo``) and RecurrentPPO (``recurrent-ppo``; sb3-contrib is needed only to load such a
+model). Without ``algo`` the algorithm is read from the zip's ``data`` entry: DQN saves a
+``stable_baselines3.dqn`` policy class, MaskablePPO a ``sb3_contrib.common.maskable`` one,
+RecurrentPPO a ``sb3_contrib.common.recurrent`` one, PPO is the actor-critic model with a
 ``clip_range``, A2C the one without. An explicit ``algo`` that contradicts the zip raises
 ``ValueError``.
 
@@ -16,6 +17,10 @@ Masks: a MaskablePPO model acts with the env's exact ``Discrete(4)`` mask at eve
 it was trained: "optimise only" is excluded when ``info["optimise_redundant"]`` says it would be
 a no-op (:func:`policies.base.discrete_action_mask`), both for the mode and for sampled actions.
 Without that key in ``info`` (an env of another kind) it acts unmasked.
+
+Memory: a RecurrentPPO model carries its LSTM state from one decision to the next within an
+episode (both for the mode and for sampled actions); ``reset()`` clears it, so every episode
+starts from the zero state it was trained from.
 
 Action spaces: a model trained on the env itself has ``MultiDiscrete([2, 2])`` and its action is
 the (fuse, optimise) pair; a model trained through the env's ``Discrete(4)`` wrapper (DQN) acts in
@@ -51,7 +56,7 @@ MODELS_DIR = Path(__file__).resolve().parent / "models"
 DEFAULT_MODEL_PATH = MODELS_DIR / "learned-default.zip"
 """The model ``policies.make("learned")`` loads when no ``path`` is given."""
 
-ALGORITHMS: tuple[str, ...] = ("ppo", "a2c", "dqn", "maskable-ppo")
+ALGORITHMS: tuple[str, ...] = ("ppo", "a2c", "dqn", "maskable-ppo", "recurrent-ppo")
 """Values of the ``algo`` option (case-insensitive)."""
 
 _TRAIN_HINT = (
@@ -113,6 +118,8 @@ def detect_algorithm(path: str | Path) -> str:
         return "dqn"
     if ".maskable." in module:
         return "maskable-ppo"
+    if ".recurrent." in module:
+        return "recurrent-ppo"
     if "clip_range" in data:
         return "ppo"
     if "gae_lambda" in data:
@@ -200,13 +207,13 @@ def _algorithm_class(algo: str):
     """The stable-baselines3 class for ``algo`` (imported here, lazily)."""
     import stable_baselines3
 
-    if algo == "maskable-ppo":
+    if algo in ("maskable-ppo", "recurrent-ppo"):
         try:
-            from sb3_contrib import MaskablePPO
+            import sb3_contrib
         except ImportError as exc:
-            raise ImportError("a MaskablePPO model needs sb3-contrib: pip install "
+            raise ImportError(f"a {algo} model needs sb3-contrib: pip install "
                               "slam-gym[contrib] (or pip install sb3-contrib)") from exc
-        return MaskablePPO
+        return sb3_contrib.MaskablePPO if algo == "maskable-ppo" else sb3_contrib.RecurrentPPO
     classes = {
         "ppo": stable_baselines3.PPO,
         "a2c": stable_baselines3.A2C,
@@ -315,6 +322,7 @@ class LearnedPolicy(Policy):
         self.deterministic = deterministic
         self.sample_seed = sample_seed
         self._rng = np.random.default_rng(sample_seed)
+        self._lstm_state = None  # RecurrentPPO memory (reset() clears it)
         self.model = _algorithm_class(algo).load(str(model_path), device=device)
         self._check_spaces()
         self.options = {
@@ -339,6 +347,12 @@ class LearnedPolicy(Policy):
 
     def reset(self) -> None:
         self._rng = np.random.default_rng(self.sample_seed)
+        self._lstm_state = None  # RecurrentPPO: zero state, as at the start of a training episode
+
+    @property
+    def recurrent(self) -> bool:
+        """Whether the model keeps a memory between decisions (RecurrentPPO)."""
+        return self.algo == "recurrent-ppo"
 
     @property
     def maskable(self) -> bool:
@@ -361,6 +375,8 @@ class LearnedPolicy(Policy):
             obs, _ = self.model.policy.obs_to_tensor(x)
             if self.maskable:
                 dist = self.model.policy.get_distribution(obs, action_masks=mask)
+            elif self.recurrent:
+                dist = self._recurrent_distribution(obs)
             else:
                 dist = self.model.policy.get_distribution(obs)
             heads = dist.distribution
@@ -370,6 +386,20 @@ class LearnedPolicy(Policy):
         if self.discrete:
             return discrete_to_multi(draws[0])
         return np.asarray(draws, dtype=np.int64).reshape(2)
+
+    def _recurrent_distribution(self, obs):
+        """RecurrentPPO's action distribution at ``obs`` from the carried LSTM state, which it
+        advances (the zero state at an episode's first decision)."""
+        import torch
+
+        policy = self.model.policy
+        if self._lstm_state is None:
+            zeros = np.zeros(policy.lstm_hidden_state_shape, dtype=np.float32)
+            self._lstm_state = (zeros, zeros)
+        state = tuple(torch.as_tensor(a) for a in self._lstm_state)
+        dist, new_state = policy.get_distribution(obs, state, torch.zeros(1))
+        self._lstm_state = tuple(t.numpy() for t in new_state)
+        return dist
 
     def _check_spaces(self) -> None:
         from gymnasium import spaces
@@ -423,6 +453,10 @@ class LearnedPolicy(Policy):
             return self._sample(x, mask)
         if self.maskable:
             action, _ = self.model.predict(x, deterministic=True, action_masks=mask)
+        elif self.recurrent:
+            action, self._lstm_state = self.model.predict(
+                x, state=self._lstm_state, episode_start=np.zeros(1, dtype=bool),
+                deterministic=True)
         else:
             action, _ = self.model.predict(x, deterministic=True)
         if self.discrete:

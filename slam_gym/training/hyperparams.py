@@ -30,10 +30,13 @@ from typing import Any
 
 import yaml
 
-ALGOS: tuple[str, ...] = ("ppo", "a2c", "dqn", "maskable-ppo")
+ALGOS: tuple[str, ...] = ("ppo", "a2c", "dqn", "maskable-ppo", "recurrent-ppo")
 """``maskable-ppo`` is sb3-contrib's ``MaskablePPO`` on the env's ``Discrete(4)`` actions with the
-redundant optimisation masked (:class:`slam_gym.envs.wrappers.DiscreteActions`); sb3-contrib is
-the optional dependency ``pip install slam-gym[contrib]``."""
+redundant optimisation masked (:class:`slam_gym.envs.wrappers.DiscreteActions`);
+``recurrent-ppo`` is sb3-contrib's ``RecurrentPPO`` (an LSTM between the features and the heads,
+so a decision can depend on the decisions and observations before it in the episode) on the
+env's own ``MultiDiscrete([2, 2])``. sb3-contrib is the optional dependency
+``pip install slam-gym[contrib]``."""
 
 HYPERPARAMS_DIR = Path(__file__).resolve().parent / "hyperparams"
 """The packaged YAML files, one per algorithm."""
@@ -52,6 +55,7 @@ _PPO = _ON_POLICY + ("batch_size", "n_epochs", "clip_range", "clip_range_vf", "t
 ALGO_KEYS: dict[str, tuple[str, ...]] = {
     "ppo": _PPO,
     "maskable-ppo": _PPO,
+    "recurrent-ppo": _PPO,
     "a2c": _ON_POLICY + ("rms_prop_eps", "use_rms_prop"),
     "dqn": ("learning_rate", "buffer_size", "learning_starts", "batch_size", "tau", "gamma",
             "train_freq", "gradient_steps", "target_update_interval", "exploration_fraction",

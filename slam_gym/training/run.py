@@ -400,13 +400,13 @@ def _multi_discrete(model) -> bool:
 def _algorithm(algo: str):
     import stable_baselines3
 
-    if algo == "maskable-ppo":
+    if algo in ("maskable-ppo", "recurrent-ppo"):
         try:
-            from sb3_contrib import MaskablePPO
+            import sb3_contrib
         except ImportError as exc:
-            raise ImportError("algo='maskable-ppo' needs sb3-contrib: pip install "
+            raise ImportError(f"algo={algo!r} needs sb3-contrib: pip install "
                               "slam-gym[contrib] (or pip install sb3-contrib)") from exc
-        return MaskablePPO
+        return sb3_contrib.MaskablePPO if algo == "maskable-ppo" else sb3_contrib.RecurrentPPO
     return {"ppo": stable_baselines3.PPO, "a2c": stable_baselines3.A2C,
             "dqn": stable_baselines3.DQN}[algo]
 
