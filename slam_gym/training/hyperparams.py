@@ -131,7 +131,7 @@ def validate_hyperparams(algo: str, params: dict[str, Any], where: str = "hyperp
         raise ValueError(
             f"{where}: keys {unknown} are invalid for {algo}: must be among {sorted(allowed)}"
         )
-    params.setdefault("policy", "MlpPolicy")
+    params.setdefault("policy", "MlpLstmPolicy" if algo == "recurrent-ppo" else "MlpPolicy")
     params.setdefault("normalize", True)
     params.setdefault("norm_reward", params["normalize"])
     params.setdefault("clip_obs", 10.0)

@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from untrained import untrained_model
 
 from slam_gym.cli import main
 from slam_gym.envs import ENV_VARIANTS
@@ -185,22 +186,12 @@ def test_train_command_trains_seeds_summarises_and_copies_the_chosen_model(tmp_p
 
 @pytest.mark.parametrize("algo", ["ppo", "a2c"])
 def test_the_untrained_policy_starts_at_the_configured_action_probabilities(tmp_path, algo):
-    from slam_gym.training.run import _algorithm, _build_vec_env, set_initial_action_probabilities
-
-    params = validate_hyperparams(algo, {"n_timesteps": 8, "n_envs": 1, "normalize": False,
-                                         "initial_fuse_probability": 0.1,
-                                         "initial_optimise_probability": 0.03,
-                                         "env_kwargs": {"n_particles": 5, "n_steps": 60}})
-    setup = TrainingSetup(algo, "SlamGym/HybridSLAM-v0", 0, params)
-    vec = _build_vec_env(setup, tmp_path, 0, None)
-    model = _algorithm(algo)("MlpPolicy", vec, seed=0, device="cpu")
-    set_initial_action_probabilities(model, params)
+    model, _ = untrained_model(tmp_path, algo, 0.1, 0.03)
     obs = np.random.default_rng(1).uniform(0, 5, (64, len(FEATURE_NAMES))).astype(np.float32)
     dist = model.policy.get_distribution(model.policy.obs_to_tensor(obs)[0])
     fuse, optimise = (d.probs[:, 1].detach().numpy() for d in dist.distribution)
     np.testing.assert_allclose(fuse, 0.1, atol=0.02)
     np.testing.assert_allclose(optimise, 0.03, atol=0.01)
-    vec.close()
     with pytest.raises(ValueError, match="initial_optimise_probability"):
         validate_hyperparams("ppo", {"n_timesteps": 8, "n_envs": 1,
                                      "initial_optimise_probability": 1.5})
@@ -211,20 +202,8 @@ def test_sampled_actions_follow_the_policy_and_repeat_after_reset(tmp_path):
     an untrained model started at probabilities 0.1 / 0.03 fuses and optimises at those rates,
     and every reset() replays the same draws."""
     import policies
-    from slam_gym.training.run import _algorithm, _build_vec_env, save_model
 
-    params = validate_hyperparams("ppo", {"n_timesteps": 8, "n_envs": 1, "normalize": False,
-                                          "initial_fuse_probability": 0.1,
-                                          "initial_optimise_probability": 0.03,
-                                          "env_kwargs": {"n_particles": 5, "n_steps": 60}})
-    setup = TrainingSetup("ppo", "SlamGym/HybridSLAM-v0", 0, params)
-    vec = _build_vec_env(setup, tmp_path, 0, None)
-    model = _algorithm("ppo")("MlpPolicy", vec, seed=0, device="cpu")
-    from slam_gym.training.run import set_initial_action_probabilities
-
-    set_initial_action_probabilities(model, params)
-    path = save_model(model, vec, setup, tmp_path / "m" / "model.zip", 0)
-    vec.close()
+    _, path = untrained_model(tmp_path, "ppo", 0.1, 0.03)
     policy = policies.make("learned", path=str(path), deterministic=False, sample_seed=4)
     obs = np.random.default_rng(2).uniform(0, 5, (3000, len(FEATURE_NAMES)))
     def info(o):

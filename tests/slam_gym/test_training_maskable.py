@@ -7,34 +7,16 @@ import json
 import gymnasium as gym
 import numpy as np
 import pytest
+from untrained import untrained_model
 
 from slam_gym.cli import main
 from slam_gym.envs.hybrid_slam import FEATURE_NAMES
-from slam_gym.training.hyperparams import load_hyperparams, validate_hyperparams
+from slam_gym.training.hyperparams import load_hyperparams
 from slam_gym.training.run import TrainingSetup
 
 
 def _untrained_model(tmp_path, fuse, optimise):
-    """An untrained MaskablePPO model started at the given chances, saved as slam-gym train
-    saves one (model.zip + model.json)."""
-    from slam_gym.training.run import (
-        _algorithm,
-        _build_vec_env,
-        save_model,
-        set_initial_action_probabilities,
-    )
-
-    params = validate_hyperparams("maskable-ppo", {
-        "n_timesteps": 8, "n_envs": 1, "normalize": False,
-        "initial_fuse_probability": fuse, "initial_optimise_probability": optimise,
-        "env_kwargs": {"n_particles": 5, "n_steps": 60}})
-    setup = TrainingSetup("maskable-ppo", "SlamGym/HybridSLAM-v0", 0, params)
-    vec = _build_vec_env(setup, tmp_path, 0, None)
-    model = _algorithm("maskable-ppo")("MlpPolicy", vec, seed=0, device="cpu")
-    set_initial_action_probabilities(model, params)
-    path = save_model(model, vec, setup, tmp_path / "m" / "model.zip", 0)
-    vec.close()
-    return model, path
+    return untrained_model(tmp_path, "maskable-ppo", fuse, optimise)
 
 
 def test_packaged_maskable_ppo_hyperparams_are_ppos():
