@@ -11,6 +11,11 @@ error, interface CPU) and its return with the best threshold rule's; the learned
 verdict of issue 29's goal (:func:`slam_gym.evaluation.front.goal`). Writes ``OUT/front.json``,
 ``OUT/front.md`` (one table per price) and ``OUT/front.png`` (success and map error against
 interface CPU), with the benchmark's rows under ``OUT/rules`` and ``OUT/learned-<price>``.
+
+``--compare-model OTHER.zip`` runs a second learned model at every price too (rows under
+``OUT/compared-<price>``; e.g. a feed-forward PPO beside a recurrent one): it joins the tables
+and the figure, and per price the first model is paired with it world by world (success, map
+error, interface CPU, return: ``by_price[p]["against_compared"]`` and a table in ``front.md``).
 """
 
 from __future__ import annotations
@@ -30,6 +35,8 @@ def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
         "front", help="a learned policy at several prices of compute against the rules, paired")
     p.add_argument("--model", required=True, help="the learned model zip")
+    p.add_argument("--compare-model", default=None,
+                   help="a second learned model zip, run at every price and paired with --model")
     p.add_argument("--prices", default="1,10,100", help="prices of compute (w_compute, /s)")
     p.add_argument("--run-price", type=float, default=10.0,
                    help="the price the rules run at (their returns at the others are recomputed)")
@@ -88,31 +95,59 @@ def run(args) -> int:
         price: benchmark(["learned"], model=model, w_compute=price,
                          out=out / f"learned-{price:g}", **common).rows
         for price in prices}
+    other = (None if args.compare_model is None
+             else str(Path(args.compare_model).expanduser().resolve()))
+    compared_rows = {} if other is None else {
+        price: benchmark(["learned"], model=other, w_compute=price,
+                         out=out / f"compared-{price:g}", **common).rows
+        for price in prices}
 
     reference = by_rule[REFERENCE]
     provenance = group_provenance([r for rows in learned_rows.values() for r in rows
                                    if r.get("status") == "ok"])
     stale = provenance.get("model_matches_code") is False
-    doc: dict[str, Any] = {"model": model, "prices": prices, "seeds": args.seeds,
+    compared_provenance = group_provenance([r for rows in compared_rows.values() for r in rows
+                                            if r.get("status") == "ok"])
+    compared_stale = compared_provenance.get("model_matches_code") is False
+    doc: dict[str, Any] = {"model": model, "compared_model": other, "prices": prices,
+                           "seeds": args.seeds,
                            "seed_start": args.seed_start, "compute_clip_s": args.compute_clip_s,
                            **provenance, "by_price": {}}
+    if other is not None:
+        doc["compared_provenance"] = compared_provenance
     lines = []
     points = []
     for price in prices:
         best = chosen.get(f"{price:g}", {}).get("rule")
         best_rows = by_rule.get(best) if best else None
         table = {}
-        for name, rows in [*by_rule.items(), (f"learned @ {price:g}/s", learned_rows[price])]:
+        learned_name, compared_name = f"learned @ {price:g}/s", f"compared @ {price:g}/s"
+        runs = [*by_rule.items(), (learned_name, learned_rows[price])]
+        if other is not None:
+            runs.append((compared_name, compared_rows[price]))
+        for name, rows in runs:
             table[name] = compare(rows, reference, price, return_reference=best_rows)
-        learned = table[f"learned @ {price:g}/s"]
+        learned = table[learned_name]
         verdict = goal(learned) if best_rows is not None else None
         doc["by_price"][f"{price:g}"] = {"best_threshold_rule": best, "policies": table,
                                          "goal": verdict}
+        marked = {learned_name} if stale else set()
+        marked |= {compared_name} if compared_stale else set()
         lines += [f"\n### Price {price:g} /s (return differences against {best or 'n/a'})\n",
-                  _markdown(table, marked={f"learned @ {price:g}/s"} if stale else ()),
-                  f"goal: {verdict}"]
-        points.append({"label": f"learned @ {price:g}/s", "learned": True, **learned})
-    footnote = provenance_footnote([provenance])
+                  _markdown(table, marked=marked), f"goal: {verdict}"]
+        points.append({"label": learned_name, "learned": True, **learned})
+        if other is not None:
+            against = compare(learned_rows[price], compared_rows[price], price)
+            doc["by_price"][f"{price:g}"]["against_compared"] = against
+            lines += [f"\nlearned - compared @ {price:g}/s (paired, 95 %): success "
+                      f"{against['success_diff_pp']:+.0f} pp"
+                      f"{_fmt_ci(against['success_diff_ci_pp'])}, map error "
+                      f"{against['map_error_diff_m']:+.2f} m"
+                      f"{_fmt_ci(against['map_error_diff_ci_m'], 2)}, interface CPU x "
+                      f"{against['interface_cpu_ratio']:.2f}, return "
+                      f"{against['return_diff']:+.0f}{_fmt_ci(against['return_diff_ci'])}"]
+            points.append({"label": compared_name, "learned": True, **table[compared_name]})
+    footnote = provenance_footnote([provenance, compared_provenance])
     lines += ["", footnote] if footnote else []
     ref_at = doc["by_price"][f"{prices[0]:g}"]["policies"]
     points = [{"label": name, **ref_at[name]} for name in rules] + points

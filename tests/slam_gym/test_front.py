@@ -88,7 +88,12 @@ def test_front_command_runs_rules_once_and_the_model_at_every_price(tmp_path):
               "feature": "time_since_optimise_s", "threshold": 20.0},
         "50": {"rule": "fixed-10s", "feature": None, "threshold": None}}}))
     out = tmp_path / "front"
+    twin = tmp_path / "twin"  # the same model under another path: paired with itself
+    twin.mkdir()
+    for suffix in (".zip", ".json"):
+        (twin / f"model{suffix}").write_bytes((tmp_path / "run" / f"model{suffix}").read_bytes())
     code = main(["front", "--model", str(tmp_path / "run" / "model.zip"), "--prices", "1,50",
+                 "--compare-model", str(twin / "model.zip"),
                  "--threshold-rules", str(chosen), "--seeds", "2", "--seed-start", "400",
                  "--clutter-levels", "0", "--n-steps", "300", "--particles", "30",
                  "--workers", "1", "--quiet", "--out", str(out)])
@@ -99,16 +104,23 @@ def test_front_command_runs_rules_once_and_the_model_at_every_price(tmp_path):
     assert at1["best_threshold_rule"] == "threshold-optimise[time_since_optimise_s>=20]"
     assert set(at1["policies"]) == {"fixed-10s", "fixed-10s-optimise", "esdf-innovation",
                                     "threshold-optimise[time_since_optimise_s>=20]",
-                                    "learned @ 1/s"}
+                                    "learned @ 1/s", "compared @ 1/s"}
+    against = at1["against_compared"]  # a model against its own copy: every difference is 0
+    assert against["n_worlds"] == 2 and against["success_diff_pp"] == 0
+    assert against["return_diff"] == 0 and against["interface_cpu_ratio"] > 0
+    assert doc["compared_model"] == str((twin / "model.zip").resolve())
     reference = at1["policies"]["fixed-10s-optimise"]
     assert reference["success_diff_pp"] == 0 and reference["interface_cpu_ratio"] == 1
     assert set(at1["goal"]) == {"success", "map_error", "interface_cpu", "return", "reached"}
     rules = [json.loads(x) for x in (out / "rules" / "results.jsonl").read_text().splitlines()]
     assert len(rules) == 4 * 2 and {r["w_compute"] for r in rules} == {10.0}
     for price in ("1", "50"):
-        rows = (out / f"learned-{price}" / "results.jsonl").read_text().splitlines()
-        assert {json.loads(x)["w_compute"] for x in rows} == {float(price)}
+        for kind in ("learned", "compared"):
+            rows = (out / f"{kind}-{price}" / "results.jsonl").read_text().splitlines()
+            assert len(rows) == 2 and {json.loads(x)["w_compute"] for x in rows} == {float(price)}
     assert (out / "front.png").stat().st_size > 0 and "### Price 1 /s" in (
+        out / "front.md").read_text()
+    assert "learned - compared @ 50/s (paired, 95 %): success +0 pp" in (
         out / "front.md").read_text()
     # the model was trained on this code: its rows match, nothing is marked
     assert doc["model_matches_code"] is True and doc["model_differences"] == []
