@@ -134,12 +134,6 @@ OBSERVATION_TRANSFORMS: tuple[str, ...] = ("none", "log1p")
 """Transforms of the observation a model may have been trained behind."""
 
 
-def _configured(model_path: Path, key: str, default: Any) -> Any:
-    """The ``key`` of the config JSON beside the model (:func:`_config`), else ``default``."""
-    config = _config(model_path)
-    return default if config is None else config.get(key, default)
-
-
 class ModelProvenanceWarning(UserWarning):
     """A learned model was trained on another system than the code that loads it (or records no
     fingerprint of the system it was trained on)."""
@@ -162,18 +156,20 @@ def _config(model_path: Path) -> dict[str, Any] | None:
     return data
 
 
-def check_model_provenance(path: str | Path | None = None) -> dict[str, Any]:
+def check_model_provenance(path: str | Path | None = None,
+                           config: dict[str, Any] | None = None) -> dict[str, Any]:
     """Compare the fingerprint a model records (its config JSON's ``fingerprint``) with the
     current code's for the same env options (:mod:`slam_gym.training.provenance`; computed once
     per env options in a process); ``{"checked": True, "matches": bool, "differences": [...]}``.
     A mismatch, or a model that records no fingerprint, is logged as a WARNING on
-    ``policies.provenance`` and warned as :class:`ModelProvenanceWarning`, naming what differs."""
+    ``policies.provenance`` and warned as :class:`ModelProvenanceWarning`, naming what differs.
+    ``config``: the model's config JSON when the caller has read it already (else it is read)."""
     import warnings
 
     from slam_gym.training.provenance import model_provenance
 
     model_path = _resolve_path(path)
-    result = model_provenance(_config(model_path))
+    result = model_provenance(config if config is not None else _config(model_path))
     provenance = {"checked": True, "matches": bool(result["matches"]),
                   "differences": list(result["differences"])}
     if not provenance["matches"]:
@@ -274,6 +270,7 @@ class LearnedPolicy(Policy):
         )
         require(isinstance(device, str) and device != "", "device", device, "a torch device name")
         model_path = _resolve_path(path)
+        config = _config(model_path) or {}  # read once: every setting below comes from it
         detected = detect_algorithm(model_path)
         if algo is None:
             algo = detected
@@ -292,8 +289,8 @@ class LearnedPolicy(Policy):
                 f"{detected!r}, the algorithm that saved {model_path}",
             )
         if observation_transform is None:
-            observation_transform = _configured(model_path, "observation_transform", "none")
-        feature_names = _configured(model_path, "feature_names", None)
+            observation_transform = config.get("observation_transform", "none")
+        feature_names = config.get("feature_names", None)
         require(
             feature_names is None
             or (isinstance(feature_names, list) and all(isinstance(n, str) for n in feature_names)),
@@ -310,12 +307,12 @@ class LearnedPolicy(Policy):
         )
         self.observation_transform = observation_transform
         self.normalisation = _normalisation(
-            _configured(model_path, "observation_normalisation", None)
+            config.get("observation_normalisation", None)
         )
         self.path = model_path
         self.algo = algo
         if deterministic is None:
-            deterministic = _configured(model_path, "deterministic", True)
+            deterministic = config.get("deterministic", True)
         require(isinstance(deterministic, bool), "deterministic", deterministic, "True or False")
         require(deterministic or algo != "dqn", "deterministic", deterministic,
                 "True for a DQN model (its only stochastic mode is epsilon-greedy exploration)")
@@ -341,7 +338,7 @@ class LearnedPolicy(Policy):
                 f"{self.observation_shape[0]} names, the model's observation size",
             )
         self.provenance: dict[str, Any] = (
-            check_model_provenance(model_path) if check_provenance
+            check_model_provenance(model_path, config or None) if check_provenance
             else {"checked": False, "matches": None, "differences": []})
         logger.info("loaded %s model from %s", algo.upper(), model_path)
 
