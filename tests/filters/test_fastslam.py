@@ -95,7 +95,8 @@ def test_terms_and_refine_match_matrix_kalman_form():
         np.testing.assert_allclose(d2, nu @ np.linalg.solve(S, nu), rtol=1e-9)
 
         x, P = pose.copy(), Pc.copy()
-        kernel._refine(x, P, nu_r, nu_b, S00, S01, S11, det, h00, h01, h10, h11)
+        scratch = np.full((4, 3), np.nan)  # work space: its contents must not matter
+        kernel._refine(x, P, nu_r, nu_b, S00, S01, S11, det, h00, h01, h10, h11, scratch)
         K = Pc @ G.T @ np.linalg.inv(S)
         np.testing.assert_allclose(wrap_angle(x - (pose + K @ nu)), 0.0, atol=1e-12)
         np.testing.assert_allclose(P, Pc - K @ G @ Pc, atol=1e-12)
