@@ -472,7 +472,8 @@ def _permute_row(a, p, order, buffer):
 def compact_features(active, mx, my, sxx, sxy, syy, ex, cid):
     """Move each particle's active features to its first slots, in place: active slots first,
     then the inactive ones, each in slot order (the permutation
-    ``np.argsort(~active, axis=1, kind="stable")`` gives). Data movement only."""
+    ``np.argsort(~active, axis=1, kind="stable")`` gives). Data movement only; a particle whose
+    active slots already come first (the permutation is the identity) is left as it is."""
     P, C = active.shape
     order = np.empty(C, dtype=np.int64)
     floats = np.empty(C)
@@ -488,6 +489,13 @@ def compact_features(active, mx, my, sxx, sxy, syy, ex, cid):
             if not active[p, c]:
                 order[n] = c
                 n += 1
+        identity = True
+        for c in range(C):
+            if order[c] != c:
+                identity = False
+                break
+        if identity:
+            continue
         _permute_row(mx, p, order, floats)
         _permute_row(my, p, order, floats)
         _permute_row(sxx, p, order, floats)
