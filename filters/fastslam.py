@@ -666,6 +666,10 @@ class FastSLAM2:
         means, covs = feature_moments(self.weights, self.means, self.covs, common.slots)
         return LandmarkEstimate(common.ids.copy(), means, covs, common.existence.copy())
 
+    def landmark_count(self) -> int:
+        """``len(self.landmarks())``: the number of common features, without their moments."""
+        return len(self._common())
+
     def landmark_means(self):
         """``(ids, means, existence)`` of :meth:`landmarks` without the covariances (the same
         numbers): what map scoring needs, at a fraction of the cost."""

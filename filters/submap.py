@@ -237,7 +237,8 @@ class SubmapSLAM:
     def fuse(self) -> FusionReport:
         """Fuse the local map into the global map and restart the front-end (BB section 4)."""
         local = self.front_end.to_gaussian()
-        n_local = len(self.front_end.landmarks())
+        count = getattr(self.front_end, "landmark_count", None)  # a count without the moments
+        n_local = count() if count is not None else len(self.front_end.landmarks())
         report = self.back_end.fuse(local, time_s=self._t)
         report.n_dropped = n_local - local.n_features
         self.submaps.append(

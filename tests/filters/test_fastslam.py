@@ -356,6 +356,22 @@ def test_to_gaussian_restart_and_local_statistics():
     assert np.all(f.last_associations[f.last_associations >= 0] > before)
 
 
+def test_landmark_count_is_the_number_of_landmarks_at_every_step():
+    """landmark_count (what a fusion reports without forming the moments) equals
+    len(landmarks()) through a cluttered run, before and after updates, and at zero."""
+    stream = make_stream("brooks-bailey", seed=4, n_steps=60, clutter_level=3)
+    f = make_filter(stream, seed=4, n_particles=60)
+    assert f.landmark_count() == len(f.landmarks()) == 0
+    counts = []
+
+    def check(_step):
+        counts.append(f.landmark_count())
+        assert counts[-1] == len(f.landmarks())
+
+    run(f, stream, every=check)
+    assert max(counts) > 0 and len(set(counts)) > 1
+
+
 def test_pending_proposal_is_part_of_pose_and_conversion():
     f = make_filter(n_particles=50)
     f.predict([1.0, 0.5], 0.1)
