@@ -438,17 +438,27 @@ def pose_moments_unchecked(poses, w, covs, group, n_groups, small_sample):
 
 def _gather(means, covs, slots):
     """Features (P, N, 2) and covariances (P, N, 2, 2) at ``slots`` (P, N); missing -> zeros."""
-    has, rows, safe = _gather_index(slots)
-    mu = np.where(has[..., None], means[rows, safe], 0.0)
-    sig = np.where(has[..., None, None], covs[rows, safe], 0.0)
+    has, safe = _gather_index(slots)
+    mu = np.where(has[..., None], _take_slots(means, safe), 0.0)
+    sig = np.where(has[..., None, None], _take_slots(covs, safe), 0.0)
     return has, mu, sig
 
 
 def _gather_index(slots):
-    """Which particles hold each feature (P, N), and the row and slot indices to gather with."""
+    """Which particles hold each feature (P, N), and the slot to gather each entry from (slot 0
+    where the particle lacks the feature; masked by the caller), for :func:`_take_slots`."""
     has = slots >= 0
-    rows = np.arange(slots.shape[0])[:, None]
-    return has, rows, np.where(has, slots, 0)
+    return has, np.where(has, slots, 0)
+
+
+def _take_slots(values, safe):
+    """``values[p, safe[p, n]]`` for every particle p and feature n: (P, N, ...) from per-slot
+    values (P, C, ...). One ``np.take`` over the flattened slots: the same copies as the fancy
+    index ``values[arange(P)[:, None], safe]``, at a third of its cost (issue 27)."""
+    P, C = values.shape[:2]
+    flat = (np.arange(P)[:, None] * C + safe).ravel()
+    taken = np.take(values.reshape((P * C,) + values.shape[2:]), flat, axis=0)
+    return taken.reshape(safe.shape + values.shape[2:])
 
 
 def _feature_weights(w, has):
@@ -485,8 +495,8 @@ def feature_means(weights, means, slots):
     gathering or summing any covariance: for callers that need no uncertainty (map scoring)."""
     w = _normalised(weights)
     slots = np.asarray(slots, dtype=np.int64)
-    has, rows, safe = _gather_index(slots)
-    mu = np.where(has[..., None], np.asarray(means, float)[rows, safe], 0.0)
+    has, safe = _gather_index(slots)
+    mu = np.where(has[..., None], _take_slots(np.asarray(means, float), safe), 0.0)
     return np.einsum("pn,pnk->nk", _feature_weights(w, has), mu)
 
 

@@ -98,17 +98,18 @@ def _observation_terms(zr, zb, x, y, th, Pc, mx, my, sxx, sxy, syy, r_var, b_var
 
 
 @njit(cache=True)
-def _refine(pose, Pc, nu_r, nu_b, S00, S01, S11, det, h00, h01, h10, h11):
+def _refine(pose, Pc, nu_r, nu_b, S00, S01, S11, det, h00, h01, h10, h11, scratch):
     """FS2 proposal in Kalman form: ``x += P G^T S^-1 nu``, ``P -= P G^T S^-1 G P`` with
-    ``G = [-H_m | (0, -1)^T]`` (in place; well defined for a singular P)."""
+    ``G = [-H_m | (0, -1)^T]`` (in place; well defined for a singular P). ``scratch`` (4, 3):
+    work space the caller allocates once (no allocation per observation)."""
     inv_det = 1.0 / det
-    pg0 = np.empty(3)
-    pg1 = np.empty(3)
+    pg0 = scratch[0]
+    pg1 = scratch[1]
     for i in range(3):
         pg0[i] = -(Pc[i, 0] * h00 + Pc[i, 1] * h01)
         pg1[i] = -(Pc[i, 0] * h10 + Pc[i, 1] * h11 + Pc[i, 2])
-    k0 = np.empty(3)
-    k1 = np.empty(3)
+    k0 = scratch[2]
+    k1 = scratch[3]
     for i in range(3):
         k0[i] = (pg0[i] * S11 - pg1[i] * S01) * inv_det
         k1[i] = (pg1[i] * S00 - pg0[i] * S01) * inv_det
@@ -289,6 +290,7 @@ def scan_update(
     gate_areas = np.empty(K)
     new_existence = np.empty(K)
     step = np.empty(3)
+    scratch = np.empty((4, 3))
     for p in range(P):
         pose = poses[p]
         Pc = prop_cov[p]
@@ -407,7 +409,8 @@ def scan_update(
                     elif not sample_clutter:
                         clutter_prob[k, p] = 1.0 - new_existence[k]
             if chosen >= 0:
-                _refine(pose, Pc, t[0], t[1], t[2], t[3], t[4], t[5], t[7], t[8], t[9], t[10])
+                _refine(pose, Pc, t[0], t[1], t[2], t[3], t[4], t[5], t[7], t[8], t[9], t[10],
+                        scratch)
                 claimed[chosen] = True
                 gate_areas[k] = math.pi * gate_chi2 * math.sqrt(abs(t[5]))
                 slots[k, p] = chosen
@@ -469,7 +472,8 @@ def _permute_row(a, p, order, buffer):
 def compact_features(active, mx, my, sxx, sxy, syy, ex, cid):
     """Move each particle's active features to its first slots, in place: active slots first,
     then the inactive ones, each in slot order (the permutation
-    ``np.argsort(~active, axis=1, kind="stable")`` gives). Data movement only."""
+    ``np.argsort(~active, axis=1, kind="stable")`` gives). Data movement only; a particle whose
+    active slots already come first (the permutation is the identity) is left as it is."""
     P, C = active.shape
     order = np.empty(C, dtype=np.int64)
     floats = np.empty(C)
@@ -485,6 +489,13 @@ def compact_features(active, mx, my, sxx, sxy, syy, ex, cid):
             if not active[p, c]:
                 order[n] = c
                 n += 1
+        identity = True
+        for c in range(C):
+            if order[c] != c:
+                identity = False
+                break
+        if identity:
+            continue
         _permute_row(mx, p, order, floats)
         _permute_row(my, p, order, floats)
         _permute_row(sxx, p, order, floats)

@@ -237,7 +237,8 @@ class SubmapSLAM:
     def fuse(self) -> FusionReport:
         """Fuse the local map into the global map and restart the front-end (BB section 4)."""
         local = self.front_end.to_gaussian()
-        n_local = len(self.front_end.landmarks())
+        count = getattr(self.front_end, "landmark_count", None)  # a count without the moments
+        n_local = count() if count is not None else len(self.front_end.landmarks())
         report = self.back_end.fuse(local, time_s=self._t)
         report.n_dropped = n_local - local.n_features
         self.submaps.append(
@@ -354,9 +355,10 @@ def _compose_with_covariance(v, P_v, xl, Pl):
 def _nearest_global_innovations(z, pose, sigma, J_a, x, P, cols, r_var, b_var, radius_m):
     """The global feature each observation is nearest to, and CM's innovation ratio, in metres.
 
-    Predicts every global feature ``m_n`` from the composed pose ``pose`` (covariance
-    ``sigma``, ``J_a`` its Jacobian w.r.t. the origin ``v-``): ``S_n = H_p sigma H_p^T + H_m P_mm
-    H_m^T + X + X^T + R`` with the pose-feature cross term ``X = H_p J_a P[v-, m_n] H_m^T``.
+    Predicts each global feature ``m_n`` near an observation from the composed pose ``pose``
+    (covariance ``sigma``, ``J_a`` its Jacobian w.r.t. the origin ``v-``): ``S_n = H_p sigma
+    H_p^T + H_m P_mm H_m^T + X + X^T + R`` with the pose-feature cross term
+    ``X = H_p J_a P[v-, m_n] H_m^T`` (:func:`_predict_global_feature`).
     Observation ``k`` is paired with the feature of smallest ``nu^T S_n^-1 nu`` among those whose
     position lies within ``radius_m`` of the observed point -- no chi-square gate, so an
     inconsistent re-observation is still tested (-1: no feature that near). Range and bearing
@@ -368,34 +370,10 @@ def _nearest_global_innovations(z, pose, sigma, J_a, x, P, cols, r_var, b_var, r
     N, K = cols.shape[0], z.shape[0]
     z_range, z_bearing = np.empty(N), np.empty(N)
     S00, S01, S11 = np.empty(N), np.empty(N), np.empty(N)
+    predicted = np.zeros(N, dtype=np.bool_)  # a feature's terms are formed when first needed
     Hp = np.empty((2, 3))
     Hm = np.empty((2, 2))
     cross = np.empty((3, 2))  # J_a P[v-, m_n]: cov(pose, m_n)
-    for n in range(N):
-        c0, c1 = cols[n, 0], cols[n, 1]
-        dx, dy = x[c0] - pose[0], x[c1] - pose[1]
-        q = max(dx * dx + dy * dy, 1e-12)
-        r = np.sqrt(q)
-        z_range[n] = r
-        z_bearing[n] = (np.arctan2(dy, dx) - pose[2] + np.pi) % (2.0 * np.pi) - np.pi
-        Hm[0, 0], Hm[0, 1], Hm[1, 0], Hm[1, 1] = dx / r, dy / r, -dy / q, dx / q
-        Hp[0, 0], Hp[0, 1], Hp[0, 2] = -Hm[0, 0], -Hm[0, 1], 0.0
-        Hp[1, 0], Hp[1, 1], Hp[1, 2] = -Hm[1, 0], -Hm[1, 1], -1.0
-        for i in range(3):
-            for a in range(2):
-                cross[i, a] = J_a[i, 0] * P[0, cols[n, a]] + J_a[i, 1] * P[1, cols[n, a]] + (
-                    J_a[i, 2] * P[2, cols[n, a]]
-                )
-        A = Hp @ sigma @ Hp.T
-        pmm = np.empty((2, 2))
-        for a in range(2):
-            for b in range(2):
-                pmm[a, b] = P[cols[n, a], cols[n, b]]
-        B = Hm @ pmm @ Hm.T
-        X = Hp @ cross @ Hm.T
-        S00[n] = A[0, 0] + B[0, 0] + 2.0 * X[0, 0] + r_var
-        S01[n] = 0.5 * (A[0, 1] + A[1, 0] + B[0, 1] + B[1, 0]) + X[0, 1] + X[1, 0]
-        S11[n] = A[1, 1] + B[1, 1] + 2.0 * X[1, 1] + b_var
     nearest = np.full(K, -1, dtype=np.int64)
     ratio = np.zeros(K)
     for k in range(K):
@@ -406,6 +384,10 @@ def _nearest_global_innovations(z, pose, sigma, J_a, x, P, cols, r_var, b_var, r
             ex, ey = x[cols[n, 0]] - px, x[cols[n, 1]] - py
             if ex * ex + ey * ey > radius_m * radius_m:
                 continue
+            if not predicted[n]:
+                _predict_global_feature(n, pose, sigma, J_a, x, P, cols, r_var, b_var, Hp, Hm,
+                                        cross, z_range, z_bearing, S00, S01, S11)
+                predicted[n] = True
             nu_r = z[k, 0] - z_range[n]
             nu_b = (z[k, 1] - z_bearing[n] + np.pi) % (2.0 * np.pi) - np.pi
             det = S00[n] * S11[n] - S01[n] * S01[n]
@@ -418,3 +400,37 @@ def _nearest_global_innovations(z, pose, sigma, J_a, x, P, cols, r_var, b_var, r
                 top = 0.5 * (t00 + t11) + np.hypot(0.5 * (t00 - t11), t01)
                 ratio[k] = np.hypot(nu_r, rn * nu_b) / (2.0 * np.sqrt(top))
     return nearest, ratio
+
+
+@njit(cache=True)
+def _predict_global_feature(n, pose, sigma, J_a, x, P, cols, r_var, b_var, Hp, Hm, cross,
+                            z_range, z_bearing, S00, S01, S11):
+    """The predicted observation of global feature ``n`` (``z_range[n]``, ``z_bearing[n]``) and
+    its innovation covariance ``S_n`` (``S00[n]``, ``S01[n]``, ``S11[n]``) for
+    :func:`_nearest_global_innovations`, which forms them only for the features near an
+    observation (each feature's terms depend on that feature alone). ``Hp``, ``Hm``, ``cross``:
+    work space."""
+    c0, c1 = cols[n, 0], cols[n, 1]
+    dx, dy = x[c0] - pose[0], x[c1] - pose[1]
+    q = max(dx * dx + dy * dy, 1e-12)
+    r = np.sqrt(q)
+    z_range[n] = r
+    z_bearing[n] = (np.arctan2(dy, dx) - pose[2] + np.pi) % (2.0 * np.pi) - np.pi
+    Hm[0, 0], Hm[0, 1], Hm[1, 0], Hm[1, 1] = dx / r, dy / r, -dy / q, dx / q
+    Hp[0, 0], Hp[0, 1], Hp[0, 2] = -Hm[0, 0], -Hm[0, 1], 0.0
+    Hp[1, 0], Hp[1, 1], Hp[1, 2] = -Hm[1, 0], -Hm[1, 1], -1.0
+    for i in range(3):
+        for a in range(2):
+            cross[i, a] = J_a[i, 0] * P[0, cols[n, a]] + J_a[i, 1] * P[1, cols[n, a]] + (
+                J_a[i, 2] * P[2, cols[n, a]]
+            )
+    A = Hp @ sigma @ Hp.T
+    pmm = np.empty((2, 2))
+    for a in range(2):
+        for b in range(2):
+            pmm[a, b] = P[cols[n, a], cols[n, b]]
+    B = Hm @ pmm @ Hm.T
+    X = Hp @ cross @ Hm.T
+    S00[n] = A[0, 0] + B[0, 0] + 2.0 * X[0, 0] + r_var
+    S01[n] = 0.5 * (A[0, 1] + A[1, 0] + B[0, 1] + B[1, 0]) + X[0, 1] + X[1, 0]
+    S11[n] = A[1, 1] + B[1, 1] + 2.0 * X[1, 1] + b_var

@@ -33,8 +33,9 @@ import functools
 import math
 
 import numpy as np
+from numba import njit
 
-from filters.geometry import wrap_angle
+from filters.geometry import TWO_PI, wrap_angle
 from filters.models import (
     ChongKleemanNoise,
     ClutterModel,
@@ -218,6 +219,108 @@ def _detect(z_true, visible, sensor, clutter, rng):
     return z[order], ids[order], visible.astype(np.int64)
 
 
+@njit(cache=True)
+def _detect_block(z_true, in_view, alpha, beta, range_std_m, bearing_std_rad, max_range_m,
+                  fov_rad, rng):
+    """:func:`_detect` for the scans of a block of poses in turn, compiled: the same random
+    draws from ``rng`` in the same order and the same arithmetic, element by element.
+
+    ``z_true`` (S, L, 2) and ``in_view`` (S, L): the true observations of every landmark and
+    which are visible, per scan. Returns the scans' observations (N, 2), truth ids (N,) and
+    visible ids (V,) one after the other, and the offsets (S + 1,) of each scan in the first two
+    and in the third (:func:`_detect_scans` splits them). numba's ``Generator`` methods draw from
+    the caller's bit generator exactly as numpy's do (``tests/slam_gym/test_world.py`` compares
+    the two paths array for array).
+    """
+    n_scans, n_landmarks = in_view.shape
+    n_seen = 0
+    for i in range(n_scans):
+        for j in range(n_landmarks):
+            n_seen += in_view[i, j]
+    visible_all = np.empty(n_seen, dtype=np.int64)
+    # at most one detection and one false alarm per visible landmark
+    z_all = np.empty((2 * n_seen, 2))
+    ids_all = np.empty(2 * n_seen, dtype=np.int64)
+    z_start = np.zeros(n_scans + 1, dtype=np.int64)
+    visible_start = np.zeros(n_scans + 1, dtype=np.int64)
+    visible = np.empty(n_landmarks, dtype=np.int64)
+    detected = np.empty(n_landmarks, dtype=np.int64)
+    z = np.empty((2 * n_landmarks, 2))
+    ids = np.empty(2 * n_landmarks, dtype=np.int64)
+    half_fov = 0.5 * fov_rad
+    for i in range(n_scans):
+        n_visible = 0
+        for j in range(n_landmarks):
+            if in_view[i, j]:
+                visible[n_visible] = j
+                n_visible += 1
+        u = rng.random(n_visible)
+        n_det = 0
+        for v in range(n_visible):
+            if u[v] < alpha:
+                detected[n_det] = visible[v]
+                n_det += 1
+        noise = rng.standard_normal((n_det, 2))
+        for d in range(n_det):
+            z[d, 0] = z_true[i, detected[d], 0] + noise[d, 0] * range_std_m
+            z[d, 1] = z_true[i, detected[d], 1] + noise[d, 1] * bearing_std_rad
+            ids[d] = detected[d]
+        u = rng.random(n_visible)
+        n_false = 0
+        for v in range(n_visible):
+            if u[v] < beta:
+                n_false += 1
+        ranges = rng.uniform(0.0, max_range_m, n_false)
+        bearings = rng.uniform(-half_fov, half_fov, n_false)
+        for f in range(n_false):
+            z[n_det + f, 0] = ranges[f]
+            z[n_det + f, 1] = bearings[f]
+            ids[n_det + f] = -1
+        n = n_det + n_false
+        for k in range(n):
+            r = z[k, 0]
+            z[k, 0] = r if (r >= 0.0 or np.isnan(r)) else 0.0  # np.maximum(r, 0.0)
+            z[k, 1] = (z[k, 1] + np.pi) % TWO_PI - np.pi  # wrap_angle
+        order = rng.permutation(n)
+        start = z_start[i]
+        for k in range(n):
+            z_all[start + k, 0] = z[order[k], 0]
+            z_all[start + k, 1] = z[order[k], 1]
+            ids_all[start + k] = ids[order[k]]
+        z_start[i + 1] = start + n
+        start = visible_start[i]
+        for v in range(n_visible):
+            visible_all[start + v] = visible[v]
+        visible_start[i + 1] = start + n_visible
+    n_total = z_start[n_scans]
+    return z_all[:n_total].copy(), ids_all[:n_total].copy(), visible_all, z_start, visible_start
+
+
+def _detect_scans(poses: np.ndarray, landmarks: np.ndarray, sensor: RangeBearingSensor,
+                  clutter: ClutterModel, rng: np.random.Generator):
+    """The scans (z, truth ids, visible ids) from each pose of ``poses`` (n, 3), drawn one after
+    the other from ``rng``: what :func:`_detect` called once per pose in turn returns, bit for
+    bit, in compiled blocks (:func:`_detect_block`; the simulator's costliest loop)."""
+    scans = []
+    if len(landmarks) == 0:
+        for _ in range(len(poses)):
+            scans.append(_detect(np.zeros((0, 2)), np.zeros(0, dtype=np.int64), sensor,
+                                 clutter, rng))
+        return scans
+    block = max(1, OBSERVED_BLOCK_ELEMENTS // len(landmarks))
+    for begin in range(0, len(poses), block):
+        z_true = observe(poses[begin:begin + block, None, :], landmarks[None, :, :])
+        z, ids, visible, z_start, visible_start = _detect_block(
+            z_true, sensor.in_view(z_true), float(clutter.alpha), float(clutter.beta),
+            float(sensor.range_std_m), float(sensor.bearing_std_rad), float(sensor.max_range_m),
+            float(sensor.fov_rad), rng,
+        )
+        for i in range(len(z_start) - 1):
+            a, b = z_start[i], z_start[i + 1]
+            scans.append((z[a:b], ids[a:b], visible[visible_start[i]:visible_start[i + 1]]))
+    return scans
+
+
 OBSERVED_BLOCK_ELEMENTS = 1 << 16
 """Pose-landmark pairs :func:`_true_views` observes at once (bounds its memory to a few MB)."""
 
@@ -328,11 +431,18 @@ def simulate(scenario: Scenario, seed: int) -> Stream:
     empty_z, empty_ids = np.zeros((0, 2)), np.zeros(0, dtype=np.int64)
     steps = []
     scan_indices = [0] * first + [k + 1 for k in range(n_moving) if (k + 1) % every == 0]
-    views = _true_views(poses[scan_indices], landmarks, sensor)
+    if scenario.compass_std_rad is None:
+        # no compass draws between the scans: every scan's draws in one compiled pass
+        scans = iter(_detect_scans(poses[scan_indices], landmarks, sensor, clutter, sensor_rng))
 
-    def scan_at_next_pose():
-        z_true, visible = next(views)
-        return _detect(z_true, visible, sensor, clutter, sensor_rng)
+        def scan_at_next_pose():
+            return next(scans)
+    else:
+        views = _true_views(poses[scan_indices], landmarks, sensor)
+
+        def scan_at_next_pose():
+            z_true, visible = next(views)
+            return _detect(z_true, visible, sensor, clutter, sensor_rng)
 
     def compass_at(pose):
         if scenario.compass_std_rad is None:

@@ -646,3 +646,22 @@ def test_compiled_pose_matches_the_numpy_pose_of_f658fba_on_a_seeded_run():
             condition = lam[-1] / max(lam[0], 1e-300)
             error = np.abs(have - want).max() / np.abs(want).max()
             assert error <= 1e-12 + 1e-15 * condition, (name, k, error, condition)
+
+
+@pytest.mark.parametrize("trailing", [(), (2,), (2, 2)])
+def test_take_slots_is_the_fancy_index_of_each_particles_slots(trailing):
+    """The gather of feature_means and moment_match (one flat np.take) copies exactly what
+    values[arange(P)[:, None], slots] does, for means, covariances and plain per-slot values."""
+    from filters.conversion import _gather_index, _take_slots
+
+    rng = np.random.default_rng(5)
+    P, C, N = 23, 11, 7
+    values = rng.normal(size=(P, C) + trailing)
+    slots = np.where(rng.random((P, N)) < 0.8, rng.integers(0, C, (P, N)), -1)
+    has, safe = _gather_index(slots)
+    assert np.array_equal(has, slots >= 0) and safe.min() >= 0
+    got = _take_slots(values, safe)
+    expected = values[np.arange(P)[:, None], safe]
+    assert got.shape == expected.shape == (P, N) + trailing
+    assert got.tobytes() == expected.tobytes()
+    assert _take_slots(values, safe[:, :0]).shape == (P, 0) + trailing

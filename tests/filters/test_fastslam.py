@@ -95,7 +95,8 @@ def test_terms_and_refine_match_matrix_kalman_form():
         np.testing.assert_allclose(d2, nu @ np.linalg.solve(S, nu), rtol=1e-9)
 
         x, P = pose.copy(), Pc.copy()
-        kernel._refine(x, P, nu_r, nu_b, S00, S01, S11, det, h00, h01, h10, h11)
+        scratch = np.full((4, 3), np.nan)  # work space: its contents must not matter
+        kernel._refine(x, P, nu_r, nu_b, S00, S01, S11, det, h00, h01, h10, h11, scratch)
         K = Pc @ G.T @ np.linalg.inv(S)
         np.testing.assert_allclose(wrap_angle(x - (pose + K @ nu)), 0.0, atol=1e-12)
         np.testing.assert_allclose(P, Pc - K @ G @ Pc, atol=1e-12)
@@ -353,6 +354,22 @@ def test_to_gaussian_restart_and_local_statistics():
     f.predict(step.odometry, step.dt_s)
     f.update(step.z)
     assert np.all(f.last_associations[f.last_associations >= 0] > before)
+
+
+def test_landmark_count_is_the_number_of_landmarks_at_every_step():
+    """landmark_count (what a fusion reports without forming the moments) equals
+    len(landmarks()) through a cluttered run, before and after updates, and at zero."""
+    stream = make_stream("brooks-bailey", seed=4, n_steps=60, clutter_level=3)
+    f = make_filter(stream, seed=4, n_particles=60)
+    assert f.landmark_count() == len(f.landmarks()) == 0
+    counts = []
+
+    def check(_step):
+        counts.append(f.landmark_count())
+        assert counts[-1] == len(f.landmarks())
+
+    run(f, stream, every=check)
+    assert max(counts) > 0 and len(set(counts)) > 1
 
 
 def test_pending_proposal_is_part_of_pose_and_conversion():

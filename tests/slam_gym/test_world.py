@@ -401,6 +401,40 @@ def test_true_views_of_pose_blocks_equal_the_views_pose_by_pose():
     assert [len(z) for z, _ in _true_views(poses[:3], np.zeros((0, 2)), sensor)] == [0, 0, 0]
 
 
+@pytest.mark.parametrize(
+    ("fov_rad", "alpha", "beta"),
+    [(2.0 * np.pi, 0.4, 0.04), (np.pi, 0.9, 0.5), (2.0 * np.pi, 1.0, 0.0), (0.5, 0.05, 0.9)],
+)
+def test_compiled_scans_equal_the_reference_scan_by_scan_to_the_bit(fov_rad, alpha, beta):
+    """_detect_scans (the compiled path of simulate) draws what _detect, called pose by pose on
+    the same generator, draws: the same observations, ids and visible sets, bit for bit, and
+    leaves the generator in the same state."""
+    from filters.models import ClutterModel, RangeBearingSensor
+    from slam_gym.world import OBSERVED_BLOCK_ELEMENTS, _detect, _detect_scans, _true_views
+
+    rng = np.random.default_rng(1)
+    sensor = RangeBearingSensor(max_range_m=30.0, fov_rad=fov_rad)
+    clutter = ClutterModel(alpha=alpha, beta=beta)
+    landmarks = rng.uniform(0.0, 120.0, (41, 2))
+    n = OBSERVED_BLOCK_ELEMENTS // len(landmarks) + 7  # two blocks
+    poses = np.column_stack([rng.uniform(0.0, 120.0, (n, 2)), rng.uniform(-4.0, 4.0, n)])
+    for lm in (landmarks, np.zeros((0, 2))):
+        compiled_rng, reference_rng = np.random.default_rng(7), np.random.default_rng(7)
+        compiled = _detect_scans(poses, lm, sensor, clutter, compiled_rng)
+        reference = [
+            _detect(z_true, visible, sensor, clutter, reference_rng)
+            for z_true, visible in _true_views(poses, lm, sensor)
+        ]
+        assert len(compiled) == len(reference) == n
+        for got, want in zip(compiled, reference, strict=True):
+            for a, b in zip(got, want, strict=True):
+                assert a.dtype == b.dtype and a.shape == b.shape
+                assert a.tobytes() == b.tobytes()
+        assert compiled_rng.bit_generator.state == reference_rng.bit_generator.state
+        n_observed = sum(len(z) for z, _, _ in compiled)
+        assert (n_observed > 0) == (len(lm) > 0)  # scans with observations were compared
+
+
 def test_hybrid_front_end_keeps_its_evidence_and_fastslam_forgets():
     """HYBRID's front-end restarts with every local map, so it is built with the float guard
     as its existence clip (filters.fastslam module doc); FASTSLAM's long-lived map keeps 0.999;
