@@ -37,6 +37,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--model", required=True, help="the learned model zip")
     p.add_argument("--compare-model", default=None,
                    help="a second learned model zip, run at every price and paired with --model")
+    p.add_argument("--label", default="learned", help="the name of --model in tables and plot")
+    p.add_argument("--compare-label", default="compared",
+                   help="the name of --compare-model in tables and plot")
     p.add_argument("--prices", default="1,10,100", help="prices of compute (w_compute, /s)")
     p.add_argument("--run-price", type=float, default=10.0,
                    help="the price the rules run at (their returns at the others are recomputed)")
@@ -121,7 +124,8 @@ def run(args) -> int:
         best = chosen.get(f"{price:g}", {}).get("rule")
         best_rows = by_rule.get(best) if best else None
         table = {}
-        learned_name, compared_name = f"learned @ {price:g}/s", f"compared @ {price:g}/s"
+        learned_name = f"{args.label} @ {price:g}/s"
+        compared_name = f"{args.compare_label} @ {price:g}/s"
         runs = [*by_rule.items(), (learned_name, learned_rows[price])]
         if other is not None:
             runs.append((compared_name, compared_rows[price]))
@@ -139,7 +143,8 @@ def run(args) -> int:
         if other is not None:
             against = compare(learned_rows[price], compared_rows[price], price)
             doc["by_price"][f"{price:g}"]["against_compared"] = against
-            lines += [f"\nlearned - compared @ {price:g}/s (paired, 95 %): success "
+            lines += [f"\n{args.label} - {args.compare_label} @ {price:g}/s (paired, 95 %): "
+                      "success "
                       f"{against['success_diff_pp']:+.0f} pp"
                       f"{_fmt_ci(against['success_diff_ci_pp'])}, map error "
                       f"{against['map_error_diff_m']:+.2f} m"

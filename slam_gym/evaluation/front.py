@@ -153,7 +153,12 @@ def plot_front(points: Sequence[Mapping[str, Any]], path: str | os.PathLike, *,
     reference itself)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
+    from matplotlib.ticker import NullFormatter
 
+    cpu = [p["interface_cpu_s"] for p in points if p["interface_cpu_s"] > 0]
+    low, high = (min(cpu), max(cpu)) if cpu else (0.1, 10.0)
+    ticks = [m * 10.0 ** e for e in range(-4, 5) for m in (1, 2, 5)
+             if low / 1.5 <= m * 10.0 ** e <= high * 1.5]
     fig = Figure(figsize=(11, 4.4), dpi=120)
     FigureCanvasAgg(fig)
     axes = fig.subplots(1, 2)
@@ -174,6 +179,9 @@ def plot_front(points: Sequence[Mapping[str, Any]], path: str | os.PathLike, *,
             ax.scatter([x], [y], s=60 if learned else 40, marker="*" if learned else "o",
                        color=color, label=p["label"], zorder=3)
         ax.set_xscale("log")
+        # plain labels at 1-2-5 steps: matplotlib's minor-tick labels overlap on a short log axis
+        ax.set_xticks(ticks, labels=[f"{v:g}" for v in ticks])
+        ax.xaxis.set_minor_formatter(NullFormatter())
         ax.set_xlabel("interface CPU per episode (s, fusions + optimisations)")
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
