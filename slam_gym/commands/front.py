@@ -93,24 +93,25 @@ def run(args) -> int:
                   progress=not args.quiet and not args.json)
     rule_rows = benchmark(rules, w_compute=args.run_price, out=out / "rules", **common).rows
     by_rule = {name: [r for r in rule_rows if r["policy"] == name] for name in rules}
+
+    def rows_at_every_price(model_path: str, prefix: str) -> dict[float, list]:
+        return {price: benchmark(["learned"], model=model_path, w_compute=price,
+                                 out=out / f"{prefix}-{price:g}", **common).rows
+                for price in prices}
+
     model = str(Path(args.model).expanduser().resolve())
-    learned_rows = {
-        price: benchmark(["learned"], model=model, w_compute=price,
-                         out=out / f"learned-{price:g}", **common).rows
-        for price in prices}
+    learned_rows = rows_at_every_price(model, "learned")
     other = (None if args.compare_model is None
              else str(Path(args.compare_model).expanduser().resolve()))
-    compared_rows = {} if other is None else {
-        price: benchmark(["learned"], model=other, w_compute=price,
-                         out=out / f"compared-{price:g}", **common).rows
-        for price in prices}
+    compared_rows = {} if other is None else rows_at_every_price(other, "compared")
 
     reference = by_rule[REFERENCE]
-    provenance = group_provenance([r for rows in learned_rows.values() for r in rows
-                                   if r.get("status") == "ok"])
+    def provenance_of(rows_by_price) -> dict[str, Any]:
+        return group_provenance([r for rows in rows_by_price.values() for r in rows
+                                 if r.get("status") == "ok"])
+
+    provenance, compared_provenance = provenance_of(learned_rows), provenance_of(compared_rows)
     stale = provenance.get("model_matches_code") is False
-    compared_provenance = group_provenance([r for rows in compared_rows.values() for r in rows
-                                            if r.get("status") == "ok"])
     compared_stale = compared_provenance.get("model_matches_code") is False
     doc: dict[str, Any] = {"model": model, "compared_model": other, "prices": prices,
                            "seeds": args.seeds,

@@ -7,9 +7,8 @@ import json
 import gymnasium as gym
 import numpy as np
 import pytest
-from untrained import untrained_model
+from untrained import train_tiny, untrained_model
 
-from slam_gym.cli import main
 from slam_gym.envs.hybrid_slam import FEATURE_NAMES
 from slam_gym.training.hyperparams import load_hyperparams
 from slam_gym.training.run import TrainingSetup
@@ -77,14 +76,8 @@ def test_a_tiny_maskable_ppo_training_saves_a_model_learned_policy_runs(tmp_path
     import policies
     from slam_gym.evaluation.core import run_policy_object
 
-    assert main(["train", "--algo", "maskable-ppo", "--timesteps", "128", "--n-envs", "1",
-                 "--particles", "10", "--n-steps", "120", "--hp", "n_steps=32",
-                 "--hp", "batch_size=32", "--hp", "n_epochs=1", "--seeds", "0",
-                 "--eval-every", "1000", "--eval-seeds", "3", "--eval-workers", "1",
-                 "--clutter-levels", "1", "--out", str(tmp_path), "--json"]) == 0
-    doc = json.loads(capsys.readouterr().out)
-    assert doc["summary"]["chosen_seed"] == 0
-    config = json.loads((tmp_path / "model.json").read_text())
+    config = train_tiny(tmp_path, "maskable-ppo")
+    assert json.loads(capsys.readouterr().out)["summary"]["chosen_seed"] == 0
     assert config["algo"] == "maskable-ppo" and config["timesteps"] >= 128
     assert "sb3-contrib" in config["versions"]
     final = config["final_evaluation"]

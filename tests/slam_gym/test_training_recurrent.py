@@ -7,9 +7,8 @@ import json
 
 import numpy as np
 import pytest
-from untrained import untrained_model
+from untrained import train_tiny, untrained_model
 
-from slam_gym.cli import main
 from slam_gym.envs.hybrid_slam import FEATURE_NAMES
 from slam_gym.training.hyperparams import load_hyperparams, validate_hyperparams
 from slam_gym.training.run import TrainingSetup
@@ -113,15 +112,9 @@ def test_a_tiny_recurrent_ppo_training_saves_a_model_learned_policy_runs(tmp_pat
     import policies
     from slam_gym.evaluation.core import run_policy_object
 
-    assert main(["train", "--algo", "recurrent-ppo", "--timesteps", "128", "--n-envs", "1",
-                 "--particles", "10", "--n-steps", "120", "--hp", "n_steps=32",
-                 "--hp", "batch_size=32", "--hp", "n_epochs=1", "--seeds", "0",
-                 "--hp", "policy_kwargs={net_arch: [8], lstm_hidden_size: 8}",
-                 "--eval-every", "1000", "--eval-seeds", "3", "--eval-workers", "1",
-                 "--clutter-levels", "1", "--out", str(tmp_path), "--json"]) == 0
-    doc = json.loads(capsys.readouterr().out)
-    assert doc["summary"]["chosen_seed"] == 0
-    config = json.loads((tmp_path / "model.json").read_text())
+    config = train_tiny(tmp_path, "recurrent-ppo",
+                        "--hp", "policy_kwargs={net_arch: [8], lstm_hidden_size: 8}")
+    assert json.loads(capsys.readouterr().out)["summary"]["chosen_seed"] == 0
     assert config["algo"] == "recurrent-ppo" and config["timesteps"] >= 128
     assert config["hyperparams"]["policy"] == "MlpLstmPolicy"
     final = config["final_evaluation"]

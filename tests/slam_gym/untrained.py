@@ -31,3 +31,19 @@ def untrained_model(tmp_path, algo, fuse=None, optimise=None, policy_kwargs=None
     path = save_model(model, vec, setup, tmp_path / "m" / "model.zip", 0)
     vec.close()
     return model, path
+
+
+def train_tiny(tmp_path, algo, *extra_args):
+    """``slam-gym train --algo algo`` for 128 decisions of 10 particles on one world of level 1,
+    one seed, evaluated once on world 3 (its summary is printed as JSON); the chosen model's
+    config."""
+    import json
+
+    from slam_gym.cli import main
+
+    assert main(["train", "--algo", algo, "--timesteps", "128", "--n-envs", "1",
+                 "--particles", "10", "--n-steps", "120", "--hp", "n_steps=32",
+                 "--hp", "batch_size=32", "--hp", "n_epochs=1", "--seeds", "0", *extra_args,
+                 "--eval-every", "1000", "--eval-seeds", "3", "--eval-workers", "1",
+                 "--clutter-levels", "1", "--out", str(tmp_path), "--json"]) == 0
+    return json.loads((tmp_path / "model.json").read_text())
