@@ -75,7 +75,7 @@ import numpy as np
 from numba import njit
 
 from filters.existence import CONFIRMED_PROBABILITY
-from filters.geometry import wrap_angle
+from filters.geometry import wrap_angle, wrap_angle_one
 from filters.types import GaussianMap
 from filters.validation import check_range, require
 
@@ -393,12 +393,6 @@ def pose_moments(poses, weights, pose_covs=None, lineages=None, small_sample=Fal
 
 
 @njit(cache=True)
-def _wrapped(angle):
-    """:func:`filters.geometry.wrap_angle` of one angle, compiled (the same formula)."""
-    return (angle + np.pi) % (2.0 * np.pi) - np.pi
-
-
-@njit(cache=True)
 def pose_moments_unchecked(poses, w, covs, group, n_groups, small_sample):
     """:func:`pose_moments` without its validation, for callers whose arrays are the filter's own
     (normalised weights, lineage groups in range): ``covs`` (P, 3, 3) or empty (no particle
@@ -412,12 +406,12 @@ def pose_moments_unchecked(poses, w, covs, group, n_groups, small_sample):
         mean[1] += w[p] * poses[p, 1]
         sin_sum += w[p] * np.sin(poses[p, 2])
         cos_sum += w[p] * np.cos(poses[p, 2])
-    mean[2] = _wrapped(np.arctan2(sin_sum, cos_sum))
+    mean[2] = wrap_angle_one(np.arctan2(sin_sum, cos_sum))
     wd = np.empty((P, 3))  # w_p (x_p - mean), heading wrapped
     cov = np.zeros((3, 3))
     for p in range(P):
         d0, d1 = poses[p, 0] - mean[0], poses[p, 1] - mean[1]
-        d2 = _wrapped(poses[p, 2] - mean[2])
+        d2 = wrap_angle_one(poses[p, 2] - mean[2])
         wd[p, 0], wd[p, 1], wd[p, 2] = w[p] * d0, w[p] * d1, w[p] * d2
         for i in range(3):
             cov[i, 0] += wd[p, i] * d0

@@ -35,6 +35,7 @@ from filters.existence import (
     existence_false_alarm_one,
     miss_update_one,
 )
+from filters.geometry import wrap_angle_one as _wrap
 
 _TWO_PI = 2.0 * math.pi
 _SQRT_HALF = math.sqrt(0.5)
@@ -58,11 +59,6 @@ class ScanModel(NamedTuple):
     max_existence: float
     literal_beta: bool
     sample_clutter: bool
-
-
-@njit(cache=True, inline="always")
-def _wrap(angle):
-    return (angle + math.pi) % _TWO_PI - math.pi
 
 
 @njit(cache=True, inline="always")

@@ -12,7 +12,10 @@ All functions broadcast over leading axes (e.g. over particles).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+from numba import njit
 
 TWO_PI = 2.0 * np.pi
 
@@ -20,6 +23,26 @@ TWO_PI = 2.0 * np.pi
 def wrap_angle(angle):
     """Wrap an angle (or array of angles) in radians to [-pi, pi)."""
     return (np.asarray(angle, dtype=float) + np.pi) % TWO_PI - np.pi
+
+
+@njit(cache=True, inline="always")
+def wrap_angle_one(angle):
+    """:func:`wrap_angle` of one float, compiled, to the bit.
+
+    Python's (and numba's) float ``%`` calls ``fmod``, the costliest part of a compiled filter
+    step's many wraps. For ``x = angle + pi`` within two turns of [0, 2 pi) the remainder is
+    one exact subtraction or the same rounded addition ``%`` makes: ``fmod`` returns ``x`` for
+    ``|x| < 2 pi`` (a negative one then gets ``+ 2 pi``, as here), and ``x - 2 pi`` is exact for
+    ``2 pi < x < 4 pi`` (Sterbenz). Zero and everything else take ``%`` itself.
+    """
+    x = angle + math.pi
+    if 0.0 < x < TWO_PI:
+        return x - math.pi
+    if TWO_PI < x < 2.0 * TWO_PI:
+        return (x - TWO_PI) - math.pi
+    if -TWO_PI < x < 0.0:
+        return (x + TWO_PI) - math.pi
+    return x % TWO_PI - math.pi
 
 
 def compose(a, b):

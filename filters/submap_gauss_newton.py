@@ -34,6 +34,7 @@ from numba import njit
 from scipy.linalg import cho_factor, cho_solve
 
 from filters.esdf import sparse_spd_factor
+from filters.geometry import wrap_angle_one as _wrap
 
 DENSE_MAX_VARIABLES = 600
 """Above this many variables the normal equations are factorised sparse (the graph of a
@@ -109,11 +110,6 @@ def submap_arrays(submaps, global_ids, feature_index: dict, n_poses: int,
         mean_start=starts[1], means=flat_means, info_start=starts[2],
         infos=np.concatenate(infos),
     )
-
-
-@njit(cache=True)
-def _wrap(angle):
-    return (angle + np.pi) % (2.0 * np.pi) - np.pi
 
 
 @njit(cache=True)

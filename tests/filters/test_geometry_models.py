@@ -116,6 +116,22 @@ def test_wrap_angle_range():
     assert g.wrap_angle(np.pi) == pytest.approx(-np.pi)
 
 
+def test_compiled_wrap_equals_wrap_angle_to_the_bit():
+    """wrap_angle_one's shortcuts around fmod give wrap_angle's bits, at the branch edges too."""
+    two_pi = 2.0 * np.pi
+    edges = [0.0, -0.0, np.pi, -np.pi, two_pi, -two_pi, 3 * np.pi, -3 * np.pi, 2 * two_pi, 1e-300,
+             -1e-300, 5e-324, np.pi + 1e-15, -np.pi - 1e-15, 3 * np.pi - 1e-15, 1e6, -1e6]
+    near = [np.nextafter(e, d) for e in edges for d in (-np.inf, np.inf)]
+    rng = np.random.default_rng(0)
+    angles = np.concatenate([edges, near, rng.uniform(-4 * np.pi, 4 * np.pi, 20_000),
+                             rng.uniform(-1e4, 1e4, 2_000), [np.inf, -np.inf, np.nan]])
+    compiled = np.array([g.wrap_angle_one(float(a)) for a in angles])
+    reference = g.wrap_angle(angles)
+    finite = np.isfinite(angles)
+    assert np.array_equal(compiled[finite].view(np.int64), reference[finite].view(np.int64))
+    assert np.all(np.isnan(compiled[~finite])) and np.all(np.isnan(reference[~finite]))
+
+
 def test_chong_kleeman_covariance_matches_wheel_sampling():
     """CM (14): the (v, omega) covariance equals the sample covariance of noisy wheel travels."""
     noise = m.ChongKleemanNoise(k_m=1e-3, wheel_base_m=0.5)
