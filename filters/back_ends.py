@@ -245,13 +245,21 @@ class GlobalMap:
         self.ids = np.zeros(0, dtype=np.int64)
         self.existence = np.zeros(0)
         self.last_hypothesis: Hypothesis | None = None
+        self._feature_cols = None  # feature_cols() of the last size asked for
 
     @property
     def n_features(self) -> int:
         return len(self.ids)
 
     def feature_cols(self) -> np.ndarray:
-        return 3 + 2 * np.arange(self.n_features)[:, None] + np.arange(2)
+        """The state columns (n, 2) of each feature's (x, y); read-only, formed once per size."""
+        n = self.n_features
+        cols = self._feature_cols
+        if cols is None or len(cols) != n:
+            cols = 3 + 2 * np.arange(n)[:, None] + np.arange(2)
+            cols.flags.writeable = False
+            self._feature_cols = cols
+        return cols
 
     def origin(self):
         """``v-``: the global pose at the last fusion (mean (3,), cov (3, 3))."""

@@ -221,12 +221,14 @@ def assign_correspondence_ids(cids, active, slots, winners) -> int:
             f"({slots.shape[0]},): one id per observation of slots")
     require(cids.shape == active.shape and cids.shape[0] == slots.shape[1], "cids", cids.shape,
             f"(P, C) like active {active.shape}, P = {slots.shape[1]} as in slots")
-    return _assign_scan_ids(cids, active, slots, winners)
+    return assign_correspondence_ids_unchecked(cids, active, slots, winners)
 
 
 @njit(cache=True)
-def _assign_scan_ids(cids, active, slots, winners) -> int:
-    """The loop of :func:`assign_correspondence_ids` (integer work only)."""
+def assign_correspondence_ids_unchecked(cids, active, slots, winners) -> int:
+    """The loop of :func:`assign_correspondence_ids` (integer work only), without its
+    validation: for the filter's own arrays (``cids`` int64, ``active`` bool (P, C), ``slots``
+    int64 (K, P), ``winners`` int64 (K,))."""
     K, P = slots.shape
     C = cids.shape[1]
     kept = 0

@@ -139,13 +139,14 @@ after ``update`` (pose already sampled) can only reweight the particles.
 from __future__ import annotations
 
 import logging
+import math
 
 import numpy as np
 from numba import njit
 
 from filters.conversion import (
     NEW_VOTE,
-    assign_correspondence_ids,
+    assign_correspondence_ids_unchecked,
     common_features,
     feature_means,
     feature_moments,
@@ -188,6 +189,23 @@ _NO_LINEAGE = np.zeros(0, dtype=np.int64)
 _NO_POSE_COVS = np.zeros((0, 3, 3))
 _NO_LINEAGE.flags.writeable = False
 _NO_POSE_COVS.flags.writeable = False
+
+
+_NOT_FINITE, _NEGATIVE_RANGE = 1, 2
+
+
+@njit(cache=True)
+def _scan_problem(z):
+    """0 for a valid scan (K, 2); ``_NOT_FINITE`` if an entry is not finite, else
+    ``_NEGATIVE_RANGE`` if a range is negative (one compiled pass: the check runs every step)."""
+    for k in range(z.shape[0]):
+        for i in range(2):
+            if not np.isfinite(z[k, i]):
+                return _NOT_FINITE
+    for k in range(z.shape[0]):
+        if not z[k, 0] >= 0.0:
+            return _NEGATIVE_RANGE
+    return 0
 
 
 def clutter_share(log_weights, clutter_prob) -> np.ndarray:
@@ -360,7 +378,8 @@ class FastSLAM2:
             sample_clutter=bool(sample_clutter),
         )
         self.existence_model = existence_model
-        self._capacity = int(initial_capacity)
+        self._initial_capacity = int(initial_capacity)
+        self._capacity = self._initial_capacity
         self._clutter_num = 0.0
         self._clutter_den = 0.0
         self.lineage_correction = bool(lineage_correction)
@@ -461,7 +480,8 @@ class FastSLAM2:
     def predict(self, u, dt):
         """Motion prediction: proposal prior N(f(v, u), J_u Q J_u^T) for every particle (FS2)."""
         u = np.asarray(u, dtype=float)
-        require(u.shape == (2,) and bool(np.all(np.isfinite(u))), "u", u, "a finite (v, omega)")
+        require(u.shape == (2,) and math.isfinite(u[0]) and math.isfinite(u[1]), "u", u,
+                "a finite (v, omega)")
         dt = float(dt)
         check_range("dt", dt, 0.0, 1e6)
         if dt == 0.0:  # no time elapsed, no motion (e.g. a scan at the start pose)
@@ -528,8 +548,9 @@ class FastSLAM2:
         for the pose draw) come from ``rng`` in that order.
         """
         z = np.asarray(z, dtype=float).reshape(-1, 2) if np.size(z) else np.zeros((0, 2))
-        require(bool(np.all(np.isfinite(z))), "z", z, "finite range-bearing pairs (K, 2)")
-        require(bool(np.all(z[:, 0] >= 0.0)), "z", z, "ranges >= 0")
+        problem = _scan_problem(z)
+        require(problem != _NOT_FINITE, "z", z, "finite range-bearing pairs (K, 2)")
+        require(problem != _NEGATIVE_RANGE, "z", z, "ranges >= 0")
         K, P = len(z), self.n_particles
         known_cids = None
         if associations is not None:
@@ -566,7 +587,8 @@ class FastSLAM2:
         # every feature modified or created by an observation takes its winner's id, unless its
         # particle holds another feature with that id (clutter winning leaves modified features
         # their id and created ones without one): filters.conversion.assign_correspondence_ids
-        assign_correspondence_ids(self._cid, self._active, slots, winners)
+        assign_correspondence_ids_unchecked(
+            self._cid, self._active, slots, np.asarray(winners, dtype=np.int64))
 
         self._outputs = {}
         self._steps += 1
@@ -700,7 +722,11 @@ class FastSLAM2:
         )
 
     def restart(self):
-        """New local map (BB 4): all particles at the origin, zero uncertainty, no features."""
+        """New local map (BB 4): all particles at the origin, zero uncertainty, no features.
+
+        The feature slots shrink back to ``initial_capacity``: the map is empty, and every
+        whole-cloud copy (resampling, culling, the common set) scales with the slots held."""
+        self._capacity = self._initial_capacity
         self._reset(np.zeros(3))
 
     def local_statistics(self) -> dict[str, float]:

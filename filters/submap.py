@@ -293,10 +293,11 @@ class SubmapSLAM:
         if g.n_features == 0 or len(z) == 0:
             return 0.0
         pose, sigma, J_a = self._compose_with_origin()
-        R = self.front_end.sensor.R
+        sensor = self.front_end.sensor  # R's diagonal, without forming R at every step
         _, ratio = _nearest_global_innovations(
             z, pose, sigma, J_a, np.asarray(g.x, dtype=float), np.asarray(g.P, dtype=float),
-            g.feature_cols(), float(R[0, 0]), float(R[1, 1]), self.closure_radius_m,
+            g.feature_cols(), float(sensor.range_std_m**2), float(sensor.bearing_std_rad**2),
+            self.closure_radius_m,
         )
         return float(ratio.max())
 
