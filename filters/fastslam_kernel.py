@@ -283,6 +283,8 @@ def scan_update(
     claimed = np.empty(n_hi, dtype=np.bool_)
     hyp_slot = np.empty(n_hi + 2, dtype=np.int64)
     hyp_value = np.empty(n_hi + 2)
+    hyp_terms = np.empty((n_hi + 2, 11))  # _observation_terms of each gated feature
+    feature_std = np.empty(n_hi)  # sqrt(trace) of each feature's covariance, for the pre-gate
     gate_areas = np.empty(K)
     new_existence = np.empty(K)
     step = np.empty(3)
@@ -299,6 +301,7 @@ def scan_update(
                 p_vis[j] = 0.0
                 ratio[j] = 0.0
                 continue
+            feature_std[j] = math.sqrt(sxx[p, j] + syy[p, j])
             p_vis[j] = _visibility(
                 pose[0], pose[1], pose[2], Pc, mx[p, j], my[p, j],
                 sxx[p, j], sxy[p, j], syy[p, j], max_range_m, fov_rad,
@@ -353,7 +356,7 @@ def scan_update(
                     if not active[p, j] or claimed[j]:
                         continue
                     # cheap Cartesian pre-gate: a sum of stds bounds the std of the sum
-                    radius = gate_scale * (spread + math.sqrt(sxx[p, j] + syy[p, j])) + 0.5
+                    radius = gate_scale * (spread + feature_std[j]) + 0.5
                     ddx = mx[p, j] - px
                     ddy = my[p, j] - py
                     if ddx * ddx + ddy * ddy >= radius * radius:
@@ -367,6 +370,8 @@ def scan_update(
                         if like > 0.0:
                             hyp_slot[n_hyp] = j
                             hyp_value[n_hyp] = like
+                            for i in range(11):
+                                hyp_terms[n_hyp, i] = t[i]
                             n_hyp += 1
                 hyp_slot[n_hyp] = NEW
                 hyp_slot[n_hyp + 1] = CLUTTER
@@ -393,10 +398,8 @@ def scan_update(
                 chosen = hyp_slot[pick]
                 if chosen >= 0:
                     votes[k, p] = cid[p, chosen] if cid[p, chosen] >= 0 else NEW
-                    t = _observation_terms(
-                        zr, zb, pose[0], pose[1], pose[2], Pc, mx[p, chosen], my[p, chosen],
-                        sxx[p, chosen], sxy[p, chosen], syy[p, chosen], r_var, b_var,
-                    )
+                    h = hyp_terms[pick]  # the terms the gate formed for it, at this proposal
+                    t = (h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7], h[8], h[9], h[10])
                 else:
                     votes[k, p] = chosen
                     slots[k, p] = chosen
