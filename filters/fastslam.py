@@ -495,7 +495,8 @@ class FastSLAM2:
         self._pending = True
         self._age_s += dt
         self._distance_m += abs(float(u[0])) * dt
-        self._outputs = {}
+        # the poses moved, the weights did not: only their normalisation outlives the prediction
+        self._outputs = {k: v for k, v in self._outputs.items() if k == "weights"}
 
     def _sample_pending(self):
         """Draw every particle's pose from its proposal N(x, P) (FS2)."""
@@ -578,8 +579,9 @@ class FastSLAM2:
         # --- correspondence votes (BB 3.1), one per observation, with the weights after it
         if known_cids is None:
             winners, margins, _ = vote_all(logw_after, votes)
-            for k in np.flatnonzero(winners == NEW_VOTE):
-                winners[k] = self.ids.new(1)[0]
+            new = np.flatnonzero(winners == NEW_VOTE)
+            if len(new):  # fresh ids in observation order, as one call per observation gave them
+                winners[new] = self.ids.new(len(new))
             for share in clutter_share(logw_after, clutter_prob):
                 self._remember_clutter(share)
         else:

@@ -93,7 +93,7 @@ class Episode:
         associations = np.asarray(system.last_associations)
         if len(associations) == len(truth_ids) and len(truth_ids):
             self.feature_truth.record(associations, truth_ids)
-        self.detected_landmarks.update(int(i) for i in truth_ids[truth_ids >= 0])
+        self.detected_landmarks.update(truth_ids[truth_ids >= 0].tolist())
         self.iteration += 1
         self.t_s = step.t_s
         self.last_step = step
@@ -101,7 +101,7 @@ class Episode:
 
     def _measure(self, step) -> None:
         true_pose = step.truth.pose
-        if not np.all(np.isfinite(true_pose)):
+        if not np.isfinite(true_pose).all():
             return
         mean, cov = self.system.pose()
         value = nees(true_pose, mean, cov)
