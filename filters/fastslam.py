@@ -243,7 +243,8 @@ class FastSLAM2:
     cull_threshold, cull_interval_steps: existence bookkeeping (module doc).
     feature_budget: the front-end's feature budget (``local_map_budget_ratio``).
     clutter_rate_memory: observations over which ``clutter_rate`` is averaged (exponential).
-    initial_capacity: initial feature slots per particle (doubles when full).
+    initial_capacity: initial feature slots per particle (doubles when full; back to this at
+        every restart).
     existence_model: ``"gate"`` or ``"bb"``, the reading of BB (11) (:mod:`filters.existence`).
     sample_clutter: draw *clutter* and *new feature* as two DAS hypotheses (the earlier rule,
     kept for comparison; over-confident local maps, docs/RESULTS.md) instead of one new feature
