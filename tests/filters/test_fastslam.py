@@ -285,6 +285,8 @@ def test_known_association_fastslam2_is_consistent_on_short_runs():
 def test_seeded_determinism_bit_for_bit():
     stream = make_stream("brooks-bailey", seed=2, n_steps=60, clutter_level=2)
 
+    slots_before_restart, slots_after_restart = [], []
+
     def episode(seed, capacity=16):
         f = make_filter(stream, seed=seed, n_particles=200, initial_capacity=capacity)
         out = []
@@ -294,7 +296,9 @@ def test_seeded_determinism_bit_for_bit():
             out.append(f.last_associations.copy())
             if step.index == 29:
                 out.append(f.to_gaussian().P)
+                slots_before_restart.append(f.capacity)
                 f.restart()
+                slots_after_restart.append(f.capacity)
         out += [f.poses, f.weights, f.means, f.covs, f.existence, f.correspondence_ids]
         return out
 
@@ -302,8 +306,13 @@ def test_seeded_determinism_bit_for_bit():
     assert len(a) == len(b)
     for x, y in zip(a, b, strict=True):
         np.testing.assert_array_equal(x, y)
-    # the capacity doubling does not change the result
+    # the capacity doubling, and its return at the restart, do not change the result
     d = episode(7, capacity=1)
+    # (seeds 7, 7, 8 at 16 slots, then 7 at 1 slot): the slots grew, a restart gave them back
+    assert slots_after_restart == [16, 16, 16, 1]
+    assert slots_before_restart[3] > 1
+    for x, y in zip(a[:-6], d[:-6], strict=True):  # every scan's associations, the fused map
+        np.testing.assert_array_equal(x, y)
     np.testing.assert_array_equal(a[-6], d[-6])  # poses
     np.testing.assert_array_equal(a[-5], d[-5])  # weights
     assert not np.array_equal(a[-6], c[-6])
