@@ -149,13 +149,25 @@ def _tally(weights, votes, options, shares):
         options[0] = first
         shares[0] = 1.0
         return 1
+    # the options in order of first appearance, each share summed in particle order (as a
+    # stable sort by vote would sum it; a scan has a handful of options, so no sort of P votes)
     n = 0
-    for i in np.argsort(votes, kind="mergesort"):
-        if n == 0 or votes[i] != options[n - 1]:
-            options[n] = votes[i]
+    for p in range(len(votes)):
+        j = 0
+        while j < n and options[j] != votes[p]:
+            j += 1
+        if j == n:
+            options[n] = votes[p]
             shares[n] = 0.0
             n += 1
-        shares[n - 1] += weights[i]
+        shares[j] += weights[p]
+    for i in range(1, n):  # ascending options (insertion sort of the few), shares alongside
+        option, share = options[i], shares[i]
+        j = i - 1
+        while j >= 0 and options[j] > option:
+            options[j + 1], shares[j + 1] = options[j], shares[j]
+            j -= 1
+        options[j + 1], shares[j + 1] = option, share
     for i in range(n):
         shares[i] /= total
     return n
