@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from numba import njit
 
+from filters import conversion
 from filters.conversion import (
     CLUTTER_VOTE,
     EIGENVALUE_FLOOR,
@@ -378,6 +380,32 @@ def test_vote_all_equals_one_vote_per_observation():
         assert clutter[k] == pytest.approx(one.share_of(CLUTTER_VOTE), abs=1e-12)
     assert winners[2] == 8 and margins[2] == 1.0
     assert winners[4] == 3 and margins[4] == pytest.approx(0.0, abs=1e-12)
+
+
+@njit
+def _numba_total(weights):
+    return weights.sum()  # the total the compiled tally divides by
+
+
+@pytest.mark.parametrize("n_options", [2, 5, 40])
+def test_vote_tally_sums_each_share_in_particle_order(n_options):
+    """The compiled tally's options are the distinct votes ascending and each share is the sum
+    of its particles' weights in particle order (what a stable sort by vote summed), to the bit:
+    weights over 30 orders of magnitude make any other order round differently."""
+    rng = np.random.default_rng(n_options)
+    P = 500
+    weights = np.exp(rng.uniform(-35.0, 0.0, P))
+    votes = rng.choice(np.arange(-2, n_options - 2) * 7, size=P)
+    options = np.empty(P, dtype=np.int64)
+    shares = np.empty(P)
+    n = conversion._tally(weights, votes, options, shares)
+    expected_options = np.unique(votes)
+    sums = {int(o): 0.0 for o in expected_options}
+    for p in range(P):
+        sums[int(votes[p])] += float(weights[p])
+    total = _numba_total(weights)
+    np.testing.assert_array_equal(options[:n], expected_options)
+    np.testing.assert_array_equal(shares[:n], [sums[int(o)] / total for o in expected_options])
 
 
 def _assign_reference(cids, active, slots, winners):
