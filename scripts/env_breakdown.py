@@ -1,0 +1,89 @@
+"""Where an env decision's time goes: wall time of the main calls of a step (issue 27).
+
+Usage: python scripts/env_breakdown.py [POLICY] [DECISIONS]
+e.g.   python scripts/env_breakdown.py fixed-10s 400
+
+Wraps the pieces of a ``HybridSLAMEnv(n_particles=500, clutter_level=2)`` step in
+``perf_counter`` timers (the compiled scan, FastSLAM's update around it, its resampling and
+prediction, the vote, the innovation ratio's prior pose, the posterior pose and NEES, the map
+score, the interface features, fusions, optimisations, resets), plays ``POLICY`` (default
+``fixed-10s``) for ``DECISIONS`` decisions (default 400) from ``reset(seed=0)`` after a warm-up,
+and prints each piece's milliseconds per decision and share of the wall time. Nested pieces
+are included in their callers (the scan in FastSLAM's update, which is in the interval).
+"""
+
+from __future__ import annotations
+
+import collections
+import sys
+import time
+
+import filters.fastslam as fastslam
+import filters.submap as submap
+import policies
+import slam_gym.envs.hybrid_slam as hybrid_slam
+import slam_gym.episode as episode
+
+PIECES = (
+    (fastslam, "scan_update", "compiled scan (FastSLAM kernel)"),
+    (fastslam, "vote_all", "correspondence vote"),
+    (fastslam.FastSLAM2, "update", "FastSLAM update (scan included)"),
+    (fastslam.FastSLAM2, "predict", "FastSLAM prediction"),
+    (fastslam.FastSLAM2, "_maybe_resample", "resampling test and resampling"),
+    (submap.SubmapSLAM, "observation_innovation_ratio", "innovation ratio (prior pose)"),
+    (episode.Episode, "_measure", "posterior pose, NEES, errors"),
+    (episode.Episode, "map_score", "map score (reward)"),
+    (episode.Episode, "fuse", "fusions"),
+    (episode.Episode, "optimise", "optimisations"),
+    (hybrid_slam.HybridSLAMEnv, "_features", "interface features"),
+    (hybrid_slam.HybridSLAMEnv, "_run_interval", "decision interval (10 iterations)"),
+    (hybrid_slam.HybridSLAMEnv, "reset", "resets"),
+)
+
+
+def _timed(function, label, seconds, calls):
+    def wrapper(*args, **kwargs):
+        start = time.perf_counter()
+        try:
+            return function(*args, **kwargs)
+        finally:
+            seconds[label] += time.perf_counter() - start
+            calls[label] += 1
+    return wrapper
+
+
+def main(argv: list[str]) -> int:
+    name = argv[0] if argv else "fixed-10s"
+    n_decisions = int(argv[1]) if len(argv) > 1 else 400
+    seconds, calls = collections.defaultdict(float), collections.Counter()
+    for owner, attribute, label in PIECES:
+        setattr(owner, attribute, _timed(getattr(owner, attribute), label, seconds, calls))
+    env = hybrid_slam.HybridSLAMEnv(n_particles=500, clutter_level=2)
+    policy = policies.make(name)
+    obs, info = env.reset(seed=0)
+    policy.reset()
+    for _ in range(30):  # warm-up: the compiled kernels loaded
+        obs, _, terminated, truncated, info = env.step(policy.act(obs, info))
+    seconds.clear()
+    calls.clear()
+    seed = 0
+    obs, info = env.reset(seed=seed)
+    policy.reset()
+    start = time.perf_counter()
+    for _ in range(n_decisions):
+        obs, _, terminated, truncated, info = env.step(policy.act(obs, info))
+        if terminated or truncated:
+            seed += 1
+            policy.reset()
+            obs, info = env.reset(seed=seed)
+    wall_s = time.perf_counter() - start
+    print(f"{name}: {n_decisions} decisions in {wall_s:.2f} s wall "
+          f"({n_decisions / wall_s:.1f} decisions/s under the timers), {seed + 1} worlds")
+    for label, s in sorted(seconds.items(), key=lambda kv: -kv[1]):
+        print(f"  {label:36s} {s / n_decisions * 1e3:7.3f} ms a decision  "
+              f"{s / wall_s * 100:5.1f} %  ({calls[label] / n_decisions:.2f} calls a decision)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
