@@ -53,15 +53,17 @@ class LinearCost:
 
 
 # Fitted by `slam-gym speed --calibrate-compute --calibration-seeds 0,1` (docs/PERFORMANCE.md
-# gives the machine, the date, the commit and the correlation of model and measurement); two
-# significant figures. The filter's intercept is per decision interval (its operations count all
-# the interval's iterations). Refitted for issue 27's compiled pose and optimiser.
+# gives the machine, the date, the commit and the correlation of model and measurement): the
+# median of three fits on a quiet machine, two significant figures. The filter's intercept is per
+# decision interval (its operations count all the interval's iterations). Refitted at the end of
+# issue 27 (the compiled front-end and optimiser, and a machine on which the code before the
+# lineage regression runs at the speed this project's docs first gave it).
 DEFAULT_COSTS: dict[str, LinearCost] = {
-    "filter-fastslam": LinearCost(4.1e-3, 1.4e-7),
-    "filter-ekf": LinearCost(7.8e-3, 6.8e-7),
-    "fusion-ekf": LinearCost(2.6e-3, 2.3e-8),
-    "fusion-relative": LinearCost(1.8e-2, 1.6e-6),
-    "optimise": LinearCost(1.4e-3, 4.4e-7),
+    "filter-fastslam": LinearCost(1.4e-3, 5.0e-8),
+    "filter-ekf": LinearCost(3.3e-3, 2.9e-7),
+    "fusion-ekf": LinearCost(8.6e-4, 5.0e-9),
+    "fusion-relative": LinearCost(7.8e-3, 9.4e-7),
+    "optimise": LinearCost(8.4e-4, 2.4e-7),
 }
 
 
