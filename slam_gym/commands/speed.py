@@ -375,6 +375,11 @@ def run(args) -> int:
     # timed figure would otherwise carry (a fresh process's first reset is timed on its own)
     measure_system("hybrid", 2, 50, args.seed, 50)
     measure_env(3, args.seed + 999, schedule="fixed-10s-optimise", n_particles=50)
+    record_wanted = args.quick or baseline is not None
+    if record_wanted:  # the machine's own speed, before and after the figures (speed_record)
+        from slam_gym.commands.speed_record import machine_reference
+
+        references_s = [machine_reference()]
     schedules = name_list(args.env_schedules)
     bad = [s for s in schedules if s not in ENV_SCHEDULES]
     if bad:
@@ -425,6 +430,9 @@ def run(args) -> int:
         result["env_paper_episode"] = measure_env(None, args.seed, **PAPER_ENV_CONFIG)
     if not args.skip_esdf:
         result["esdf"] = measure_esdf(args.seed)
+    if record_wanted:
+        references_s.append(machine_reference())
+        result["machine_reference_s"] = references_s
     out = out_dir(args)
     (out / "speed.json").write_text(json.dumps(to_jsonable(result), indent=2) + "\n")
     lines = [f"{'system':<12}{'clutter':>8}{'particles':>10}{'it/s':>10}{'x real time':>13}"
@@ -464,17 +472,18 @@ def run(args) -> int:
                      f"per update ({r['updates']} updates)")
     lines.append(f"wrote {out / 'speed.json'}")
     status = 0
-    if args.quick or baseline is not None:
+    if record_wanted:
         from slam_gym.commands.speed_record import compare, comparison_lines, make_record
 
-        record = make_record(record_figures(result), Path(__file__).resolve().parents[2])
+        record = make_record(record_figures(result), Path(__file__).resolve().parents[2],
+                             float(np.mean(references_s)))
         (out / "speed_record.json").write_text(json.dumps(to_jsonable(record), indent=2) + "\n")
         result["record"] = record
         lines.append(f"wrote {out / 'speed_record.json'}")
         if baseline is not None:
             rows_cmp, ok = compare(record, baseline)
             result["comparison"] = {"baseline": args.compare, "passed": ok, "rows": rows_cmp}
-            lines += comparison_lines(rows_cmp, baseline)
+            lines += comparison_lines(rows_cmp, record, baseline)
             lines.append("speed check passed" if ok else
                          "speed check FAILED: a figure fell below half of the baseline's")
             status = 0 if ok else 1

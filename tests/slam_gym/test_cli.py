@@ -1,6 +1,7 @@
 """The command line: output contracts of each command on tiny configurations."""
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -212,6 +213,33 @@ def test_speed_record_comparison_fails_below_half_and_on_a_missing_figure():
     assert ok and rows[0][0] == "extra" and rows[0][-1] == "new"
 
 
+def test_speed_record_ratios_are_for_the_machine_when_both_records_carry_its_reference():
+    from slam_gym.commands.speed_record import compare, comparison_lines, machine_factor
+
+    baseline = {**_record(rate=(90.0, "decisions/s", True), time=(4.0, "ms", False)),
+                "machine_reference_s": 0.030}
+    # on a machine three times as fast, a threefold loss measures as the baseline's figures:
+    # the raw ratios pass, the ratios for the machine fail
+    fast_and_slower = {**_record(rate=(90.0, "decisions/s", True), time=(4.0, "ms", False)),
+                       "machine_reference_s": 0.010}
+    assert machine_factor(fast_and_slower, baseline) == pytest.approx(1 / 3)
+    assert compare({k: v for k, v in fast_and_slower.items() if k != "machine_reference_s"},
+                   baseline)[1]
+    rows, ok = compare(fast_and_slower, baseline)
+    assert not ok and [r[4] for r in rows] == [pytest.approx(1 / 3)] * 2
+    # unchanged code on a machine 2.5 times as slow passes, with ratios 1
+    slow_machine = {**_record(rate=(36.0, "decisions/s", True), time=(10.0, "ms", False)),
+                    "machine_reference_s": 0.075}
+    assert not compare({k: v for k, v in slow_machine.items() if k != "machine_reference_s"},
+                       baseline)[1]
+    rows, ok = compare(slow_machine, baseline)
+    assert ok and [r[4] for r in rows] == [pytest.approx(1.0)] * 2
+    assert "0.40 times as fast" in "\n".join(comparison_lines(rows, slow_machine, baseline))
+    for broken in (None, 0.0, "x"):
+        assert math.isnan(machine_factor({**slow_machine, "machine_reference_s": broken},
+                                         baseline))
+
+
 def test_speed_compare_exits_1_against_a_much_faster_baseline(tmp_path, capsys):
     args = ["speed", "--systems", "hybrid", "--particles", "10", "--clutter-levels", "1",
             "--iterations", "40", "--env-decisions", "3", "--env-particles", "",
@@ -226,6 +254,7 @@ def test_speed_compare_exits_1_against_a_much_faster_baseline(tmp_path, capsys):
     doc = json.loads(capsys.readouterr().out)
     assert doc["comparison"]["passed"] is False
     record = json.loads((tmp_path / "speed_record.json").read_text())
+    assert record["machine_reference_s"] > 0
     assert record["figures"]["hybrid_10p_level1_iterations_per_s"]["value"] > 0
     assert "env_fixed_10s_decisions_per_s" in record["figures"] and record["commit"]
     (tmp_path / "own.json").write_text(json.dumps(record))
