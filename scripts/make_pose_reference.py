@@ -21,8 +21,10 @@ REFERENCE_RUN = {"scenario": "brooks-bailey", "seed": 3, "clutter_level": 2, "n_
                  "n_particles": 200, "rng_seed": 7, "fusion_every_steps": 100}
 
 
-def reference_run():
-    """Replay :data:`REFERENCE_RUN`; returns the arrays the reference file holds."""
+def reference_run(observe=None):
+    """Replay :data:`REFERENCE_RUN`; returns the arrays the reference file holds. ``observe``, if
+    given, is called as ``observe("prior" | "post", front_end)`` right after each front-end pose
+    is recorded (the test computes its own reference from the same particle cloud there)."""
     from slam_gym.scenarios import make_stream
     from slam_gym.systems import make_system
 
@@ -36,11 +38,14 @@ def reference_run():
     out = {}
     for i, step in enumerate(stream):
         system.predict(step.odometry, step.dt_s)
-        for name, value in zip(("prior_mean", "prior_cov"), system.front_end.pose(), strict=True):
-            rows[name].append(value)
-        system.update(step.z)
-        for name, value in zip(("post_mean", "post_cov"), system.front_end.pose(), strict=True):
-            rows[name].append(value)
+        for when in ("prior", "post"):
+            if when == "post":
+                system.update(step.z)
+            mean, cov = system.front_end.pose()
+            rows[f"{when}_mean"].append(mean)
+            rows[f"{when}_cov"].append(cov)
+            if observe is not None:
+                observe(when, system.front_end)
         for name, value in zip(("global_mean", "global_cov"), system.pose(), strict=True):
             rows[name].append(value)
         if (i + 1) % run["fusion_every_steps"] == 0:

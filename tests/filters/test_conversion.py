@@ -702,35 +702,19 @@ def test_compiled_pose_matches_the_numpy_pose_of_f658fba_on_a_seeded_run():
     to float rounding, what the numpy code of commit f658fba gives for the same particle cloud,
     at every step of a seeded HYBRID run, before and after the update (both computed here, on
     this machine: :func:`_f658fba_pose_moments`)."""
-    from slam_gym.scenarios import make_stream
-    from slam_gym.systems import make_system
-
-    run = _load_script("make_pose_reference").REFERENCE_RUN
-    stream = make_stream(run["scenario"], seed=run["seed"], clutter_level=run["clutter_level"],
-                         n_steps=run["n_steps"])
-    system = make_system("hybrid", stream, np.random.default_rng(run["rng_seed"]),
-                         n_particles=run["n_particles"]).estimator
-    front = system.front_end
     expected = {"prior": ([], []), "post": ([], [])}
-    got = {"prior": ([], []), "post": ([], [])}
 
-    def record(when):
-        for out, pose in ((got, front.pose()), (expected, _f658fba_pose_moments(
-                front._poses, front.weights, front._pose_covs(), front.lineages))):
-            out[when][0].append(pose[0])
-            out[when][1].append(pose[1])
+    def observe(when, front):
+        mean, cov = _f658fba_pose_moments(front._poses, front.weights, front._pose_covs(),
+                                          front.lineages)
+        expected[when][0].append(mean)
+        expected[when][1].append(cov)
 
-    for i, step in enumerate(stream):
-        system.predict(step.odometry, step.dt_s)
-        record("prior")
-        system.update(step.z)
-        record("post")
-        if (i + 1) % run["fusion_every_steps"] == 0:
-            system.fuse()
-    for when in ("prior", "post"):
-        np.testing.assert_allclose(np.array(got[when][0]), np.array(expected[when][0]), rtol=0,
-                                   atol=1e-12, err_msg=when)
-        _assert_covariances_match(when, np.array(expected[when][1]), np.array(got[when][1]))
+    replay = _load_script("make_pose_reference").reference_run(observe)
+    for when, (means, covs) in expected.items():
+        np.testing.assert_allclose(replay[f"{when}_mean"], np.array(means), rtol=0, atol=1e-12,
+                                   err_msg=when)
+        _assert_covariances_match(when, np.array(covs), replay[f"{when}_cov"])
 
 
 def test_seeded_run_reproduces_the_poses_and_local_maps_f658fba_wrote():
