@@ -697,11 +697,11 @@ def _assert_covariances_match(name, expected, got):
         assert error <= 1e-12 + 1e-15 * condition, (name, k, error, condition)
 
 
-def test_compiled_pose_matches_the_numpy_pose_of_f658fba_on_a_seeded_run():
-    """Issue 27: the compiled pose moments (lineage term and small-sample factor included) equal,
-    to float rounding, what the numpy code of commit f658fba gives for the same particle cloud,
-    at every step of a seeded HYBRID run, before and after the update (both computed here, on
-    this machine: :func:`_f658fba_pose_moments`)."""
+@pytest.fixture(scope="module")
+def pose_replay():
+    """One replay of the seeded run of scripts/make_pose_reference.py: its arrays, and
+    :func:`_f658fba_pose_moments` of the front-end's cloud at each of its poses (``{"prior" |
+    "post": (means, covariances)}``), for the two tests below."""
     expected = {"prior": ([], []), "post": ([], [])}
 
     def observe(when, front):
@@ -711,13 +711,22 @@ def test_compiled_pose_matches_the_numpy_pose_of_f658fba_on_a_seeded_run():
         expected[when][1].append(cov)
 
     replay = _load_script("make_pose_reference").reference_run(observe)
+    return replay, {k: (np.array(m), np.array(c)) for k, (m, c) in expected.items()}
+
+
+def test_compiled_pose_matches_the_numpy_pose_of_f658fba_on_a_seeded_run(pose_replay):
+    """Issue 27: the compiled pose moments (lineage term and small-sample factor included) equal,
+    to float rounding, what the numpy code of commit f658fba gives for the same particle cloud,
+    at every step of a seeded HYBRID run, before and after the update (both computed here, on
+    this machine: :func:`_f658fba_pose_moments`)."""
+    replay, expected = pose_replay
     for when, (means, covs) in expected.items():
-        np.testing.assert_allclose(replay[f"{when}_mean"], np.array(means), rtol=0, atol=1e-12,
+        np.testing.assert_allclose(replay[f"{when}_mean"], means, rtol=0, atol=1e-12,
                                    err_msg=when)
-        _assert_covariances_match(when, np.array(covs), replay[f"{when}_cov"])
+        _assert_covariances_match(when, covs, replay[f"{when}_cov"])
 
 
-def test_seeded_run_reproduces_the_poses_and_local_maps_f658fba_wrote():
+def test_seeded_run_reproduces_the_poses_and_local_maps_f658fba_wrote(pose_replay):
     """Issue 27: the same seeded HYBRID run against what the numpy code of commit f658fba wrote
     (tests/data/pose_reference.npz, scripts/make_pose_reference.py): the front-end's means, the
     composed global pose and the local maps at fusion, to float rounding. The front-end's
@@ -729,7 +738,7 @@ def test_seeded_run_reproduces_the_poses_and_local_maps_f658fba_wrote():
     from pathlib import Path
 
     reference = np.load(Path(__file__).resolve().parents[1] / "data" / "pose_reference.npz")
-    replay = _load_script("make_pose_reference").reference_run()
+    replay, _ = pose_replay
     assert sorted(replay) == sorted(reference.files)
     for name in reference.files:
         expected, got = reference[name], replay[name]
