@@ -9,6 +9,7 @@ Gymnasium env all drive systems through it, so the env adds no behaviour of its 
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 
@@ -17,6 +18,7 @@ import numpy as np
 from filters.existence import CONFIRMED_PROBABILITY
 from filters.types import LandmarkEstimate
 from slam_gym.metrics import FailureDetector, FeatureTruth, nees, nees_band, score_map
+from slam_gym.world import RedrawnFuture
 
 
 @dataclass
@@ -29,6 +31,12 @@ class Trace:
     cov_trace: list = field(default_factory=list)
     est_poses: list = field(default_factory=list)
     true_poses: list = field(default_factory=list)
+
+    def __deepcopy__(self, memo):
+        """A copy whose lists are new but whose entries are shared: entries are never changed
+        after they are appended (floats and arrays made for the trace), so a copy of an episode
+        (:meth:`slam_gym.envs.hybrid_slam.HybridSLAMEnv.clone`) need not copy them."""
+        return Trace(*(list(getattr(self, f.name)) for f in dataclasses.fields(self)))
 
 
 class Episode:
@@ -120,6 +128,12 @@ class Episode:
             self.trace.cov_trace.append(float(np.trace(cov)))
             self.trace.est_poses.append(np.array(mean))
             self.trace.true_poses.append(np.array(true_pose))
+
+    def redraw_future(self, seed: int) -> None:
+        """Replace the rest of the stream with the same world's steps with their measurement
+        noise drawn anew from ``seed`` (:class:`slam_gym.world.RedrawnFuture`): the path, the
+        landmarks and what was already processed stay; the scans to come are another draw."""
+        self._steps = RedrawnFuture(self.stream, self.iteration, seed)
 
     # ------------------------------------------------------------------ interface decisions
     def fuse(self):

@@ -123,6 +123,13 @@ class FeatureTruth:
     def __init__(self):
         self.votes: dict[int, Counter] = defaultdict(Counter)
 
+    def __deepcopy__(self, memo):
+        """The same votes in new counters (ints need no copying; a generic deep copy of a few
+        hundred counters costs milliseconds, this a fraction of one)."""
+        copied = FeatureTruth()
+        copied.votes.update((fid, Counter(counts)) for fid, counts in self.votes.items())
+        return copied
+
     def record(self, feature_ids: np.ndarray, truth_ids: np.ndarray) -> None:
         """One update: the feature id each observation went to (-1 clutter) and its truth id."""
         for fid, tid in zip(np.asarray(feature_ids), np.asarray(truth_ids), strict=True):

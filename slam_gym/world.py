@@ -499,3 +499,89 @@ def simulate(scenario: Scenario, seed: int) -> Stream:
             "true_poses": poses[: n_moving + 1],
         },
     )
+
+
+FUTURE_BLOCK_STEPS = 64
+"""Steps :class:`RedrawnFuture` redraws at once (a lookahead rarely needs more than a few
+hundred steps of a future, so the rest of the path is drawn only if it is reached)."""
+
+
+class RedrawnFuture:
+    """The steps of a simulated world from index ``start`` on, with their measurement noise drawn
+    anew from ``seed``: an iterator that can stand in for the rest of an episode's stream.
+
+    What is kept: the true path (poses), the landmarks, which steps scan, the odometry, the
+    sensor and clutter models. What is redrawn, in the order :func:`simulate` draws it: each
+    scan's detections, their range-bearing noise and its false alarms (and the compass reading
+    where the scenario has a compass). The odometry is kept as recorded: under BB's model
+    (``odometry_noise="proportional"``) it is the commanded velocity and the noise lives in the
+    true path, which a re-seeded future must keep; under CM's model (``"chong-kleeman"``) the
+    recorded odometry errors stay those of the episode (a documented limit: they cannot be
+    redrawn without the path's true velocities). Steps are drawn lazily in blocks of
+    :data:`FUTURE_BLOCK_STEPS`, so a short lookahead pays only for the steps it plays.
+
+    ``stream`` must be a simulated world (its ``metadata`` names the scenario); a recording has
+    no model to redraw from and raises ``ValueError``. The object deep-copies and pickles (its
+    source steps are shared read-only by :meth:`slam_gym.envs.hybrid_slam.HybridSLAMEnv.clone`).
+    """
+
+    def __init__(self, stream: Stream, start: int, seed: int):
+        if not isinstance(stream.metadata.get("scenario"), Scenario):
+            raise ValueError(
+                f"stream={stream.name!r} is invalid for a redrawn future: must be a simulated "
+                "world (a recording has no sensor model to redraw its noise from)"
+            )
+        _check_seed(seed)
+        if not isinstance(start, (int, np.integer)) or not 0 <= start <= len(stream):
+            raise ValueError(f"start={start!r} is invalid: must be an integer in "
+                             f"[0, {len(stream)}]")
+        steps = stream.make_steps
+        self.source = steps.steps if hasattr(steps, "steps") else tuple(stream)
+        self.landmarks = stream.landmarks_true
+        self.sensor = stream.sensor
+        self.clutter = stream.clutter
+        self.compass_std_rad = stream.compass_std_rad
+        self.rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(start)]))
+        self.next_index = int(start)
+        self._buffer: list[Step] = []
+
+    def __iter__(self):
+        return self
+
+    def __next__(self) -> Step:
+        if not self._buffer:
+            if self.next_index >= len(self.source):
+                raise StopIteration
+            self._buffer = self._draw(self.next_index,
+                                      min(self.next_index + FUTURE_BLOCK_STEPS, len(self.source)))
+            self._buffer.reverse()  # pop() from the end
+        self.next_index += 1
+        return self._buffer.pop()
+
+    def _draw(self, begin: int, end: int) -> list[Step]:
+        block = self.source[begin:end]
+        scanned = [s for s in block if s.scanned]
+        if self.compass_std_rad is None:
+            poses = np.array([s.truth.pose for s in scanned]).reshape(-1, 3)
+            scans = iter(_detect_scans(poses, self.landmarks, self.sensor, self.clutter,
+                                       self.rng))
+        out = []
+        for step in block:
+            compass = step.compass_rad
+            z, ids, visible = step.z, step.truth.landmark_ids, step.truth.visible_ids
+            if step.scanned:
+                if self.compass_std_rad is None:
+                    z, ids, visible = next(scans)
+                else:
+                    z_true = (observe(step.truth.pose, self.landmarks) if len(self.landmarks)
+                              else np.zeros((0, 2)))
+                    z, ids, visible = _detect(z_true, np.flatnonzero(self.sensor.in_view(z_true)),
+                                              self.sensor, self.clutter, self.rng)
+            if compass is not None and self.compass_std_rad is not None:
+                compass = float(wrap_angle(step.truth.pose[2]
+                                           + self.compass_std_rad * self.rng.normal()))
+            out.append(dataclasses.replace(
+                step, z=z, compass_rad=compass,
+                truth=StepTruth(pose=step.truth.pose, landmark_ids=ids, visible_ids=visible),
+            ))
+        return out

@@ -110,6 +110,7 @@ same episode bit for bit in any process.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import logging
 import math
@@ -325,6 +326,7 @@ class HybridSLAMEnv(gym.Env):
         self.episode_compute_term_s = 0.0
         self.stream = None
         self.n_decisions = 0
+        self.filter_rng: np.random.Generator | None = None
         self._nees_band = nees_band(1)
         self._figure = None
         self._warned_headless = False
@@ -351,10 +353,12 @@ class HybridSLAMEnv(gym.Env):
         self.stream = self._make_stream(int(world_seed))
         from slam_gym.systems import make_system
 
+        #: the generator every random draw of the filters comes from (:meth:`reseed_future`)
+        self.filter_rng = np.random.default_rng(filter_seed)
         self.system = make_system(
             "hybrid" if self.config.front_end == "fastslam" else "ekf-submap",
             self.stream,
-            np.random.default_rng(filter_seed),
+            self.filter_rng,
             n_particles=self.config.n_particles,
             back_end=self.config.back_end,
             **self._system_options(),
@@ -453,6 +457,49 @@ class HybridSLAMEnv(gym.Env):
         mask cannot forbid "optimise" without forbidding "fuse and optimise", which is never a
         no-op; :class:`~slam_gym.envs.wrappers.DiscreteActions` masks exactly)."""
         return np.ones(4, dtype=bool)
+
+    # ------------------------------------------------------------------ copies (issue 39)
+    def clone(self) -> HybridSLAMEnv:
+        """An independent copy of this env, mid-episode, that continues exactly as this one
+        would: the same actions give the same observations, rewards and infos, bit for bit.
+
+        Only the mutable state is copied (the filters, the episode's counters and traces, the
+        generators); the world, which nothing changes, is shared read-only. That makes a copy
+        cost a few milliseconds where ``copy.deepcopy`` of the env costs about a hundred times
+        more (docs/PERFORMANCE.md). A copy renders nothing: its ``render_mode`` is None.
+        """
+        if self.episode is None:
+            raise RuntimeError("call reset() before clone()")
+        stream = self.stream
+        memo = {id(stream): stream}
+        steps = getattr(stream.make_steps, "steps", None)
+        if steps is not None:
+            memo[id(steps)] = steps
+        if self._figure is not None:
+            memo[id(self._figure)] = None
+        # calibration records are tuples of a string and floats: a new list, the same tuples
+        memo[id(self.compute_records)] = list(self.compute_records)
+        copied = copy.deepcopy(self, memo)
+        copied.render_mode = None
+        return copied
+
+    def reseed_future(self, seed: int) -> None:
+        """Draw the rest of the episode's measurement noise and the filter's random draws anew
+        from ``seed`` (a non-negative integer), keeping the world's path and landmarks and
+        everything that already happened: one of the futures the episode could have, which
+        ``seed`` chooses. Meant for a :meth:`clone` (a lookahead's imagined future), never for
+        the episode being scored. The scans to come are redrawn as
+        :class:`slam_gym.world.RedrawnFuture` states (the odometry is kept); a recorded data set
+        has no model to redraw from and raises ``ValueError``."""
+        if self.episode is None:
+            raise RuntimeError("call reset() before reseed_future()")
+        require(
+            isinstance(seed, (int, np.integer)) and not isinstance(seed, bool) and seed >= 0,
+            "seed", seed, "a non-negative integer",
+        )
+        self.episode.redraw_future(int(seed))
+        drawn = np.random.default_rng(np.random.SeedSequence([int(seed), self.episode.iteration]))
+        self.filter_rng.bit_generator.state = drawn.bit_generator.state
 
     def _record(self, kind_ops, cpu_start_s: float) -> float:
         """Keep ``(kind, ops, measured CPU s)`` for calibration; return the modelled seconds."""

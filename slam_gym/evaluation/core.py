@@ -257,6 +257,8 @@ def run_policy_object(
         n_steps=n_steps,
         **reward,
     )
+    if callable(getattr(policy, "bind_env", None)):  # a planning policy acts on copies of env
+        policy.bind_env(env)
     policy.reset()
     obs, info = env.reset(seed=int(seed), options={"world_seed": int(seed)})
     while True:
@@ -299,6 +301,8 @@ def run_job(job, policy_factories=None) -> dict:
                                      policy_name=job.name, **opts)
     row = episode_result(episode, env.stream)
     row.update(provenance_fields(policy))
+    if callable(getattr(policy, "episode_fields", None)):  # e.g. a lookahead's planning cost
+        row.update(policy.episode_fields())
     row["return"] = env.episode_return
     row["compute_term_s"] = env.episode_compute_term_s
     row["w_compute"] = env.config.w_compute

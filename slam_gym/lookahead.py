@@ -1,0 +1,199 @@
+"""``lookahead``: an interface policy that plans on copies of the env (Bertsekas' rollout).
+
+At a decision where the base rule would fuse (by default ``fixed-10s-optimise``: BB's 10 s
+interval, CM's optimiser after every fusion), the policy tries each alternative
+
+* fuse, then optimise;
+* fuse without optimising;
+* wait (neither: the base rule then fuses at the next decision, one second later);
+
+on copies of the env (:meth:`~slam_gym.envs.hybrid_slam.HybridSLAMEnv.clone`), continues each
+copy with the base rule for ``horizon_decisions`` decisions (the alternative's own decision
+included) and compares the alternatives' returns over ``n_futures`` futures. Every other
+decision is the base rule's. Rollout with a base policy is no worse than the base policy itself
+when the values are exact (Bertsekas, *Rollout algorithms*: the cost-improvement property).
+They are estimated here from a few sampled futures over a truncated horizon, and choosing the
+largest of noisy estimates favours whichever alternative drew lucky futures; so the policy
+leaves the base rule only for a *clear* gain: the best alternative's mean gain over the base
+action, paired future by future, must exceed both ``min_gain`` (return points) and
+``z_gain`` standard errors of the paired gains. A failure within the horizon costs thousands of
+points (the env's failure charge), the filtering's noise over 20 decisions tens, so a
+prevented failure passes and a noisy difference does not.
+
+The futures are not the episode's own: each copy's remaining measurement noise and the filter's
+random draws are redrawn (:meth:`~slam_gym.envs.hybrid_slam.HybridSLAMEnv.reseed_future`), so
+the policy never sees what its episode will observe. Future ``m`` has the same seed for every
+alternative (common random numbers: the alternatives are compared on the same draws) and
+different seeds at every decision and in every world. ``privileged=True`` is the exception,
+reported as an upper bound and never as a policy: one future, the episode's own (its scans and
+the filter's draws as they will come, as far as the alternative leaves them unchanged).
+
+Cost: at a planned decision, ``3 x n_futures`` copies each run ``horizon_decisions`` decisions;
+``planning_cpu_s`` and ``simulated_decisions`` say what an episode spent, and the evaluation
+records them in each row (:meth:`episode_fields`).
+
+The policy needs the env it acts in: the evaluation calls :meth:`bind_env` before an episode,
+and so must a user's own loop (``policy.bind_env(env)`` after ``gym.make``).
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+import policies
+from policies.base import Policy, check_range, make_action, require
+
+ALTERNATIVES: tuple[tuple[int, int], ...] = ((1, 1), (1, 0), (0, 0))
+"""The (fuse, optimise) actions tried where the base rule fuses (module docstring)."""
+
+DEFAULT_HORIZON_DECISIONS = 20
+"""Two of BB's fusion intervals at 1 s decisions: long enough for a fusion's effect on the
+filter's consistency, and on BB's failure criterion (2 s beyond 10 sigma), to show."""
+
+DEFAULT_N_FUTURES = 4
+
+DEFAULT_MIN_GAIN = 10.0
+"""Return points an alternative must gain over the base action (module docstring): a few
+decisions' worth of the env's per-decision cost (2-5 points on BB's world)."""
+
+DEFAULT_Z_GAIN = 2.0
+
+
+class LookaheadPolicy(Policy):
+    """Rollout of a base rule on re-seeded copies of the env (module docstring).
+
+    Options: ``base`` (a policy name, default ``fixed-10s-optimise``), ``horizon_decisions``
+    (H >= 1), ``n_futures`` (M >= 1; 1 when ``privileged``), ``min_gain`` and ``z_gain`` (the
+    gain that makes it leave the base rule), ``privileged`` (the episode's own future: an upper
+    bound, not a policy) and ``seed`` (the futures' seeds, with the world's seed and the
+    decision's index).
+    """
+
+    name = "lookahead"
+
+    def __init__(self, *, base: str = "fixed-10s-optimise",
+                 horizon_decisions: int = DEFAULT_HORIZON_DECISIONS,
+                 n_futures: int = DEFAULT_N_FUTURES, min_gain: float = DEFAULT_MIN_GAIN,
+                 z_gain: float = DEFAULT_Z_GAIN, privileged: bool = False,
+                 seed: int = 0) -> None:
+        super().__init__()
+        require(isinstance(base, str), "base", base, "a policy name")
+        self.base = policies.make(base)
+        for field, value in (("horizon_decisions", horizon_decisions), ("n_futures", n_futures),
+                             ("seed", seed)):
+            require(isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+                    and value >= (0 if field == "seed" else 1), field, value,
+                    "a non-negative integer" if field == "seed" else "a positive integer")
+        require(isinstance(privileged, bool), "privileged", privileged, "True or False")
+        require(not privileged or n_futures == 1, "n_futures", n_futures,
+                "1 when privileged (there is one own future)")
+        self.min_gain = check_range("min_gain", min_gain, 0.0, 1e9)
+        self.z_gain = check_range("z_gain", z_gain, 0.0, 1e3)
+        self.horizon_decisions = int(horizon_decisions)
+        self.n_futures = int(n_futures)
+        self.privileged = privileged
+        self.seed = int(seed)
+        self.required_features = self.base.required_features
+        self.options = {"base": base, "horizon_decisions": self.horizon_decisions,
+                        "n_futures": self.n_futures, "min_gain": self.min_gain,
+                        "z_gain": self.z_gain, "privileged": privileged, "seed": self.seed}
+        self._env = None
+        self.reset()
+
+    def bind_env(self, env) -> None:
+        """The env this policy acts in (a ``gym.make`` env or its unwrapped one): it plans on
+        copies of it. Call before the episode's first decision."""
+        env = getattr(env, "unwrapped", env)
+        require(callable(getattr(env, "clone", None))
+                and callable(getattr(env, "reseed_future", None)), "env", env,
+                "an env with clone() and reseed_future() (slam_gym's HybridSLAMEnv)")
+        self._env = env
+
+    def reset(self) -> None:
+        self.base.reset()
+        self.planning_cpu_s = 0.0
+        self.simulated_decisions = 0
+        self.planned_decisions = 0
+        self.deviations = 0
+
+    def episode_fields(self) -> dict[str, Any]:
+        """What the episode's planning cost, for the evaluation's rows."""
+        return {"planning_cpu_s": self.planning_cpu_s,
+                "simulated_decisions": self.simulated_decisions,
+                "planned_decisions": self.planned_decisions,
+                "deviations_from_base": self.deviations}
+
+    def act(self, obs: Any, info: Mapping[str, Any]) -> np.ndarray:
+        base_action = np.asarray(self.base.act(obs, info), dtype=np.int64)
+        if not base_action[0]:
+            return base_action
+        if self._env is None:
+            raise RuntimeError("lookahead needs the env it acts in: call policy.bind_env(env) "
+                               "before the episode")
+        start = time.process_time()
+        returns = self.action_returns(base_action)
+        self.planning_cpu_s += time.process_time() - start
+        self.planned_decisions += 1
+        choice = self.choose(returns, tuple(int(v) for v in base_action))
+        if choice != tuple(base_action):
+            self.deviations += 1
+        return make_action(*choice)
+
+    def action_returns(self, base_action: np.ndarray) -> dict[tuple[int, int], np.ndarray]:
+        """The horizon's return of each alternative in each future (the base action's first),
+        from the env's current state."""
+        env = self._env
+        base = tuple(int(v) for v in base_action)
+        seeds = self._future_seeds(env)
+        return {alternative: np.array([self._rollout(env, alternative, s) for s in seeds])
+                for alternative in (base, *(a for a in ALTERNATIVES if a != base))}
+
+    def choose(self, returns: Mapping[tuple[int, int], np.ndarray],
+               base: tuple[int, int]) -> tuple[int, int]:
+        """The alternative with the largest mean return if its gain over ``base``, paired by
+        future, is clear (``> min_gain`` and ``> z_gain`` standard errors); else ``base``."""
+        best = max(returns, key=lambda a: (float(np.mean(returns[a])), a == base))
+        if best == base:
+            return base
+        gains = returns[best] - returns[base]
+        mean_gain = float(np.mean(gains))
+        stderr = float(np.std(gains, ddof=1) / np.sqrt(len(gains))) if len(gains) > 1 else 0.0
+        return best if mean_gain > self.min_gain and mean_gain > self.z_gain * stderr else base
+
+    def _future_seeds(self, env) -> list[int | None]:
+        if self.privileged:
+            return [None]
+        sequence = np.random.SeedSequence([self.seed, int(env.world_seed), int(env.n_decisions)])
+        return [int(s.generate_state(1, np.uint64)[0] >> np.uint64(1))
+                for s in sequence.spawn(self.n_futures)]
+
+    def _rollout(self, env, first_action: tuple[int, int], seed: int | None) -> float:
+        sim = env.clone()
+        if seed is not None:
+            sim.reseed_future(seed)
+        base = copy.deepcopy(self.base)
+        obs, reward, terminated, truncated, info = sim.step(make_action(*first_action))
+        total, played = reward, 1
+        while played < self.horizon_decisions and not (terminated or truncated):
+            obs, reward, terminated, truncated, info = sim.step(base.act(obs, info))
+            total += reward
+            played += 1
+        self.simulated_decisions += played
+        return float(total)
+
+
+class PrivilegedLookahead(LookaheadPolicy):
+    """:class:`LookaheadPolicy` on the episode's own future: an upper bound, not a policy."""
+
+    name = "lookahead-privileged"
+
+    def __init__(self, *, base: str = "fixed-10s-optimise",
+                 horizon_decisions: int = DEFAULT_HORIZON_DECISIONS,
+                 min_gain: float = DEFAULT_MIN_GAIN, seed: int = 0) -> None:
+        super().__init__(base=base, horizon_decisions=horizon_decisions, n_futures=1,
+                         min_gain=min_gain, privileged=True, seed=seed)
