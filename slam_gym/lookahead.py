@@ -83,7 +83,10 @@ class LookaheadPolicy(Policy):
                  seed: int = 0) -> None:
         super().__init__()
         require(isinstance(base, str), "base", base, "a policy name")
-        self.base = policies.make(base)
+        try:
+            self.base = policies.make(base)
+        except ValueError as exc:
+            raise ValueError(f"base={base!r} is invalid: {exc}") from exc
         for field, value in (("horizon_decisions", horizon_decisions), ("n_futures", n_futures),
                              ("seed", seed)):
             require(isinstance(value, (int, np.integer)) and not isinstance(value, bool)
