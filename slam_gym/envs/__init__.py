@@ -30,6 +30,13 @@ RECORDED_ENV_VARIANTS: dict[str, tuple[str, dict]] = {
 }
 
 
+#: the same system under another action space (a wrapper of the env): id -> (entry point, default
+#: keyword arguments); the time limit is the wrapped env's, which an action never exceeds
+WRAPPED_ENV_VARIANTS: dict[str, tuple[str, dict]] = {
+    "SlamGym/HybridSLAM-Interval-v0": ("slam_gym.envs.interval:make_interval_env", {}),
+}
+
+
 RECORDED_MAX_EPISODE_STEPS = 2000
 """Decisions (1 s each at the defaults) of a recorded env's episode before Gymnasium's time limit:
 above the length of every MRCLAM recording (Dataset 7: ~890 s)."""
@@ -53,6 +60,10 @@ def register_envs() -> list[str]:
     for env_id, kwargs in ENV_VARIANTS.items():
         if env_id not in gym.registry:
             gym.register(id=env_id, entry_point=ENTRY_POINT, kwargs=dict(kwargs),
+                         max_episode_steps=max_episode_steps(kwargs))
+    for env_id, (entry_point, kwargs) in WRAPPED_ENV_VARIANTS.items():
+        if env_id not in gym.registry:
+            gym.register(id=env_id, entry_point=entry_point, kwargs=dict(kwargs),
                          max_episode_steps=max_episode_steps(kwargs))
     for env_id, (entry_point, kwargs) in RECORDED_ENV_VARIANTS.items():
         if env_id not in gym.registry:
