@@ -47,6 +47,7 @@ from policies.base import (
     discrete_to_multi,
     require,
 )
+from policies.heuristics import AGE_TOLERANCE_S
 
 logger = logging.getLogger(__name__)
 
@@ -321,6 +322,14 @@ class LearnedPolicy(Policy):
         self._rng = np.random.default_rng(sample_seed)
         self._lstm_state = None  # RecurrentPPO memory (reset() clears it)
         self.model = _algorithm_class(algo).load(str(model_path), device=device)
+        intervals = config.get("fusion_intervals_s")
+        require(intervals is None or (isinstance(intervals, list) and len(intervals) > 0
+                                      and all(isinstance(v, (int, float)) and v > 0
+                                              for v in intervals)),
+                "fusion_intervals_s", intervals,
+                "a list of positive times (s) in the model's config JSON")
+        self.fusion_intervals_s = None if intervals is None else tuple(float(v) for v in intervals)
+        self._pending: tuple[float, int] | None = None  # interval model: the fusion planned
         self._check_spaces()
         self.options = {
             "path": str(model_path),
@@ -345,6 +354,7 @@ class LearnedPolicy(Policy):
     def reset(self) -> None:
         self._rng = np.random.default_rng(self.sample_seed)
         self._lstm_state = None  # RecurrentPPO: zero state, as at the start of a training episode
+        self._pending = None
 
     @property
     def recurrent(self) -> bool:
@@ -411,16 +421,39 @@ class LearnedPolicy(Policy):
         act_space = self.model.action_space
         multi = isinstance(act_space, spaces.MultiDiscrete) and list(act_space.nvec) == [2, 2]
         flat = isinstance(act_space, spaces.Discrete) and int(act_space.n) == N_DISCRETE_ACTIONS
+        interval = (self.fusion_intervals_s is not None
+                    and isinstance(act_space, spaces.MultiDiscrete)
+                    and list(act_space.nvec) == [len(self.fusion_intervals_s), 2])
         require(
-            multi or flat,
+            multi or flat or interval,
             "model action_space",
             act_space,
-            f"MultiDiscrete([2, 2]) or Discrete({N_DISCRETE_ACTIONS})",
+            f"MultiDiscrete([2, 2]) or Discrete({N_DISCRETE_ACTIONS}), or MultiDiscrete([n, 2]) "
+            "with n the fusion_intervals_s of its config (a model of the interval env)",
         )
+        self.interval = interval
         self.observation_shape: tuple[int, ...] = tuple(obs_space.shape)
         self.discrete = flat
 
     def act(self, obs: Any, info: Mapping[str, Any] | None = None) -> np.ndarray:
+        if not self.interval:
+            return self._model_action(obs, info)
+        # a model of the interval env chooses, at the first decision after a fusion (or the
+        # start), the time to the next fusion and whether to optimise at it; the decisions in
+        # between fuse nothing, as in the env it was trained in (slam_gym.envs.interval)
+        if self._pending is None:
+            index, optimise = (int(v) for v in self._model_action(obs, info))
+            self._pending = (self.fusion_intervals_s[index], optimise)
+        require(info is not None and "features" in info, "info", info,
+                "a dict with 'features' (an interval model reads local_map_age_s)")
+        interval_s, optimise = self._pending
+        if float(info["features"]["local_map_age_s"]) + AGE_TOLERANCE_S < interval_s:
+            return np.zeros(2, dtype=np.int64)
+        self._pending = None
+        return np.array([1, optimise], dtype=np.int64)
+
+    def _model_action(self, obs: Any, info: Mapping[str, Any] | None) -> np.ndarray:
+        """The model's own action at ``obs`` (or at its features by name from ``info``)."""
         if self.feature_names is not None:
             # a model trained on another feature set: its features, by name, from the info
             require(

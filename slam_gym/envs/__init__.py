@@ -36,6 +36,14 @@ WRAPPED_ENV_VARIANTS: dict[str, tuple[str, dict]] = {
     "SlamGym/HybridSLAM-Interval-v0": ("slam_gym.envs.interval:make_interval_env", {}),
 }
 
+#: the id of the system each wrapped variant runs (its fingerprint and options are that id's)
+WRAPPED_SYSTEM_IDS: dict[str, str] = {"SlamGym/HybridSLAM-Interval-v0": "SlamGym/HybridSLAM-v0"}
+
+
+def system_env_id(env_id: str) -> str:
+    """The id of the system ``env_id`` runs: itself, or the id a wrapped variant wraps."""
+    return WRAPPED_SYSTEM_IDS.get(env_id, env_id)
+
 
 RECORDED_MAX_EPISODE_STEPS = 2000
 """Decisions (1 s each at the defaults) of a recorded env's episode before Gymnasium's time limit:

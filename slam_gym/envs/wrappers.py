@@ -136,3 +136,34 @@ class LogFeatures(gym.ObservationWrapper):
 
     def observation(self, observation):
         return np.log1p(observation).astype(np.float32)
+
+
+class RuleAnchor(gym.Wrapper):
+    """Kickstarting toward a rule (issue 39 item 2): every action that differs from
+    ``rule_action(info)`` (the rule's action at the same decision, from the info before it)
+    costs ``weight`` in the reward. ``set_anchor_weight`` changes the weight (a training callback
+    decays it to 0, through ``VecEnv.env_method``); at 0 the reward is the env's own. The
+    decision is whole: an action differs when any of its components does."""
+
+    def __init__(self, env, rule_action, weight: float = 0.0):
+        super().__init__(env)
+        self.rule_action = rule_action
+        self.set_anchor_weight(weight)
+        self._info: dict = {}
+
+    def set_anchor_weight(self, weight: float) -> None:
+        if not (isinstance(weight, (int, float)) and np.isfinite(weight) and weight >= 0):
+            raise ValueError(f"weight={weight!r} is invalid: must be a finite number >= 0")
+        self.weight = float(weight)
+
+    def reset(self, *, seed=None, options=None):
+        obs, info = self.env.reset(seed=seed, options=options)
+        self._info = info
+        return obs, info
+
+    def step(self, action):
+        differs = not np.array_equal(np.asarray(action).reshape(-1),
+                                     np.asarray(self.rule_action(self._info)).reshape(-1))
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        self._info = info
+        return obs, reward - (self.weight if differs else 0.0), terminated, truncated, info

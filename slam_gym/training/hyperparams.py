@@ -15,6 +15,12 @@ An entry holds two kinds of keys:
   ``w_compute`` log-uniformly from it and the policy
   observes it as the feature ``compute_price_per_s``, so one policy is conditioned on the price
   of compute; ``env_kwargs.w_compute`` stays the price its evaluations are scored at);
+  ``behaviour_cloning_decisions`` (on-policy algorithms: before training, the actor is fitted to
+  ``fixed-10s-optimise``'s decisions on this many decisions of training worlds,
+  :mod:`slam_gym.training.imitation`), ``rule_anchor_weight`` and ``rule_anchor_fraction``
+  (kickstarting: every decision that differs from the rule's costs this weight in the training
+  reward, decaying linearly to 0 at this fraction of ``n_timesteps``;
+  :class:`slam_gym.envs.wrappers.RuleAnchor`);
 * the algorithm's constructor arguments (:data:`ALGO_KEYS`), e.g. PPO's ``n_steps``.
 
 ``policy_kwargs`` is a YAML mapping (rl-zoo3 writes a Python string; a mapping needs no ``eval``).
@@ -44,6 +50,7 @@ HYPERPARAMS_DIR = Path(__file__).resolve().parent / "hyperparams"
 RUN_KEYS: tuple[str, ...] = (
     "n_timesteps", "n_envs", "policy", "normalize", "norm_reward", "clip_obs", "env_kwargs",
     "initial_fuse_probability", "initial_optimise_probability", "compute_price_range",
+    "behaviour_cloning_decisions", "rule_anchor_weight", "rule_anchor_fraction",
 )
 ENV_KWARGS: tuple[str, ...] = ("n_particles", "decision_interval", "front_end", "back_end",
                                "n_steps", "w_compute", "compute_clip_s")
@@ -169,6 +176,20 @@ def validate_hyperparams(algo: str, params: dict[str, Any], where: str = "hyperp
             raise ValueError(f"{where}: compute_price_range={price_range!r} is invalid: must be "
                              "[low, high] with 0 < low <= high <= 1e6 (per second)")
         params["compute_price_range"] = [float(v) for v in price_range]
+    for key, low, high, kind in (("behaviour_cloning_decisions", 1, 10**8, int),
+                                 ("rule_anchor_weight", 0.0, 1e6, float),
+                                 ("rule_anchor_fraction", 0.0, 1.0, float)):
+        if key not in params:
+            continue
+        value = params[key]
+        if algo == "dqn":
+            raise ValueError(f"{where}: {key} is invalid for dqn (an on-policy actor is cloned "
+                             "and anchored)")
+        if (not isinstance(value, (int, float)) or isinstance(value, bool)
+                or (kind is int and value != int(value)) or not low <= value <= high):
+            raise ValueError(f"{where}: {key}={value!r} is invalid: must be a number in "
+                             f"[{low}, {high}]")
+        params[key] = kind(value)
     if "policy_kwargs" in params and not isinstance(params["policy_kwargs"], dict):
         raise ValueError(f"{where}: policy_kwargs={params['policy_kwargs']!r} is invalid: "
                          "must be a mapping")

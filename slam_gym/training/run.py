@@ -121,9 +121,11 @@ class TrainingSetup:
 
 
 def registered_kwargs(env_id: str) -> dict[str, Any]:
-    """The keyword arguments ``env_id`` is registered with (a trainable simulated id)."""
-    from slam_gym.envs import ENV_VARIANTS
+    """The keyword arguments ``env_id`` is registered with (a trainable simulated id; a wrapped
+    variant such as ``SlamGym/HybridSLAM-Interval-v0`` has those of the system it wraps)."""
+    from slam_gym.envs import ENV_VARIANTS, system_env_id
 
+    env_id = system_env_id(env_id)
     if env_id not in ENV_VARIANTS:
         raise ValueError(f"env_id={env_id!r} is invalid: must be one of {list(ENV_VARIANTS)}")
     kwargs = dict(ENV_VARIANTS[env_id])
@@ -140,6 +142,7 @@ def make_env_fn(setup: TrainingSetup, rank: int):
     """A picklable constructor of training env ``rank`` (for ``SubprocVecEnv``)."""
     env_id, options = setup.env_id, dict(setup.hyperparams.get("env_kwargs", {}))
     levels, discrete, price_range = setup.clutter_levels, setup.discrete, setup.price_range
+    anchored = "rule_anchor_weight" in setup.hyperparams
     if price_range is not None:
         options["features"] = setup.feature_names
 
@@ -151,18 +154,48 @@ def make_env_fn(setup: TrainingSetup, rank: int):
             LogFeatures,
             RandomClutterLevel,
             RandomComputePrice,
+            RuleAnchor,
         )
 
         env = gym.make(f"slam_gym:{env_id}", **options)
         env = RandomClutterLevel(env, levels)
         if price_range is not None:
             env = RandomComputePrice(env, *price_range)
+        if anchored:  # the callback sets the weight (train_run)
+            env = RuleAnchor(env, RuleAction(env_id))
         env = LogFeatures(env)
         if discrete:
             env = DiscreteActions(env)
         return env
 
     return make
+
+
+class RuleAction:
+    """``fixed-10s-optimise``'s action in env ``env_id`` from a decision's ``info``: the rule
+    itself in the per-decision env, its constant action in the interval env (the rule a learner
+    is cloned from and anchored to, issue 39 item 2)."""
+
+    def __init__(self, env_id: str):
+        import policies
+
+        self.env_id = env_id
+        self.rule = policies.make("fixed-10s-optimise")
+
+    def __call__(self, info) -> np.ndarray:
+        if self.env_id == "SlamGym/HybridSLAM-Interval-v0":
+            from slam_gym.envs.interval import RULE_ACTION
+
+            return RULE_ACTION.copy()
+        return self.rule.act(None, info)
+
+
+def anchor_weight(params: dict[str, Any], t: int) -> float:
+    """The rule anchor's weight after ``t`` decisions: ``rule_anchor_weight`` decaying linearly
+    to 0 at ``rule_anchor_fraction`` (default 0.5) of ``n_timesteps``."""
+    w0 = float(params.get("rule_anchor_weight", 0.0))
+    end = float(params.get("rule_anchor_fraction", 0.5)) * float(params["n_timesteps"])
+    return 0.0 if end <= 0 else w0 * max(0.0, 1.0 - t / end)
 
 
 def _newest_checkpoint(run_dir: Path) -> int | None:
@@ -189,6 +222,7 @@ def model_config(setup: TrainingSetup, vec, timesteps: int, **extra) -> dict[str
     """The JSON written beside a model: how to load it and how it was made, and the fingerprint
     of the system it was trained on (:mod:`slam_gym.training.provenance`: computed once per env
     options in a process), which :class:`policies.learned.LearnedPolicy` checks on loading."""
+    from slam_gym.envs import system_env_id
     from slam_gym.training.provenance import system_fingerprint
 
     return {
@@ -207,9 +241,20 @@ def model_config(setup: TrainingSetup, vec, timesteps: int, **extra) -> dict[str
         "observation_transform": "log1p",
         "observation_normalisation": observation_normalisation(vec),
         "versions": {"python": platform.python_version(), **_versions()},
-        "fingerprint": system_fingerprint(setup.env_id, setup.env_options()),
+        "fingerprint": system_fingerprint(system_env_id(setup.env_id), setup.env_options()),
+        **interval_config(setup.env_id),
         **extra,
     }
+
+
+def interval_config(env_id: str) -> dict[str, Any]:
+    """For a model of the interval env: ``fusion_intervals_s``, which its first action indexes
+    (:class:`policies.learned.LearnedPolicy` plays it in the per-decision env); else {}."""
+    if env_id != "SlamGym/HybridSLAM-Interval-v0":
+        return {}
+    from slam_gym.envs.interval import FUSION_INTERVALS_S
+
+    return {"fusion_intervals_s": list(FUSION_INTERVALS_S)}
 
 
 def _versions() -> dict[str, str]:
@@ -448,6 +493,16 @@ def train_run(setup: TrainingSetup, run_dir: Path, *, resume: bool = False,
         model = algo_cls(params["policy"], vec, seed=setup.seed, device="cpu", verbose=0,
                          **kwargs)
         set_initial_action_probabilities(model, params)
+        if params.get("behaviour_cloning_decisions"):
+            from slam_gym.training.imitation import clone_rule, rule_demonstrations
+
+            demos = rule_demonstrations(vec, RuleAction(setup.env_id),
+                                        int(params["behaviour_cloning_decisions"]))
+            report = clone_rule(model, *demos, seed=setup.seed)
+            setup.extra["behaviour_cloning"] = report
+            logger.warning("%s: cloned fixed-10s-optimise on %d decisions: agreement %.4f "
+                           "after %d epochs", run_dir.name, len(demos[1]), report["agreement"],
+                           report["epochs"])
     else:
         model = algo_cls.load(str(run_dir / "checkpoints" / f"model_{checkpoint}.zip"),
                               env=vec, device="cpu")
@@ -475,6 +530,12 @@ def train_run(setup: TrainingSetup, run_dir: Path, *, resume: bool = False,
 
         def _on_step(self) -> bool:
             t = self.num_timesteps
+            if "rule_anchor_weight" in params:
+                weight = round(anchor_weight(params, t), 3)  # a change per ~0.1 % of w0
+                if weight != getattr(self, "anchor", None):
+                    self.training_env.env_method("set_anchor_weight", weight)
+                    self.anchor = weight
+                    self.logger.record("train/rule_anchor_weight", weight)
             if t >= self.next_checkpoint:
                 self.next_checkpoint += setup.checkpoint_every
                 save_checkpoint(self.model, t)

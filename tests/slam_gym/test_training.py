@@ -289,3 +289,47 @@ def test_a_bad_price_range_raises_naming_it(price_range):
     with pytest.raises(ValueError, match="compute_price_range"):
         validate_hyperparams("ppo", {"n_timesteps": 8, "n_envs": 1,
                                      "compute_price_range": price_range})
+
+
+def test_an_interval_learner_starts_at_the_rule_and_its_model_plays_the_rule(tmp_path):
+    """Issue 39 items 2-3: a PPO run on the interval env is cloned on the rule before its first
+    update and anchored to it; the saved model, loaded as policy ``learned`` in the per-decision
+    env, makes fixed-10s-optimise's decisions there (the anchor's weight was still high)."""
+    import policies
+    from slam_gym.evaluation.core import run_policy_object
+    from slam_gym.training.run import anchor_weight
+
+    params = validate_hyperparams("ppo", {
+        "n_timesteps": 48, "n_envs": 1, "normalize": True, "n_steps": 16, "batch_size": 16,
+        "n_epochs": 1, "behaviour_cloning_decisions": 300, "rule_anchor_weight": 20.0,
+        "rule_anchor_fraction": 0.5, "env_kwargs": {"n_particles": 20, "n_steps": 600}})
+    setup = TrainingSetup("ppo", "SlamGym/HybridSLAM-Interval-v0", 0, params,
+                          clutter_levels=(0, 1), eval_seeds=(7,), eval_every=10**6,
+                          eval_workers=1, checkpoint_every=10**6)
+    config = train_run(setup, tmp_path / "run", progress=False)
+    assert config["fusion_intervals_s"][4] == 10.0
+    assert config["training_setup"]["extra"]["behaviour_cloning"]["agreement"] >= 0.995
+    assert config["fingerprint"]["env_id"] == "SlamGym/HybridSLAM-v0"
+    assert anchor_weight(params, 0) == 20.0 and anchor_weight(params, 24) == 0.0
+    assert anchor_weight(params, 12) == pytest.approx(10.0)
+    learned = policies.make("learned", path=str(tmp_path / "run" / "model.zip"),
+                            deterministic=True)
+    assert learned.interval and learned.provenance["matches"] is True
+    options = dict(n_particles=60, n_steps=600, w_compute=10.0)
+    actions = {}
+    for name, policy in (("rule", policies.make("fixed-10s-optimise")), ("learned", learned)):
+        actions[name] = []
+        run_policy_object(policy, "brooks-bailey", 1, 1,
+                          on_step=lambda a, i, out=actions[name]: out.append(a.tolist()),
+                          **options)
+    assert actions["learned"] == actions["rule"] and sum(a[0] for a in actions["rule"]) >= 4
+
+
+@pytest.mark.parametrize("key, value", [("behaviour_cloning_decisions", 0),
+                                        ("behaviour_cloning_decisions", 2.5),
+                                        ("rule_anchor_weight", -1.0),
+                                        ("rule_anchor_fraction", 1.5)])
+def test_cloning_and_anchor_options_are_validated(key, value):
+    with pytest.raises(ValueError, match=key):
+        validate_hyperparams("ppo", load_hyperparams("ppo", "SlamGym/HybridSLAM-v0")
+                             | {key: value})
