@@ -34,18 +34,19 @@ import hashlib
 import json
 import logging
 import zipfile
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
 
+from filters.validation import require
 from policies.base import (
     N_DISCRETE_ACTIONS,
     Policy,
     discrete_action_mask,
     discrete_to_multi,
-    require,
 )
 
 logger = logging.getLogger(__name__)
@@ -156,29 +157,48 @@ def _config(model_path: Path) -> dict[str, Any] | None:
     return data
 
 
+ProvenanceCheck = Callable[[Path, "dict[str, Any] | None"], dict[str, Any]]
+"""``check(model_path, config) -> {"checked": True, "matches": bool, "differences": [...]}``:
+compares a model (its zip and its config JSON, None when it has none) with the system it would
+act in, and warns (:class:`ModelProvenanceWarning`) when they differ."""
+
+_PROVENANCE_CHECK: list[ProvenanceCheck] = []
+"""The check :func:`set_provenance_check` installed in this process (none, or one)."""
+
+NOT_CHECKED: Mapping[str, Any] = MappingProxyType(
+    {"checked": False, "matches": None, "differences": ()})
+"""``policy.provenance`` of a model whose provenance was not checked."""
+
+
+def set_provenance_check(check: ProvenanceCheck | None) -> None:
+    """Install ``check`` as the provenance check of every :class:`LearnedPolicy` loaded in this
+    process from now on (None: remove it), a process-wide hook like :func:`policies.register`.
+
+    The system a model was trained on is the env, a floor above this package (imports run
+    filters <- policies <- slam_gym), so the env fills the hook: ``import slam_gym`` (any of its
+    modules) installs :func:`slam_gym.training.provenance.check_model_provenance`."""
+    if check is not None and not callable(check):
+        raise ValueError(f"check={check!r} is invalid: must be a callable "
+                         "check(model_path, config) or None")
+    _PROVENANCE_CHECK.clear()
+    if check is not None:
+        _PROVENANCE_CHECK.append(check)
+
+
 def check_model_provenance(path: str | Path | None = None,
                            config: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Compare the fingerprint a model records (its config JSON's ``fingerprint``) with the
-    current code's for the same env options (:mod:`slam_gym.training.provenance`; computed once
-    per env options in a process); ``{"checked": True, "matches": bool, "differences": [...]}``.
-    A mismatch, or a model that records no fingerprint, is logged as a WARNING on
-    ``policies.provenance`` and warned as :class:`ModelProvenanceWarning`, naming what differs.
-    ``config``: the model's config JSON when the caller has read it already (else it is read)."""
-    import warnings
-
-    from slam_gym.training.provenance import model_provenance
-
+    """Run the installed provenance check (:func:`set_provenance_check`) on the model at
+    ``path``: ``{"checked": True, "matches": bool, "differences": [...]}``; a mismatch is warned
+    by the check. ``config``: the model's config JSON when the caller has read it already (else
+    it is read). Without an installed check (``slam_gym`` not imported) nothing is compared:
+    :data:`NOT_CHECKED`, and an INFO on ``policies.provenance`` says so."""
     model_path = _resolve_path(path)
-    result = model_provenance(config if config is not None else _config(model_path))
-    provenance = {"checked": True, "matches": bool(result["matches"]),
-                  "differences": list(result["differences"])}
-    if not provenance["matches"]:
-        message = (f"learned model {model_path} does not match the code it runs on (it was "
-                   "trained on a different system; its decisions may not mean what they did): "
-                   + "; ".join(provenance["differences"]))
-        provenance_logger.warning("%s", message)
-        warnings.warn(message, ModelProvenanceWarning, stacklevel=3)
-    return provenance
+    if not _PROVENANCE_CHECK:
+        provenance_logger.info("learned model %s: provenance not checked (no check installed; "
+                               "import slam_gym to install it)", model_path)
+        return {**NOT_CHECKED, "differences": []}
+    return _PROVENANCE_CHECK[0](model_path,
+                                config if config is not None else _config(model_path))
 
 
 def _normalisation(stats: Any) -> tuple[np.ndarray, np.ndarray, float] | None:
@@ -199,8 +219,10 @@ def _normalisation(stats: Any) -> tuple[np.ndarray, np.ndarray, float] | None:
     return mean, np.sqrt(var + float(stats["epsilon"])), float(stats["clip"])
 
 
-def _algorithm_class(algo: str):
-    """The stable-baselines3 class for ``algo`` (imported here, lazily)."""
+def algorithm_class(algo: str):
+    """The stable-baselines3 (or sb3-contrib) class of ``algo``, one of :data:`ALGORITHMS`
+    (imported here, lazily): the class a model is loaded with here and trained with by
+    ``slam-gym train`` (:mod:`slam_gym.training.run`)."""
     import stable_baselines3
 
     if algo in ("maskable-ppo", "recurrent-ppo"):
@@ -243,9 +265,9 @@ class LearnedPolicy(Policy):
     Provenance: on loading (``check_provenance=True``, the default) the fingerprint of the
     system the model was trained on (its config's ``fingerprint``, written by ``slam-gym
     train``) is compared with the current code's for the model's env options
-    (:func:`check_model_provenance`); a difference, or a model without a fingerprint, is warned
-    naming what differs. ``policy.provenance`` holds ``checked``, ``matches`` (None when not
-    checked) and ``differences``.
+    (:func:`check_model_provenance`, the check ``import slam_gym`` installs); a difference, or a
+    model without a fingerprint, is warned naming what differs. ``policy.provenance`` holds
+    ``checked``, ``matches`` (None when not checked) and ``differences``.
     """
 
     name = "learned"
@@ -320,7 +342,7 @@ class LearnedPolicy(Policy):
         self.sample_seed = sample_seed
         self._rng = np.random.default_rng(sample_seed)
         self._lstm_state = None  # RecurrentPPO memory (reset() clears it)
-        self.model = _algorithm_class(algo).load(str(model_path), device=device)
+        self.model = algorithm_class(algo).load(str(model_path), device=device)
         self._check_spaces()
         self.options = {
             "path": str(model_path),
@@ -339,7 +361,7 @@ class LearnedPolicy(Policy):
             )
         self.provenance: dict[str, Any] = (
             check_model_provenance(model_path, config or None) if check_provenance
-            else {"checked": False, "matches": None, "differences": []})
+            else {**NOT_CHECKED, "differences": []})
         logger.info("loaded %s model from %s", algo.upper(), model_path)
 
     def reset(self) -> None:

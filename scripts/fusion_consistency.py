@@ -32,8 +32,9 @@ from filters.types import GaussianMap
 from slam_gym.episode import Episode
 from slam_gym.evaluation.core import _seeds
 from slam_gym.metrics import nees
-from slam_gym.scenarios import get_scenario, make_stream
+from slam_gym.scenarios import get_scenario
 from slam_gym.systems import make_system
+from slam_gym.world import make_stream
 
 logger = logging.getLogger(__name__)
 

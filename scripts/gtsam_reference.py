@@ -58,8 +58,8 @@ from filters.submap_optimise import (
     gaussian_information,
 )
 from slam_gym.cli import one_blas_thread_per_process
-from slam_gym.scenarios import make_stream
 from slam_gym.systems import make_system
+from slam_gym.world import make_stream
 
 
 # --------------------------------------------------------------------------- the problem

@@ -28,7 +28,7 @@ from scipy.stats import chi2
 from filters.fastslam import FastSLAM2
 from filters.geometry import relative, wrap_angle
 from slam_gym.local_consistency import local_maps
-from slam_gym.scenarios import make_stream
+from slam_gym.world import make_stream
 
 logger = logging.getLogger(__name__)
 BINS = ((1, 5), (5, 10), (10, 20), (20, 50), (50, 10**9))

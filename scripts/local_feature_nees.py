@@ -25,7 +25,7 @@ from scipy.stats import chi2
 from filters.fastslam import FastSLAM2
 from filters.geometry import point_to_frame
 from slam_gym.local_consistency import local_maps
-from slam_gym.scenarios import make_stream
+from slam_gym.world import make_stream
 
 logger = logging.getLogger(__name__)
 

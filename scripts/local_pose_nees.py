@@ -23,7 +23,7 @@ from scipy.stats import chi2
 from filters.ekf_slam import EKFSLAM
 from filters.fastslam import LOCAL_MAP_MAX_EXISTENCE, FastSLAM2
 from slam_gym.local_consistency import local_pose_nees_at_fusion
-from slam_gym.scenarios import make_stream
+from slam_gym.world import make_stream
 
 
 def main(argv) -> int:

@@ -308,12 +308,3 @@ def get_scenario(name: str | Scenario, **overrides) -> Scenario:
             raise ValueError(f"scenario={name!r} is unknown: must be one of {sorted(presets)}")
         base = presets[name]
     return base.replace(**overrides) if overrides else base
-
-
-def make_stream(name: str | Scenario, seed: int, **overrides):
-    """Simulate the scenario ``name`` (with overrides) for ``seed``, as a ``Stream`` (a world
-    simulated recently in this process is shared read-only, not simulated again:
-    :func:`slam_gym.world.simulate_cached`)."""
-    from slam_gym.world import simulate_cached
-
-    return simulate_cached(get_scenario(name, **overrides), seed)

@@ -125,7 +125,8 @@ from filters.validation import check_range, require
 from slam_gym.compute_cost import ComputeModel, filter_ops, fusion_ops, optimise_ops
 from slam_gym.episode import Episode
 from slam_gym.metrics import nees_band
-from slam_gym.scenarios import CLUTTER_LEVELS, get_scenario, make_stream, scenario_names
+from slam_gym.scenarios import CLUTTER_LEVELS, get_scenario, scenario_names
+from slam_gym.world import make_stream
 
 logger = logging.getLogger(__name__)
 

@@ -77,7 +77,7 @@ def _seeds(seed: int):
 def make_job_stream(scenario: str, clutter_level, seed: int, n_steps=None, **scenario_overrides):
     """The world of a job: scenario ``scenario`` at ``clutter_level`` for ``seed``, with the path
     cut to ``n_steps`` and any other scenario fields overridden by name (validated)."""
-    from slam_gym.scenarios import make_stream
+    from slam_gym.world import make_stream
 
     overrides = {k: v for k, v in scenario_overrides.items() if v is not None}
     if clutter_level is not None:

@@ -22,7 +22,8 @@ from filters.submap_optimise import (
 )
 from filters.types import GaussianMap
 from slam_gym.episode import Episode
-from slam_gym.scenarios import SQUARE_LOOP_OVERRIDES, make_stream
+from slam_gym.scenarios import SQUARE_LOOP_OVERRIDES
+from slam_gym.world import make_stream
 
 FUSE_EVERY = 100
 #: a small closed loop (side 27 m, ~1100 iterations) in a 60 m world: fast, with a loop closure

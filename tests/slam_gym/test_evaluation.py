@@ -600,7 +600,7 @@ def test_decision_timeline_records_what_the_system_did():
     acted = acted[acted > 0]
     assert np.all(compute[acted] > compute[acted - 1])
     # BB's whole path returns over its start once, in its second half
-    from slam_gym.scenarios import make_stream
+    from slam_gym.world import make_stream
 
     stream = make_stream("brooks-bailey", seed=3, clutter_level=0)
     closure = true_loop_closure_s(stream)

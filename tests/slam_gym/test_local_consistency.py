@@ -8,7 +8,7 @@ from filters.dead_reckoning import DeadReckoning
 from filters.ekf_slam import EKFSLAM
 from filters.fastslam import LOCAL_MAP_MAX_EXISTENCE, FastSLAM2
 from slam_gym.local_consistency import local_pose_nees_at_fusion
-from slam_gym.scenarios import make_stream
+from slam_gym.world import make_stream
 
 LO, HI = chi2.ppf([0.025, 0.975], 3)
 
