@@ -81,7 +81,7 @@ from filters.validation import require
 from slam_gym.commands.common import emit, out_dir
 from slam_gym.commands.runs import add_run_options, int_list, name_list
 from slam_gym.datasets.location import default_data_dir
-from slam_gym.datasets.mrclam import DEFAULT_CALIBRATION_S
+from slam_gym.datasets.mrclam import DEFAULT_CALIBRATION_S, MrclamOptions
 from slam_gym.evaluation.core import OPTIMISE_MODES
 
 logger = logging.getLogger(__name__)
@@ -100,6 +100,13 @@ PATH_EVERY_S = 1.0
 POLICY_ONLY_OPTIONS = ("w_compute", "compute_clip_s")
 """MRCLAM job options that only a policy run takes."""
 
+MRCLAM_STREAM_OPTIONS = (
+    "noise_window_s", "sensor_bias_correction", "motion_compensation", "corrections",
+    "calibration_s",
+)
+"""The fields of :class:`slam_gym.datasets.mrclam.MrclamOptions` (the loader's calibration)
+that MRCLAM jobs take; their defaults are the options object's."""
+
 MRCLAM_OPTIONS = {
     "data": None,
     "known_association": False,
@@ -110,11 +117,7 @@ MRCLAM_OPTIONS = {
     "decision_interval": DECISION_INTERVAL,
     "model_path": None,
     "model_sha256": None,
-    "noise_window_s": None,
-    "sensor_bias_correction": None,
-    "motion_compensation": None,
-    "corrections": True,
-    "calibration_s": DEFAULT_CALIBRATION_S,
+    **{name: getattr(MrclamOptions(), name) for name in MRCLAM_STREAM_OPTIONS},
     "landmark_density_per_m2": None,
     "gate_chi2": None,
     "optimise": "never",
@@ -122,11 +125,6 @@ MRCLAM_OPTIONS = {
     "w_compute": None,
     "compute_clip_s": None,
 }
-#: MRCLAM options that change the stream (the loader's sensor calibration)
-MRCLAM_STREAM_OPTIONS = (
-    "noise_window_s", "sensor_bias_correction", "motion_compensation", "corrections",
-    "calibration_s",
-)
 #: MRCLAM options of the FastSLAM filters (FASTSLAM, HYBRID's front-end) by filter keyword
 MRCLAM_FASTSLAM_OPTIONS = {
     "landmark_density_per_m2": "new_landmark_density_per_m2",
@@ -338,8 +336,16 @@ def run_mrclam(args) -> int:
             "distinct names")
     require(args.noise_scale > 0 and math.isfinite(args.noise_scale), "--noise-scale",
             args.noise_scale, "a number > 0")
-    for flag, value in (("--noise-window", args.noise_window),
-                        ("--landmark-density", args.landmark_density),
+    # the calibration options, validated as the loader and the env validate them
+    MrclamOptions(calibration_s=args.calibration_s, noise_window_s=args.noise_window,
+                  corrections=args.corrections,
+                  sensor_bias_correction=args.sensor_bias_correction,
+                  motion_compensation=args.motion_compensation,
+                  names={"calibration_s": "--calibration-s", "noise_window_s": "--noise-window",
+                         "corrections": "--no-corrections",
+                         "sensor_bias_correction": "--sensor-bias-correction",
+                         "motion_compensation": "--motion-compensation"})
+    for flag, value in (("--landmark-density", args.landmark_density),
                         ("--gate-chi2", args.gate_chi2)):
         require(value is None or (value > 0 and math.isfinite(value)), flag, value,
                 "a number > 0")
@@ -350,8 +356,6 @@ def run_mrclam(args) -> int:
 
     base = {"data": str(data), "max_steps": args.max_steps, "noise_scale": args.noise_scale}
     # calibration and filter options enter the job (and its resume key) only when given
-    require(args.calibration_s >= 10.0 and math.isfinite(args.calibration_s), "--calibration-s",
-            args.calibration_s, "a number of seconds >= 10")
     base |= {"corrections": args.corrections, "calibration_s": args.calibration_s}
     given = {
         "noise_window_s": args.noise_window,
@@ -598,9 +602,11 @@ def run_mrclam_system(
 
     stream = mrclam_stream(
         data, robot, max_steps=max_steps, sensor_noise_scale=noise_scale,
-        noise_window_s=noise_window_s, sensor_bias_correction=sensor_bias_correction,
-        motion_compensation=motion_compensation, corrections=corrections,
-        calibration_s=calibration_s,
+        options=MrclamOptions(
+            noise_window_s=noise_window_s, sensor_bias_correction=sensor_bias_correction,
+            motion_compensation=motion_compensation, corrections=corrections,
+            calibration_s=calibration_s,
+        ),
     )
     fs_options = fastslam_options(landmark_density_per_m2, gate_chi2)
     system_options = _system_options(name, fs_options)

@@ -116,7 +116,8 @@ filters' defaults apply unless ``reproduce mrclam`` is given ``--landmark-densit
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict, dataclass, replace
+from collections.abc import Mapping
+from dataclasses import InitVar, asdict, dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -854,9 +855,13 @@ def calibrate_mrclam(
     recording (module docstring, "Calibration"); the options as in :func:`load_mrclam`.
     ``sensor``, when given, replaces the estimated sensor for the in-view test of the clutter
     rates."""
-    flags = _flags(corrections, motion_compensation, sensor_bias_correction,
-                   odometry_correction, timing_correction, correlated_noise)
-    _check_calibration_s(calibration_s)
+    options = MrclamOptions(
+        calibration_s=calibration_s, corrections=corrections,
+        motion_compensation=motion_compensation, sensor_bias_correction=sensor_bias_correction,
+        odometry_correction=odometry_correction, timing_correction=timing_correction,
+        correlated_noise=correlated_noise, noise_window_s=noise_window_s,
+    )
+    flags = options.switches()
     rec, correction, delay, cal_end = _corrected(
         rec, calibration_s, flags["odometry_correction"], flags["timing_correction"]
     )
@@ -878,25 +883,59 @@ def calibrate_mrclam(
     )[0]
 
 
-def _check_calibration_s(calibration_s) -> None:
-    if calibration_s is not None:
-        check_range("calibration_s", calibration_s, 10.0, 1e7)
+CORRECTION_SWITCHES = ("motion_compensation", "sensor_bias_correction", "odometry_correction",
+                       "timing_correction", "correlated_noise")
+"""The corrections :class:`MrclamOptions` switches one by one (None: as ``corrections``)."""
 
 
-def _flags(corrections, motion_compensation, sensor_bias_correction, odometry_correction,
-           timing_correction, correlated_noise) -> dict:
-    """The correction switches: each None follows ``corrections``."""
-    require(isinstance(corrections, bool), "corrections", corrections, "a bool")
-    given = {
-        "motion_compensation": motion_compensation,
-        "sensor_bias_correction": sensor_bias_correction,
-        "odometry_correction": odometry_correction,
-        "timing_correction": timing_correction,
-        "correlated_noise": correlated_noise,
-    }
-    for name, flag in given.items():
-        require(flag is None or isinstance(flag, bool), name, flag, "None or a bool")
-    return {name: corrections if flag is None else flag for name, flag in given.items()}
+@dataclass(frozen=True)
+class MrclamOptions:
+    """The calibration options of an MRCLAM recording, validated once: the loader
+    (:func:`load_mrclam`), the calibration (:func:`calibrate_mrclam`), the env
+    (:class:`slam_gym.envs.mrclam.MRCLAMEnv`) and ``slam-gym reproduce mrclam`` all build one.
+
+    ``calibration_s``: the seconds every estimate uses (None: the whole recording; else in
+    [10, 1e7]); ``corrections``: every correction on or off together; each of
+    :data:`CORRECTION_SWITCHES`, when a bool, overrides ``corrections`` for its correction;
+    ``noise_window_s``: the window of the white-noise rule (None: the measured pass duration;
+    else > 0, and the rule is on). Meanings in :func:`load_mrclam`. A bad value raises
+    ``ValueError`` naming the field; ``names`` maps a field to the name the caller's user gave it
+    (the env's ``sensor_noise_window_s``), so the message names what the user wrote.
+    """
+
+    calibration_s: float | None = DEFAULT_CALIBRATION_S
+    corrections: bool = True
+    motion_compensation: bool | None = None
+    sensor_bias_correction: bool | None = None
+    odometry_correction: bool | None = None
+    timing_correction: bool | None = None
+    correlated_noise: bool | None = None
+    noise_window_s: float | None = None
+    names: InitVar[Mapping[str, str] | None] = None
+
+    def __post_init__(self, names: Mapping[str, str] | None) -> None:
+        def name(field: str) -> str:
+            return (names or {}).get(field, field)
+
+        require(isinstance(self.corrections, bool), name("corrections"), self.corrections,
+                "a bool")
+        for field in CORRECTION_SWITCHES:
+            flag = getattr(self, field)
+            require(flag is None or isinstance(flag, bool), name(field), flag, "None or a bool")
+        if self.calibration_s is not None:
+            check_range(name("calibration_s"), self.calibration_s, 10.0, 1e7)
+        if self.noise_window_s is not None:
+            check_range(name("noise_window_s"), self.noise_window_s, 0.0, 1e6, low_open=True)
+
+    def switches(self) -> dict[str, bool]:
+        """Each correction of :data:`CORRECTION_SWITCHES` on or off (None follows
+        ``corrections``)."""
+        return {field: self.corrections if getattr(self, field) is None else getattr(self, field)
+                for field in CORRECTION_SWITCHES}
+
+    def as_kwargs(self) -> dict:
+        """The options as keyword arguments of :func:`load_mrclam`."""
+        return {f.name: getattr(self, f.name) for f in fields(self)}
 
 
 def _calibrate(
@@ -907,8 +946,6 @@ def _calibrate(
 ):
     """Calibration (on the rows and steps up to ``cal_end``) plus the outlier mask over all
     rows, the stream's sensor and the rows' observations (bias-corrected if asked)."""
-    if noise_window_s is not None:
-        check_range("noise_window_s", noise_window_s, 0.0, 1e6, low_open=True)
     usable_all = np.all(np.isfinite(lay.residuals), axis=1)
     part = rec.measurements[:, 0] <= cal_end
     usable = usable_all & part
@@ -1035,9 +1072,13 @@ def load_mrclam(
     them, when given as a bool, overrides ``corrections``. ``noise_window_s`` sets the window of
     the white-noise rule instead of the measured pass duration (and switches the rule on).
     """
-    flags = _flags(corrections, motion_compensation, sensor_bias_correction,
-                   odometry_correction, timing_correction, correlated_noise)
-    _check_calibration_s(calibration_s)
+    options = MrclamOptions(
+        calibration_s=calibration_s, corrections=corrections,
+        motion_compensation=motion_compensation, sensor_bias_correction=sensor_bias_correction,
+        odometry_correction=odometry_correction, timing_correction=timing_correction,
+        correlated_noise=correlated_noise, noise_window_s=noise_window_s,
+    )
+    flags = options.switches()
     check_range("dt_s", dt_s, 0.001, 10.0)
     require(isinstance(known_association, bool), "known_association", known_association, "a bool")
     require(
