@@ -21,48 +21,18 @@ functions are imported lazily (matplotlib is not needed by the worker processes)
 from typing import Any
 
 from slam_gym.evaluation.benchmarking import BenchmarkResult, benchmark
-from slam_gym.evaluation.executors import EXECUTORS, execute_job, run_jobs
-from slam_gym.evaluation.jobs import JOB_KINDS, Job, expand_grid
-from slam_gym.evaluation.results import (
-    REQUIRED_ROW_KEYS,
-    RESULT_KEYS,
-    RESULTS_FILENAME,
-    ResultError,
-    ResultsWriter,
-    finished_keys,
-    read_results,
-    validate_result,
-)
-from slam_gym.evaluation.summary import (
-    SUMMARY_FILENAME,
-    TABLE_FILENAME,
-    Z95,
-    format_table,
-    markdown_table,
-    summarise,
-    summary_document,
-    wilson_interval,
-    write_summary,
-)
+from slam_gym.evaluation.executors import run_jobs
+from slam_gym.evaluation.jobs import Job, expand_grid
+from slam_gym.evaluation.results import RESULT_KEYS, ResultError, read_results, validate_result
+from slam_gym.evaluation.summary import markdown_table, summarise, wilson_interval, write_summary
 
 __all__ = [
-    "BenchmarkResult",
-    "EXECUTORS",
-    "JOB_KINDS",
-    "REQUIRED_ROW_KEYS",
-    "RESULTS_FILENAME",
     "RESULT_KEYS",
-    "SUMMARY_FILENAME",
-    "TABLE_FILENAME",
-    "Z95",
+    "BenchmarkResult",
     "Job",
     "ResultError",
-    "ResultsWriter",
     "benchmark",
-    "execute_job",
     "expand_grid",
-    "finished_keys",
-    "format_table",
     "markdown_table",
     "nees_band",
     "pareto_front",
@@ -75,11 +45,14 @@ __all__ = [
     "read_results",
     "run_jobs",
     "summarise",
-    "summary_document",
     "validate_result",
     "wilson_interval",
     "write_summary",
 ]
+"""The user-facing names: the benchmark, jobs and their execution, the results file, the
+summary and the figures. The machinery behind them (executors, the writer, file names, the
+table formats) is imported from its module (:mod:`.executors`, :mod:`.results`,
+:mod:`.summary`)."""
 
 _PLOTS = (
     "nees_band",

@@ -19,13 +19,9 @@ import numpy as np
 import pytest
 
 from slam_gym.evaluation import (
-    REQUIRED_ROW_KEYS,
     RESULT_KEYS,
     Job,
-    ResultsWriter,
     expand_grid,
-    finished_keys,
-    format_table,
     markdown_table,
     read_results,
     run_jobs,
@@ -33,6 +29,8 @@ from slam_gym.evaluation import (
     wilson_interval,
     write_summary,
 )
+from slam_gym.evaluation.results import REQUIRED_ROW_KEYS, ResultsWriter, finished_keys
+from slam_gym.evaluation.summary import format_table
 
 TEST_DIR = Path(__file__).resolve().parent
 REPO = TEST_DIR.parents[1]
