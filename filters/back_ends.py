@@ -48,7 +48,8 @@ not depend on how long ago a feature was seen.
 
 The relative back-end (:class:`RelativeBackEnd`)
 ------------------------------------------------
-CM's representation at the sub-map level (CM III.B, DESIGN "The hybrid system"): fused sub-maps
+CM's representation at the sub-map level (CM III.B; docs/ARCHITECTURE.md, "Sub-map system"): fused
+sub-maps
 are kept only in relative coordinates, in information form ``(eta, Lambda)``
 (:class:`filters.esdf.SparseInformation`) over
 

@@ -235,7 +235,8 @@ class FastSLAM2:
     """FastSLAM 2.0 with Data Association Sampling, existence and correspondence voting.
 
     Parameters (keyword options are validated; a bad value raises ``ValueError``):
-    sensor, clutter, odometry_noise: the models (DESIGN 3). rng: the owned
+    sensor, clutter, odometry_noise: the models (docs/ARCHITECTURE.md, "Filter interface"). rng:
+    the owned
     ``numpy.random.Generator`` (every draw). ids: shared :class:`FeatureIds` (new if None).
     n_particles: P. initial_pose: the pose of every particle at start (zero uncertainty).
     resample_threshold: resample when N_eff < threshold * P. gate_chi2: association gate.

@@ -1,4 +1,4 @@
-"""Decision rules for the local-to-global interface (see DESIGN section 5).
+"""Decision rules for the local-to-global interface (docs/ARCHITECTURE.md, "Policies").
 
 A policy is ``act(obs, info) -> np.ndarray`` (int64, shape (2,): fuse now?, optimise now?, the
 env's ``MultiDiscrete([2, 2])`` action) plus ``reset()``; see :mod:`policies.base`. Heuristics

@@ -1,4 +1,5 @@
-"""The policy interface for the local-to-global interface decisions (DESIGN section 5).
+"""The policy interface for the local-to-global interface decisions (docs/ARCHITECTURE.md,
+"Policies").
 
 A policy maps what the environment shows at a decision to the pair of interface decisions::
 

@@ -1,4 +1,5 @@
-"""Learned interface policies: a stable-baselines3 model loaded from its zip (DESIGN section 5).
+"""Learned interface policies: a stable-baselines3 model loaded from its zip (docs/ARCHITECTURE.md,
+"Policies").
 
 ``LearnedPolicy(path=..., algo=...)`` loads a model saved by stable-baselines3 (``model.save``;
 ``slam-gym train`` writes one) and acts with ``model.predict(obs, deterministic=True)`` on the

@@ -1,4 +1,5 @@
-"""Named scenarios (DESIGN section 2): frozen, validated configurations of the simulated world.
+"""Named scenarios (docs/ARCHITECTURE.md, "The data stream"): frozen, validated configurations of
+the simulated world.
 
 ``brooks-bailey`` (BB 5.2): 120 m x 120 m, 35 uniform point landmarks, a random path near the
 extremities closing one ~430 m loop (BB Fig. 4: the loop closes near iteration 4400, i.e. ~440 m at

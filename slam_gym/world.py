@@ -1,4 +1,4 @@
-"""The cluttered 2-D world simulator (DESIGN section 2).
+"""The cluttered 2-D world simulator (docs/ARCHITECTURE.md, "The data stream").
 
 :func:`simulate` turns a :class:`slam_gym.scenarios.Scenario` and a seed into a
 :class:`slam_gym.stream.Stream`. Randomness comes from three independent generators spawned from

@@ -1,4 +1,5 @@
-"""Imports run one way: filters <- policies <- slam_gym <- scripts/examples, and never in a circle.
+"""Imports run one way: filters <- policies <- slam_gym <- scripts and examples, never in a
+circle.
 
 Every module of the repository is parsed with :mod:`ast`; every ``import`` counts, including
 those inside functions (a lazy import is still a dependency). docs/ARCHITECTURE.md, "Layers",

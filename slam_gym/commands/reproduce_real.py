@@ -1,6 +1,7 @@
 """``slam-gym reproduce mrclam`` / ``reproduce victoria-park``: the systems on real data.
 
-Both data sets are played as :class:`~slam_gym.stream.Stream` s (DESIGN section 2) through the
+Both data sets are played as :class:`~slam_gym.stream.Stream` s (docs/ARCHITECTURE.md, "The data
+stream") through the
 same systems (:func:`slam_gym.systems.make_system`) and the same evaluation machinery
 (:func:`slam_gym.evaluation.run_jobs`: parallel, resumable, one ``results.jsonl`` row per run,
 ``summary.json`` and ``table.md``), plus a readable ``real_table.md`` and PNG maps.

@@ -1,4 +1,5 @@
-"""UTIAS MRCLAM data sets as a :class:`~slam_gym.stream.Stream` (DESIGN section 2).
+"""UTIAS MRCLAM data sets as a :class:`~slam_gym.stream.Stream` (docs/ARCHITECTURE.md, "The data
+stream").
 
 Leung, Halpern, Barfoot, Liu, "The UTIAS Multi-Robot Cooperative Localization and Mapping
 Dataset", IJRR 30(8), 2011. A data set directory holds ``Barcodes.dat``,

@@ -1,4 +1,5 @@
-"""ACFR Victoria Park (Sydney) as a :class:`~slam_gym.stream.Stream` (DESIGN section 2).
+"""ACFR Victoria Park (Sydney) as a :class:`~slam_gym.stream.Stream` (docs/ARCHITECTURE.md, "The
+data stream").
 
 Guivant and Nebot, "Optimization of the simultaneous localization and map-building algorithm for
 real-time implementation", IEEE T-RA 17(3), 2001. A directory holds ``inputs.dat`` (t, speed of

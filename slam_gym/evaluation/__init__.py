@@ -14,7 +14,8 @@ objects) is one call, the function ``slam-gym benchmark`` runs (:mod:`.benchmark
     result = benchmark(["fixed-10s", MyRule()], clutter_levels=[2], seeds=5, out="out/mine")
     result.rows, result.summary, result.figures
 
-The output files and their keys are a public contract (DESIGN section 7). The plotting
+The output files and their keys are a public contract (docs/ARCHITECTURE.md, "The command line and
+its output files"). The plotting
 functions are imported lazily (matplotlib is not needed by the worker processes).
 """
 

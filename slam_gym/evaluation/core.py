@@ -3,7 +3,7 @@
 :func:`run_job` is the single run function behind ``slam-gym benchmark``, every ``slam-gym
 reproduce`` and the training callback. It builds the stream, the system (or the env and the
 policy), plays the whole path through :class:`~slam_gym.episode.Episode`, and returns the metrics
-of DESIGN section 6.
+of docs/ARCHITECTURE.md, "Evaluation metrics".
 
 System jobs (BB Table 1, CM) take options:
 ``n_particles`` (500), ``fusion_interval_s`` (10, BB's rule; sub-map systems only),

@@ -1,4 +1,4 @@
-"""Sub-map optimisation (filters/submap_optimise.py, DESIGN 3.10) and the relative back-end
+"""Sub-map optimisation (filters/submap_optimise.py, CM III.C) and the relative back-end
 (filters/back_ends.py)."""
 
 from __future__ import annotations
