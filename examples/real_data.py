@@ -11,7 +11,7 @@ ANEES, map completeness, the decisions taken and the return.
 
 The data: ``--data DIR`` (an ``MRCLAM_Dataset7`` folder), else ``$SLAM_GYM_DATA`` (or
 ``../shared/data``: :func:`slam_gym.default_mrclam_dir`), else the excerpts in ``tests/data``
-(the first 60 s of each robot, cut by ``scripts/make_test_excerpts.py``). The whole data set
+(the first 60 s of each robot, cut by ``scripts/tools/make_test_excerpts.py``). The whole data set
 comes from its publisher, the University of Toronto Institute for Aerospace Studies (UTIAS).
 
 What to expect (docs/RESULTS.md, "Real data"): the loader calibrates odometry, time stamps and

@@ -114,7 +114,7 @@ from filters.association import (
     validate_gate_probability,
     validate_node_budget,
 )
-from filters.ekf_slam import _validate_cov, _validate_pose, kalman_update
+from filters.ekf_slam import kalman_update, validate_cov, validate_pose
 from filters.esdf import SparseInformation, symmetrise
 from filters.geometry import (
     compose,
@@ -238,9 +238,9 @@ class GlobalMap:
         self.gate_probability = float(gate_probability)
         self.node_budget = int(node_budget)
         self._gate = ChiSquareTable(self.gate_probability, 2)
-        pose = np.zeros(3) if initial_pose is None else _validate_pose(initial_pose, "initial_pose")
+        pose = np.zeros(3) if initial_pose is None else validate_pose(initial_pose, "initial_pose")
         self.x = pose
-        self.P = _validate_cov(initial_pose_cov, "initial_pose_cov")
+        self.P = validate_cov(initial_pose_cov, "initial_pose_cov")
         self.initial_pose = pose.copy()  # the anchor of the pose chain (for the optimiser)
         self.initial_pose_cov = self.P.copy()
         self.ids = np.zeros(0, dtype=np.int64)

@@ -67,7 +67,7 @@ _TRAIN_HINT = (
 )
 
 
-def _resolve_path(path: str | Path | None) -> Path:
+def resolve_model_path(path: str | Path | None) -> Path:
     """The model file: ``path`` (``.zip`` appended if needed) or the packaged default."""
     hint = _TRAIN_HINT.format(default=DEFAULT_MODEL_PATH)
     if path is None:
@@ -92,7 +92,7 @@ def model_digest(path: str | Path | None = None) -> str:
     """The first 16 hex digits of the SHA-256 of the model file ``path`` (None: the packaged
     default): what identifies a model in a benchmark's resumable job keys, so that results of a
     model are never reused for another one saved under the same name."""
-    return hashlib.sha256(_resolve_path(path).read_bytes()).hexdigest()[:16]
+    return hashlib.sha256(resolve_model_path(path).read_bytes()).hexdigest()[:16]
 
 
 def check_model_digest(path: str | Path | None, expected: str | None) -> None:
@@ -145,7 +145,7 @@ provenance_logger = logging.getLogger("policies.provenance")
 """Where a model whose fingerprint differs from the code's is reported (WARNING)."""
 
 
-def _config(model_path: Path) -> dict[str, Any] | None:
+def read_model_config(model_path: Path) -> dict[str, Any] | None:
     """The config JSON beside the model (None: there is none)."""
     config = model_path.with_suffix(".json")
     if not config.is_file():
@@ -193,13 +193,13 @@ def check_model_provenance(path: str | Path | None = None,
     by the check. ``config``: the model's config JSON when the caller has read it already (else
     it is read). Without an installed check (``slam_gym`` not imported) nothing is compared:
     :data:`NOT_CHECKED`, and an INFO on ``policies.provenance`` says so."""
-    model_path = _resolve_path(path)
+    model_path = resolve_model_path(path)
     if not _PROVENANCE_CHECK:
         provenance_logger.info("learned model %s: provenance not checked (no check installed; "
                                "import slam_gym to install it)", model_path)
         return {**NOT_CHECKED, "differences": []}
     return _PROVENANCE_CHECK[0](model_path,
-                                config if config is not None else _config(model_path))
+                                config if config is not None else read_model_config(model_path))
 
 
 def _normalisation(stats: Any) -> tuple[np.ndarray, np.ndarray, float] | None:
@@ -292,8 +292,8 @@ class LearnedPolicy(Policy):
             "sample_seed", sample_seed, "a non-negative integer",
         )
         require(isinstance(device, str) and device != "", "device", device, "a torch device name")
-        model_path = _resolve_path(path)
-        config = _config(model_path) or {}  # read once: every setting below comes from it
+        model_path = resolve_model_path(path)
+        config = read_model_config(model_path) or {}  # read once: every setting below comes from it
         detected = detect_algorithm(model_path)
         if algo is None:
             algo = detected

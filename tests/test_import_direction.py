@@ -150,6 +150,22 @@ def circles(graph: dict[str, list[tuple[str, int]]]) -> list[list[str]]:
     return sorted(components)
 
 
+def private_imports(modules: dict[str, Path] | None = None) -> list[str]:
+    """Every ``from <project module> import _name`` of another module (a private name reached
+    across modules: it should be made public instead)."""
+    modules = project_modules() if modules is None else modules
+    found = []
+    for name, path in modules.items():
+        tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+        for node in ast.walk(tree):
+            if (isinstance(node, ast.ImportFrom) and node.module
+                    and _resolve(node.module, modules) not in (None, name)):
+                found += [f"{name}:{node.lineno} imports {node.module}.{alias.name}"
+                          for alias in node.names
+                          if alias.name.startswith("_") and not alias.name.startswith("__")]
+    return sorted(found)
+
+
 @pytest.fixture(scope="module")
 def graph() -> dict[str, list[tuple[str, int]]]:
     return import_graph()
@@ -171,6 +187,10 @@ def test_no_upward_import(graph):
 
 def test_no_circle_between_modules(graph):
     assert circles(graph) == []
+
+
+def test_no_private_name_is_imported_across_modules():
+    assert private_imports() == []
 
 
 def test_the_checks_catch_what_they_are_meant_to():

@@ -32,7 +32,13 @@ with several, OpenBLAS's spinning threads dominate the process time on busy core
 
 Run (from the repository root)::
 
-    .venv/bin/python scripts/gtsam_reference.py --submaps 40 --seed 0 --particles 100 --repeats 7
+    .venv/bin/python scripts/performance/gtsam_reference.py --submaps 40 --seed 0 \
+        --particles 100 --repeats 7
+
+Supports docs/PERFORMANCE.md, "optimise() (issue 27 item 2)".
+The command behind it::
+
+    python scripts/performance/gtsam_reference.py --submaps 40 --seed 0 --particles 100 --repeats 7
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ every fusion (``FastSLAM2.to_gaussian()``, BB 3.2).
 
 The committed file was written at commit f658fba, before the pose was compiled (issue 27), by
 
-    python scripts/make_pose_reference.py tests/data/pose_reference.npz
+    python scripts/tools/make_pose_reference.py tests/data/pose_reference.npz
 
 ``tests/filters/test_conversion.py`` replays the same run and compares to float rounding.
 """

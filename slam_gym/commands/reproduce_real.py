@@ -523,7 +523,10 @@ def _rounded(a, decimals: int = 3) -> list:
     return np.round(np.asarray(a, dtype=float), decimals).tolist()
 
 
-def _mrclam_result(episode, stream, robot: int, association: str) -> dict:
+def mrclam_result(episode, stream, robot: int, association: str) -> dict:
+    """The result row of an MRCLAM run: the episode's metrics
+    (:func:`slam_gym.evaluation.core.episode_result`), the pose RMSE against motion capture (also
+    after the calibration part), completeness and the traces of the figures."""
     from slam_gym.evaluation.core import episode_result
 
     row = episode_result(episode, stream)
@@ -620,7 +623,7 @@ def run_mrclam_system(
         known_association=known_association, stop_on_failure=False, record_trace=True,
         system_options=system_options, optimise=optimise,
     )
-    row = _mrclam_result(episode, stream, robot, "known" if known_association else "unknown")
+    row = mrclam_result(episode, stream, robot, "known" if known_association else "unknown")
     row.update(_calibration_fields(locals()))
     row["optimise"] = optimise
     row["robust_kernel"] = robust_kernel
@@ -668,7 +671,7 @@ def run_mrclam_policy(
         obs, _, terminated, truncated, info = env.step(policy.act(obs, info))
         if terminated or truncated:
             break
-    row = _mrclam_result(env.episode, env.stream, robot, "unknown")
+    row = mrclam_result(env.episode, env.stream, robot, "unknown")
     row["driven_system"] = "hybrid"
     # the return and the interface's compute as the benchmark's policy rows carry them
     row["return"] = env.episode_return
@@ -693,11 +696,11 @@ def run_victoria_park_system(
     """
     from slam_gym.datasets import load_victoria_park, path_error_after_alignment
     from slam_gym.episode import Episode
-    from slam_gym.evaluation.core import _seeds
+    from slam_gym.evaluation.core import filter_rng
     from slam_gym.systems import SUBMAP_SYSTEMS, make_system
 
     stream = load_victoria_park(data, max_steps=max_steps)
-    system = make_system(name, stream, _seeds(seed), n_particles=n_particles)
+    system = make_system(name, stream, filter_rng(seed), n_particles=n_particles)
     episode = Episode(system, stream, record_trace=False)
     submap = name in SUBMAP_SYSTEMS
     every = max(1, round((fusion_interval_s if submap else 1.0) / stream.dt_s))

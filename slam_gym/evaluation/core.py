@@ -69,8 +69,9 @@ def _options(given: dict, defaults: dict, what: str) -> dict:
     return defaults | given
 
 
-def _seeds(seed: int):
-    """Independent generators for the filter from the job's seed (the world uses the seed)."""
+def filter_rng(seed: int):
+    """The filter's generator for a job's seed, independent of the world's (the world uses the
+    seed itself); every run of a system on a job's world draws from it (scripts too)."""
     return np.random.default_rng(np.random.SeedSequence([int(seed), 7919]))
 
 
@@ -117,7 +118,7 @@ def run_system(
         key = "front_existence_model" if name in SUBMAP_SYSTEMS else "existence_model"
         if name in SUBMAP_SYSTEMS or name in ("fastslam", "ekf-slam"):
             system_options[key] = existence_model
-    system = make_system(name, stream, _seeds(seed), n_particles=n_particles, back_end=back_end,
+    system = make_system(name, stream, filter_rng(seed), n_particles=n_particles, back_end=back_end,
                          **system_options)
     known = bool(known_association) or name in KNOWN_ASSOCIATION_ONLY
     episode = Episode(system, stream, known_association=known, record_trace=record_trace)

@@ -326,7 +326,7 @@ def test_ship_model_refuses_a_model_of_another_system(stale_zip, tmp_path, monke
     import importlib.util
     from pathlib import Path
 
-    script = Path(__file__).resolve().parents[2] / "scripts" / "ship_model.py"
+    script = Path(__file__).resolve().parents[2] / "scripts" / "tools" / "ship_model.py"
     spec = importlib.util.spec_from_file_location("ship_model", script)
     ship = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(ship)
