@@ -35,7 +35,7 @@ from scipy.stats import chi2
 
 from filters.fastslam import FastSLAM2
 from filters.geometry import relative, wrap_angle
-from slam_gym.local_consistency import local_maps
+from slam_gym.local_consistency import add_fusion_run_arguments, local_maps
 from slam_gym.world import make_stream
 
 logger = logging.getLogger(__name__)
@@ -79,17 +79,10 @@ def fusion_records(level, seed, n_steps, n_particles, known):
 def main(argv) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("levels", help="clutter levels, e.g. 0,1,2,3")
-    parser.add_argument("seeds", help="a count N (seeds 0..N-1) or a range FIRST-LAST")
-    parser.add_argument("n_steps", type=int)
-    parser.add_argument("n_particles", nargs="?", type=int, default=500)
-    parser.add_argument("known", nargs="?", choices=["known"],
-                        help="'known': the true associations")
+    add_fusion_run_arguments(parser)
     args = parser.parse_args(argv)
-    levels = [int(x) for x in args.levels.split(",")]
-    first, _, last = args.seeds.partition("-")
-    seeds = range(int(first), int(last) + 1) if last else range(int(first))
-    n_steps, n_particles, known = args.n_steps, args.n_particles, args.known == "known"
+    levels, seeds, n_steps = args.levels, args.seeds, args.n_steps
+    n_particles, known = args.n_particles, args.known
     r = np.array([row for level in levels for seed in seeds
                   for row in fusion_records(level, seed, n_steps, n_particles, known)])
     hi = chi2.ppf(0.975, 3)

@@ -29,24 +29,18 @@ from scipy.stats import chi2
 
 from filters.ekf_slam import EKFSLAM
 from filters.fastslam import LOCAL_MAP_MAX_EXISTENCE, FastSLAM2
-from slam_gym.local_consistency import local_pose_nees_at_fusion
+from slam_gym.local_consistency import add_fusion_run_arguments, local_pose_nees_at_fusion
 from slam_gym.world import make_stream
 
 
 def main(argv) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("front_end")
-    parser.add_argument("levels", help="clutter levels, e.g. 0,1,2,3")
-    parser.add_argument("seeds", help="a count N (seeds 0..N-1) or a range FIRST-LAST")
-    parser.add_argument("n_steps", type=int)
-    parser.add_argument("n_particles", nargs="?", type=int, default=500)
-    parser.add_argument("known", nargs="?", choices=["known"],
-                        help="'known': the true associations")
+    add_fusion_run_arguments(parser)
     args = parser.parse_args(argv)
-    front, levels, n_steps = args.front_end, args.levels, args.n_steps
-    first, _, last = args.seeds.partition("-")
-    seeds = range(int(first), int(last) + 1) if last else range(int(first))
-    n_particles, known = args.n_particles, args.known == "known"
+    front, n_steps, seeds = args.front_end, args.n_steps, args.seeds
+    levels = ",".join(str(level) for level in args.levels)
+    n_particles, known = args.n_particles, args.known
     lo, hi = chi2.ppf([0.025, 0.975], 3)
     name = front.removesuffix("+clip")
     max_existence = 0.999 if front.endswith("+clip") else LOCAL_MAP_MAX_EXISTENCE

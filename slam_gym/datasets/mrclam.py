@@ -135,7 +135,7 @@ from filters.models import (
 )
 from filters.validation import check_range, require
 from slam_gym.datasets.align import hold_average, interpolate_poses
-from slam_gym.datasets.tables import load_table
+from slam_gym.datasets.tables import check_max_steps, load_table
 from slam_gym.stream import ArraySteps, Stream
 
 logger = logging.getLogger(__name__)
@@ -856,32 +856,38 @@ def calibrate_mrclam(
     recording (module docstring, "Calibration"); the options as in :func:`load_mrclam`.
     ``sensor``, when given, replaces the estimated sensor for the in-view test of the clutter
     rates."""
-    options = MrclamOptions(
-        calibration_s=calibration_s, corrections=corrections,
-        motion_compensation=motion_compensation, sensor_bias_correction=sensor_bias_correction,
-        odometry_correction=odometry_correction, timing_correction=timing_correction,
-        correlated_noise=correlated_noise, noise_window_s=noise_window_s,
-    )
+    options = MrclamOptions(calibration_s, corrections, motion_compensation,
+                            sensor_bias_correction, odometry_correction, timing_correction,
+                            correlated_noise, noise_window_s)
+    return _calibrated(rec, options, dt_s=dt_s, odometry_window_s=odometry_window_s,
+                       outlier_gate_probability=outlier_gate_probability,
+                       robot_sightings_as_clutter=robot_sightings_as_clutter,
+                       sensor=sensor)[3]
+
+
+def _calibrated(rec, options: MrclamOptions, *, dt_s, **calibration_options):
+    """The recording corrected as ``options`` say (odometry gains and delay, measurement time
+    stamps), its step layout, the end of the calibration part, and :func:`_calibrate`'s
+    calibration, outlier mask, sensor and observations: ``(rec, layout, cal_end, calibration,
+    outlier, sensor, row_z)``."""
     flags = options.switches()
     rec, correction, delay, cal_end = _corrected(
-        rec, calibration_s, flags["odometry_correction"], flags["timing_correction"]
+        rec, options.calibration_s, flags["odometry_correction"], flags["timing_correction"]
     )
-    return _calibrate(
+    lay = _layout(rec, dt_s, flags["motion_compensation"])
+    return (rec, lay, cal_end, *_calibrate(
         rec,
-        _layout(rec, dt_s, flags["motion_compensation"]),
+        lay,
         dt_s=dt_s,
         cal_end=cal_end,
-        calibration_s=calibration_s,
-        odometry_window_s=odometry_window_s,
-        outlier_gate_probability=outlier_gate_probability,
-        robot_sightings_as_clutter=robot_sightings_as_clutter,
-        sensor=sensor,
+        calibration_s=options.calibration_s,
         sensor_bias_correction=flags["sensor_bias_correction"],
         correlated_noise=flags["correlated_noise"],
-        noise_window_s=noise_window_s,
+        noise_window_s=options.noise_window_s,
         odometry_correction=correction,
         measurement_delay_s=delay,
-    )[0]
+        **calibration_options,
+    ))
 
 
 CORRECTION_SWITCHES = ("motion_compensation", "sensor_bias_correction", "odometry_correction",
@@ -1073,13 +1079,9 @@ def load_mrclam(
     them, when given as a bool, overrides ``corrections``. ``noise_window_s`` sets the window of
     the white-noise rule instead of the measured pass duration (and switches the rule on).
     """
-    options = MrclamOptions(
-        calibration_s=calibration_s, corrections=corrections,
-        motion_compensation=motion_compensation, sensor_bias_correction=sensor_bias_correction,
-        odometry_correction=odometry_correction, timing_correction=timing_correction,
-        correlated_noise=correlated_noise, noise_window_s=noise_window_s,
-    )
-    flags = options.switches()
+    options = MrclamOptions(calibration_s, corrections, motion_compensation,
+                            sensor_bias_correction, odometry_correction, timing_correction,
+                            correlated_noise, noise_window_s)
     check_range("dt_s", dt_s, 0.001, 10.0)
     require(isinstance(known_association, bool), "known_association", known_association, "a bool")
     require(
@@ -1088,37 +1090,12 @@ def load_mrclam(
         robot_sightings_as_clutter,
         "a bool",
     )
-    if max_steps is not None:
-        require(
-            isinstance(max_steps, (int, np.integer)) and not isinstance(max_steps, bool)
-            and max_steps >= 1,
-            "max_steps",
-            max_steps,
-            "None or an integer >= 1",
-        )
-    rec, correction, delay, cal_end = _corrected(
-        read_mrclam(directory, robot), calibration_s, flags["odometry_correction"],
-        flags["timing_correction"],
-    )
-    lay = _layout(rec, dt_s, flags["motion_compensation"])
-    calibration, outlier, sensor, row_z = _calibrate(
-        rec,
-        lay,
-        dt_s=dt_s,
-        cal_end=cal_end,
-        calibration_s=calibration_s,
-        odometry_window_s=odometry_window_s,
+    check_max_steps(max_steps)
+    rec, lay, cal_end, calibration, outlier, sensor, row_z = _calibrated(
+        read_mrclam(directory, robot), options, dt_s=dt_s, odometry_window_s=odometry_window_s,
         outlier_gate_probability=outlier_gate_probability,
-        robot_sightings_as_clutter=robot_sightings_as_clutter,
-        range_std_m=range_std_m,
-        bearing_std_rad=bearing_std_rad,
-        max_range_m=max_range_m,
-        fov_rad=fov_rad,
-        sensor_bias_correction=flags["sensor_bias_correction"],
-        correlated_noise=flags["correlated_noise"],
-        noise_window_s=noise_window_s,
-        odometry_correction=correction,
-        measurement_delay_s=delay,
+        robot_sightings_as_clutter=robot_sightings_as_clutter, range_std_m=range_std_m,
+        bearing_std_rad=bearing_std_rad, max_range_m=max_range_m, fov_rad=fov_rad,
     )
     if odometry_noise is None:
         odometry_noise = calibration.odometry.model()
@@ -1165,7 +1142,7 @@ def load_mrclam(
         "known_association": known_association,
         "robot_sightings": "clutter" if robot_sightings_as_clutter else "dropped",
         "corrections": corrections,
-        **flags,
+        **options.switches(),
         "calibration_end_s": cal_end - lay.t0,
         "landmark_subjects": tuple(int(s) for s in rec.landmark_subjects),
         "calibration": calibration.as_dict(),

@@ -27,34 +27,6 @@ from slam_gym.evaluation.jobs import Job, expand_grid
 from slam_gym.evaluation.results import RESULT_KEYS, ResultError, read_results, validate_result
 from slam_gym.evaluation.summary import markdown_table, summarise, wilson_interval, write_summary
 
-__all__ = [
-    "RESULT_KEYS",
-    "BenchmarkResult",
-    "Job",
-    "ResultError",
-    "benchmark",
-    "expand_grid",
-    "markdown_table",
-    "nees_band",
-    "pareto_front",
-    "plot_episode_map",
-    "plot_nees",
-    "plot_pareto",
-    "plot_run_map",
-    "plot_success_rates",
-    "plot_uncertainty_traces",
-    "read_results",
-    "run_jobs",
-    "summarise",
-    "validate_result",
-    "wilson_interval",
-    "write_summary",
-]
-"""The user-facing names: the benchmark, jobs and their execution, the results file, the
-summary and the figures. The machinery behind them (executors, the writer, file names, the
-table formats) is imported from its module (:mod:`.executors`, :mod:`.results`,
-:mod:`.summary`)."""
-
 _PLOTS = (
     "nees_band",
     "pareto_front",
@@ -65,6 +37,28 @@ _PLOTS = (
     "plot_success_rates",
     "plot_uncertainty_traces",
 )
+"""The plotting functions, imported from :mod:`.plots` on first use."""
+
+__all__ = [
+    "RESULT_KEYS",
+    "BenchmarkResult",
+    "Job",
+    "ResultError",
+    "benchmark",
+    "expand_grid",
+    "markdown_table",
+    "read_results",
+    "run_jobs",
+    "summarise",
+    "validate_result",
+    "wilson_interval",
+    "write_summary",
+    *_PLOTS,
+]
+"""The user-facing names: the benchmark, jobs and their execution, the results file, the
+summary and the figures. The machinery behind them (executors, the writer, file names, the
+table formats) is imported from its module (:mod:`.executors`, :mod:`.results`,
+:mod:`.summary`)."""
 
 
 def __getattr__(name: str) -> Any:

@@ -43,7 +43,7 @@ from typing import Any
 import numpy as np
 
 from policies.learned import algorithm_class
-from slam_gym.training.evaluation import DEFAULT_EVAL_SEEDS
+from slam_gym.training.evaluation import DEFAULT_EVAL_SEEDS, append_csv_row
 from slam_gym.training.hyperparams import ALGO_KEYS
 
 logger = logging.getLogger(__name__)
@@ -311,12 +311,7 @@ def _append_eval(run_dir: Path, record: dict[str, Any]) -> None:
     if any(k.startswith("sampled_") for k in record):
         fields += ["sampled_" + k for k in EVAL_FIELDS[1:] if k != "eval_time_s"]
         fields += ["sampled_" + k for k in levels]
-    new = not path.is_file()
-    with path.open("a", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=fields, extrasaction="ignore")
-        if new:
-            writer.writeheader()
-        writer.writerow(record)
+    append_csv_row(path, fields, record)
 
 
 def _forget_after(run_dir: Path, checkpoint: int) -> None:
