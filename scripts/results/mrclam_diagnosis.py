@@ -26,7 +26,7 @@ import logging
 import numpy as np
 
 from slam_gym.datasets import load_mrclam, read_mrclam
-from slam_gym.datasets.mrclam import true_velocities
+from slam_gym.datasets.estimators import true_velocities
 from slam_gym.evaluation.core import run_system
 from slam_gym.evaluation.real_data import mrclam_result
 

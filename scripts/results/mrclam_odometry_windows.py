@@ -1,6 +1,6 @@
 """Issue 16: how MRCLAM's odometry error grows with the span it is integrated over.
 
-For each robot, fits :func:`slam_gym.datasets.mrclam.estimate_odometry_noise` on the loader's
+For each robot, fits :func:`slam_gym.datasets.estimators.estimate_odometry_noise` on the loader's
 calibration part (the first ``--calibration-s`` seconds, odometry corrected as the loader does)
 with windows of 1, 2, 5, 10, 20 and 30 s, and prints the fitted per-step std at the robot's
 typical motion (v = 0.1 m/s, omega = 0.3 rad/s). Errors that were white would give the same std

@@ -28,7 +28,7 @@ Keyword arguments (besides those of :class:`~slam_gym.envs.hybrid_slam.HybridSLA
     estimated on the first 300 s of the recording; ``corrections=False`` gives the plain
     stream (the noise the root mean square of the residuals). ``sensor_noise_window_s`` sets
     the window of the white-noise rule for the camera's time-correlated errors
-    (:func:`slam_gym.datasets.mrclam.correlated_noise_std`; default: one pass over a landmark,
+    (:func:`slam_gym.datasets.estimators.correlated_noise_std`; default: one pass over a landmark,
     measured); ``sensor_noise_scale`` multiplies the result.
 ``front_end_options``
     Keyword options of the front-end filter (:class:`filters.fastslam.FastSLAM2` or

@@ -26,14 +26,14 @@ from slam_gym.datasets import (
     path_error_after_alignment,
     read_mrclam,
 )
-from slam_gym.datasets.mrclam import (
-    compensate_motion,
+from slam_gym.datasets.estimators import (
     correlated_noise_std,
     estimate_odometry_noise,
     estimate_sensor_bias,
     estimate_sensor_noise,
     true_velocities,
 )
+from slam_gym.datasets.mrclam import compensate_motion
 from slam_gym.datasets.victoria_park import VehicleGeometry, laser_to_vehicle, read_geometry
 
 ROBOT = 3  # has robot sightings and unknown barcodes (34, 52)
