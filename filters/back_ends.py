@@ -51,7 +51,7 @@ The relative back-end (:class:`RelativeBackEnd`)
 CM's representation at the sub-map level (CM III.B; docs/ARCHITECTURE.md, "Sub-map system"): fused
 sub-maps
 are kept only in relative coordinates, in information form ``(eta, Lambda)``
-(:class:`filters.esdf.SparseInformation`) over
+(:class:`filters.information.SparseInformation`) over
 
 * ``d_s``: the end pose of sub-map ``s`` in its origin frame (CM's ``d^R``, one per fusion);
 * ``l``: each feature's coordinates in the origin frame of the sub-map that first had it (CM's
@@ -115,7 +115,6 @@ from filters.association import (
     validate_node_budget,
 )
 from filters.ekf_slam import kalman_update, validate_cov, validate_pose
-from filters.esdf import SparseInformation, symmetrise
 from filters.geometry import (
     compose,
     compose_jacobians,
@@ -125,6 +124,7 @@ from filters.geometry import (
     transform_point_jacobians,
     wrap_angle,
 )
+from filters.information import SparseInformation, symmetrise
 from filters.optimiser import POINT, POSE, RelativeQuantity
 from filters.relative_esdf import chain_compose
 from filters.submap_optimise import (

@@ -33,8 +33,8 @@ import scipy.sparse as sp
 from numba import njit
 from scipy.linalg import cho_factor, cho_solve
 
-from filters.esdf import sparse_spd_factor
 from filters.geometry import wrap_angle_one as _wrap
+from filters.information import sparse_spd_factor
 
 DENSE_MAX_VARIABLES = 600
 """Above this many variables the normal equations are factorised sparse (the graph of a

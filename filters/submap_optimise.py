@@ -51,8 +51,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
-from filters.esdf import sparse_spd_factor, symmetrise
 from filters.geometry import compose, transform_point, wrap_angle
+from filters.information import sparse_spd_factor, symmetrise
 from filters.optimiser import (
     METHODS,
     POINT,
