@@ -10,8 +10,8 @@ script prints per robot the map error against the landmark ground truth, the fin
 ANEES, map completeness, the decisions taken and the return.
 
 The data: ``--data DIR`` (an ``MRCLAM_Dataset7`` folder), else ``$SLAM_GYM_DATA`` (or
-``../shared/data``: :mod:`slam_gym.datasets.location`), else the excerpts in ``tests/data``
-(the first 60 s of each robot, cut by ``scripts/make_test_excerpts.py``). The whole data set
+``../shared/data``: :func:`slam_gym.default_mrclam_dir`), else the excerpts in ``tests/data``
+(the first 60 s of each robot, cut by ``scripts/tools/make_test_excerpts.py``). The whole data set
 comes from its publisher, the University of Toronto Institute for Aerospace Studies (UTIAS).
 
 What to expect (docs/RESULTS.md, "Real data"): the loader calibrates odometry, time stamps and
@@ -32,7 +32,7 @@ from pathlib import Path
 import gymnasium as gym
 
 import policies
-from slam_gym.envs.mrclam import default_mrclam_dir
+from slam_gym import default_mrclam_dir
 
 EXCERPT = Path(__file__).resolve().parents[1] / "tests" / "data" / "mrclam" / "MRCLAM_Dataset7"
 

@@ -4,7 +4,7 @@
 
 Plain stable-baselines3 on the registered env (no project training code but one helper): PPO on
 ``SlamGym/HybridSLAM-Light-v0`` at clutter level 2, with
-:class:`slam_gym.training.callbacks.BenchmarkEvalCallback` evaluating snapshots on two held-out
+:class:`slam_gym.BenchmarkEvalCallback` evaluating snapshots on two held-out
 worlds during training (success, ANEES, map error, completeness, interface CPU, return on the
 model's logger under ``eval/``, and in ``OUT/eval/evaluations.csv``). The model is saved with the
 JSON the ``learned`` policy reads, and benchmarked with :func:`slam_gym.evaluation.benchmark`
@@ -15,7 +15,7 @@ a different policy from the one trained (docs/ARCHITECTURE.md, "Training").
 
 Untrained PPO picks each action with probability 0.5, i.e. optimises at every other decision,
 which makes the env about 3x slower and is no prior anyone would choose;
-:func:`slam_gym.training.run.set_initial_action_probabilities` starts it at BB's rate (0.1 per
+:func:`slam_gym.set_initial_action_probabilities` starts it at BB's rate (0.1 per
 decision) instead (docs/ARCHITECTURE.md, "Training").
 
 A few thousand decisions are a demonstration, not a trained policy: ``slam-gym train`` (rl-zoo3
@@ -32,9 +32,8 @@ from pathlib import Path
 import gymnasium as gym
 from stable_baselines3 import PPO
 
+from slam_gym import BenchmarkEvalCallback, set_initial_action_probabilities
 from slam_gym.evaluation import benchmark, markdown_table
-from slam_gym.training.callbacks import BenchmarkEvalCallback
-from slam_gym.training.run import set_initial_action_probabilities
 
 ENV_ID = "SlamGym/HybridSLAM-Light-v0"
 

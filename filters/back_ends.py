@@ -48,9 +48,10 @@ not depend on how long ago a feature was seen.
 
 The relative back-end (:class:`RelativeBackEnd`)
 ------------------------------------------------
-CM's representation at the sub-map level (CM III.B, DESIGN "The hybrid system"): fused sub-maps
+CM's representation at the sub-map level (CM III.B; docs/ARCHITECTURE.md, "Sub-map system"): fused
+sub-maps
 are kept only in relative coordinates, in information form ``(eta, Lambda)``
-(:class:`filters.esdf.SparseInformation`) over
+(:class:`filters.information.SparseInformation`) over
 
 * ``d_s``: the end pose of sub-map ``s`` in its origin frame (CM's ``d^R``, one per fusion);
 * ``l``: each feature's coordinates in the origin frame of the sub-map that first had it (CM's
@@ -113,8 +114,7 @@ from filters.association import (
     validate_gate_probability,
     validate_node_budget,
 )
-from filters.ekf_slam import _validate_cov, _validate_pose, kalman_update
-from filters.esdf import SparseInformation, symmetrise
+from filters.ekf_slam import kalman_update, validate_cov, validate_pose
 from filters.geometry import (
     compose,
     compose_jacobians,
@@ -124,6 +124,7 @@ from filters.geometry import (
     transform_point_jacobians,
     wrap_angle,
 )
+from filters.information import SparseInformation, symmetrise
 from filters.optimiser import POINT, POSE, RelativeQuantity
 from filters.relative_esdf import chain_compose
 from filters.submap_optimise import (
@@ -237,9 +238,9 @@ class GlobalMap:
         self.gate_probability = float(gate_probability)
         self.node_budget = int(node_budget)
         self._gate = ChiSquareTable(self.gate_probability, 2)
-        pose = np.zeros(3) if initial_pose is None else _validate_pose(initial_pose, "initial_pose")
+        pose = np.zeros(3) if initial_pose is None else validate_pose(initial_pose, "initial_pose")
         self.x = pose
-        self.P = _validate_cov(initial_pose_cov, "initial_pose_cov")
+        self.P = validate_cov(initial_pose_cov, "initial_pose_cov")
         self.initial_pose = pose.copy()  # the anchor of the pose chain (for the optimiser)
         self.initial_pose_cov = self.P.copy()
         self.ids = np.zeros(0, dtype=np.int64)

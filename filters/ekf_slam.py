@@ -184,7 +184,9 @@ def make_config(config_cls, config, options):
     return dataclasses.replace(base, **options) if options else base
 
 
-def _validate_pose(value, field):
+def validate_pose(value, field):
+    """A pose option: 3 finite numbers (heading wrapped), or ``ValueError`` naming ``field``;
+    the back-ends validate their initial pose with it too."""
     pose = np.asarray(value, dtype=float)
     require(pose.shape == (3,) and np.all(np.isfinite(pose)), field, value, "3 finite numbers")
     out = pose.copy()
@@ -192,7 +194,9 @@ def _validate_pose(value, field):
     return out
 
 
-def _validate_cov(value, field, dim=3):
+def validate_cov(value, field, dim=3):
+    """A covariance option: symmetric positive semi-definite ``dim x dim`` (returned
+    symmetrised; None: zeros), or ``ValueError`` naming ``field``."""
     if value is None:
         return np.zeros((dim, dim))
     cov = np.asarray(value, dtype=float)
@@ -236,9 +240,9 @@ class EKFSLAM:
         self._alpha = min(float(clutter.alpha), self.config.max_detection_probability)
         self._beta = float(clutter.beta)
         self._initial_pose = (
-            np.zeros(3) if initial_pose is None else _validate_pose(initial_pose, "initial_pose")
+            np.zeros(3) if initial_pose is None else validate_pose(initial_pose, "initial_pose")
         )
-        self._initial_cov = _validate_cov(initial_pose_cov, "initial_pose_cov")
+        self._initial_cov = validate_cov(initial_pose_cov, "initial_pose_cov")
         cap_f = int(self.config.initial_feature_capacity)
         self._allocate(3 + 2 * cap_f)
         self._clutter_num = 0.0

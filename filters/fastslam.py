@@ -127,7 +127,7 @@ first minute, after which the term is zero (a single lineage says nothing about 
 That covariance is itself estimated from few lineages (a median of 7 effective ones at fusion),
 so its inverse, the information the back-end fuses, is biased high, and the local-pose NEES is
 heavy-tailed: local maps whose pose covariance has fewer than 10 effective degrees of freedom
-were over the 95 % band at 10.5 % of fusions (nominal 2.5 %; scripts/lineage_diagnosis.py).
+were over the 95 % band at 10.5 % of fusions (nominal 2.5 %; scripts/results/lineage_diagnosis.py).
 With ``small_sample_correction`` (the default) the pose block is also scaled by
 :func:`filters.conversion.small_sample_factor`, ``nu / (nu - 4)`` for ``nu`` effective degrees
 of freedom, which makes that information unbiased (docs/RESULTS.md).
@@ -235,7 +235,8 @@ class FastSLAM2:
     """FastSLAM 2.0 with Data Association Sampling, existence and correspondence voting.
 
     Parameters (keyword options are validated; a bad value raises ``ValueError``):
-    sensor, clutter, odometry_noise: the models (DESIGN 3). rng: the owned
+    sensor, clutter, odometry_noise: the models (docs/ARCHITECTURE.md, "Filter interface"). rng:
+    the owned
     ``numpy.random.Generator`` (every draw). ids: shared :class:`FeatureIds` (new if None).
     n_particles: P. initial_pose: the pose of every particle at start (zero uncertainty).
     resample_threshold: resample when N_eff < threshold * P. gate_chi2: association gate.

@@ -3,7 +3,7 @@
 The one definition of the contract between the systems that compute the features
 (:meth:`filters.submap.SubmapSLAM.interface_features`), the env that shows them (its observation
 vector, in this order, and ``info["features"]``) and the policies that read them. This module
-imports nothing, so the policies package can use it without the filters.
+imports nothing.
 """
 
 INTERFACE_FEATURE_NAMES: tuple[str, ...] = (

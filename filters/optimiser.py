@@ -85,8 +85,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import minimize
 
-from filters.esdf import sparse_spd_factor
 from filters.geometry import compose, transform_point, wrap_angle
+from filters.information import sparse_spd_factor
 from filters.validation import check_range, require
 
 logger = logging.getLogger(__name__)

@@ -64,9 +64,9 @@ from filters.esdf import (
     DelayedStateFilter,
     check_initial_pose,
     check_observations,
-    symmetrise,
 )
 from filters.geometry import compose, transform_point_jacobians, wrap_angle
+from filters.information import symmetrise
 from filters.models import (
     innovation,
     inverse_observe,

@@ -67,7 +67,7 @@ __all__ = [
 # --------------------------------------------------------------------------- the system
 @dataclass
 class StoredSubmap:
-    """A fused local map, kept for the optimiser (DESIGN 3.10).
+    """A fused local map, kept for the optimiser (CM III.C).
 
     ``gaussian``: the local map as fused (local frame, local ids); ``id_map``: local id -> global
     id; ``origin_index``: which pose of the chain of fusion poses is its origin (0 = the initial
@@ -259,7 +259,7 @@ class SubmapSLAM:
         return report
 
     def optimise(self, method: str = "gauss-newton", **options):
-        """DESIGN 3.10: minimise CM (12) over the stored sub-maps and replace the global estimate
+        """CM III.C: minimise CM (12) over the stored sub-maps and replace the global estimate
         by the optimum and its Gauss-Newton covariance (:mod:`filters.submap_optimise`); with the
         system's ``robust_kernel`` (None, ``"huber"``, ``"cauchy"``) unless ``robust`` is given."""
         options.setdefault("robust", self.robust_kernel)

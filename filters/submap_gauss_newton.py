@@ -17,7 +17,7 @@ them with a dense Cholesky factor (a few hundred variables at BB's scale) or, fo
 the project's sparse factorisation; the iteration (undamped Gauss-Newton, Marquardt damping only
 when a step fails to lower the cost, the same stopping rules) is that of
 :meth:`RelativeProblem.optimise` with ``"gauss-newton"``, so the optimum is the same (tested to
-tolerance against it, and against GTSAM in ``scripts/gtsam_reference.py``).
+tolerance against it, and against GTSAM in ``scripts/performance/gtsam_reference.py``).
 
 The Jacobians are those of :mod:`filters.geometry` (``relative`` and ``point_to_frame`` w.r.t.
 the origin pose, the end pose and the point); the heading residual is wrapped to ``(-pi, pi]``
@@ -33,8 +33,8 @@ import scipy.sparse as sp
 from numba import njit
 from scipy.linalg import cho_factor, cho_solve
 
-from filters.esdf import sparse_spd_factor
 from filters.geometry import wrap_angle_one as _wrap
+from filters.information import sparse_spd_factor
 
 DENSE_MAX_VARIABLES = 600
 """Above this many variables the normal equations are factorised sparse (the graph of a

@@ -1,4 +1,4 @@
-"""Nonlinear optimisation of the sub-map back-ends (DESIGN 3.10) and the relative back-end.
+"""Nonlinear optimisation of the sub-map back-ends (CM III.C) and the relative back-end.
 
 Sub-maps as relative constraints
 --------------------------------
@@ -51,8 +51,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
-from filters.esdf import sparse_spd_factor, symmetrise
 from filters.geometry import compose, transform_point, wrap_angle
+from filters.information import sparse_spd_factor, symmetrise
 from filters.optimiser import (
     METHODS,
     POINT,
@@ -470,7 +470,7 @@ def optimise_submaps(
     solver: str = "compiled",
     **options,
 ) -> OptimiseResult:
-    """DESIGN 3.10: minimise CM (12) over the stored sub-maps and write the optimum back.
+    """CM III.C: minimise CM (12) over the stored sub-maps and write the optimum back.
 
     ``submap_slam``: a :class:`filters.submap.SubmapSLAM` (its ``submaps`` and ``back_end``).
     ``method``: ``"gauss-newton"``, ``"levenberg-marquardt"`` or ``"reduced"`` (CM's reduced

@@ -1,4 +1,4 @@
-"""Result types and the interface every filter offers (DESIGN section 3).
+"""Result types and the interface every filter offers (docs/ARCHITECTURE.md, "Filter interface").
 
 Feature identity: every feature a filter creates gets a persistent integer id from a
 :class:`FeatureIds` counter. A system that owns several maps (local and global) shares one counter
@@ -79,7 +79,8 @@ class FusionReport:
 
 
 class SlamFilter(Protocol):
-    """The interface of DESIGN section 3. Sub-map systems add ``fuse()`` and ``optimise()``."""
+    """The interface of docs/ARCHITECTURE.md, "Filter interface". Sub-map systems add ``fuse()``
+    and ``optimise()``."""
 
     last_associations: np.ndarray
 

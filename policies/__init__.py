@@ -1,9 +1,10 @@
-"""Decision rules for the local-to-global interface (see DESIGN section 5).
+"""Decision rules for the local-to-global interface (docs/ARCHITECTURE.md, "Policies").
 
 A policy is ``act(obs, info) -> np.ndarray`` (int64, shape (2,): fuse now?, optimise now?, the
 env's ``MultiDiscrete([2, 2])`` action) plus ``reset()``; see :mod:`policies.base`. Heuristics
 (:mod:`policies.heuristics`) read ``info["features"]`` by name, learned policies
-(:mod:`policies.learned`) the observation vector. This package imports nothing else of the project.
+(:mod:`policies.learned`) the observation vector. This package imports only ``filters`` of the
+project (docs/ARCHITECTURE.md, "Layers").
 
 >>> import policies
 >>> policy = policies.make("fixed-10s")

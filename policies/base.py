@@ -1,4 +1,5 @@
-"""The policy interface for the local-to-global interface decisions (DESIGN section 5).
+"""The policy interface for the local-to-global interface decisions (docs/ARCHITECTURE.md,
+"Policies").
 
 A policy maps what the environment shows at a decision to the pair of interface decisions::
 
@@ -15,9 +16,9 @@ back-end"); the optimisation decision is CM's switch from the filter to the nonl
 (CM section III.B-C). When both are 1 at one decision the env fuses first and then optimises, so
 the optimiser sees the sub-map that was just fused.
 
-This package imports nothing else of the project but the feature names' one definition
-(:mod:`filters.interface_features`, which imports nothing): the helpers below (feature reading,
-option validation, the Discrete(4) mapping) are self-contained on purpose.
+This package imports from ``filters`` only (docs/ARCHITECTURE.md, "Layers"): the feature names'
+one definition (:mod:`filters.interface_features`) and the option validation every layer shares
+(:mod:`filters.validation`).
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from filters.interface_features import INTERFACE_FEATURE_NAMES
+from filters.validation import require
 
 INTERFACE_FEATURES: tuple[str, ...] = INTERFACE_FEATURE_NAMES
 """The interface-feature names of docs/ARCHITECTURE.md, in table order: the contract between the
@@ -37,69 +39,6 @@ env (which fills ``info["features"]``) and the heuristics (which declare the sub
 
 N_DISCRETE_ACTIONS = 4
 """Size of the flat action space of the env's ``Discrete(4)`` wrapper (for DQN)."""
-
-
-# ----------------------------------------------------------------------------------------------
-# Option validation (same message format as filters/validation.py, which we may not import)
-# ----------------------------------------------------------------------------------------------
-def require(condition: bool, field: str, value: Any, allowed: str) -> None:
-    """Raise ``ValueError("<field>=<value> is invalid: must be <allowed>")`` unless true."""
-    if not condition:
-        raise ValueError(f"{field}={value!r} is invalid: must be {allowed}")
-
-
-def check_range(
-    field: str,
-    value: Any,
-    low: float,
-    high: float,
-    *,
-    low_open: bool = False,
-    high_open: bool = False,
-    why: str = "",
-) -> float:
-    """Require a finite number (not bool) in [low, high] (open ends by flag); return it as float.
-
-    An infinite bound is shown open in the message (``[0.0, inf)``); the value must be finite.
-    ``why`` is appended to the message (e.g. which other option sets a bound).
-    """
-    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
-        value, (bool, np.bool_)
-    )
-    if ok:
-        v = float(value)
-        ok = (
-            math.isfinite(v)
-            and (v > low if low_open else v >= low)
-            and (v < high if high_open else v <= high)
-        )
-    lo = "(" if (low_open or math.isinf(low)) else "["
-    hi = ")" if (high_open or math.isinf(high)) else "]"
-    suffix = f" ({why})" if why else ""
-    require(ok, field, value, f"a number in {lo}{low}, {high}{hi}{suffix}")
-    return float(value)
-
-
-def check_int_range(field: str, value: Any, low: int, high: int | None = None) -> int:
-    """Require an integer (not bool) in [low, high] (``high=None``: no upper bound); return it."""
-    ok = isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
-    if ok:
-        ok = value >= low and (high is None or value <= high)
-    upper = "inf)" if high is None else f"{high}]"
-    require(ok, field, value, f"an integer in [{low}, {upper}")
-    return int(value)
-
-
-def check_choice(field: str, value: Any, choices: Iterable[str]) -> str:
-    """Require ``value`` to be one of the strings ``choices``; return it."""
-    choices = tuple(choices)
-    require(
-        isinstance(value, str) and value in choices,
-        field,
-        value,
-        "one of " + ", ".join(repr(c) for c in choices),
-    )
-    return value
 
 
 # ----------------------------------------------------------------------------------------------
@@ -141,8 +80,9 @@ def discrete_to_multi(a: Any) -> np.ndarray:
         2 -> (1, 0)  fuse only
         3 -> (1, 1)  fuse, then optimise
 
-    The env's ``Discrete(4)`` wrapper (for DQN) and :mod:`policies.learned` both use it, so a
-    model trained through the wrapper acts identically when loaded as a policy.
+    The env's ``Discrete(4)`` wrapper (for DQN; :class:`slam_gym.envs.wrappers.DiscreteActions`)
+    and :mod:`policies.learned` both use it, so a model trained through the wrapper acts
+    identically when loaded as a policy.
     """
     arr = np.asarray(a)
     ok = arr.size == 1 and np.issubdtype(arr.dtype, np.integer) and not isinstance(a, bool)
@@ -159,8 +99,9 @@ def discrete_to_multi(a: Any) -> np.ndarray:
 def discrete_action_mask(optimise_redundant: bool) -> np.ndarray:
     """The valid ``Discrete(4)`` actions at a decision: all but ``1`` (optimise only) when the
     env says the optimisation would be redundant (``info["optimise_redundant"]``: nothing fused
-    since the last optimum, so optimising alone is a no-op). The env's wrapper computes the
-    same mask (``slam_gym.envs.wrappers.discrete_action_mask``; a test checks they agree)."""
+    since the last optimum, so optimising alone is a no-op); ``a = 3`` optimises the sub-map it
+    has just fused, so it is never a no-op. The env's ``Discrete(4)`` wrapper
+    (:class:`slam_gym.envs.wrappers.DiscreteActions`) masks with this function."""
     return np.array([True, not bool(optimise_redundant), True, True])
 
 

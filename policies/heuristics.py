@@ -54,7 +54,8 @@ import math
 from collections.abc import Mapping
 from types import MappingProxyType
 
-from policies.base import HeuristicPolicy, check_choice, check_int_range, check_range
+from filters.validation import check_choice, check_int_range, check_range
+from policies.base import HeuristicPolicy
 
 AGE_TOLERANCE_S = 1e-4
 """Tolerance (s) when comparing a local-map age with a target age: far below any filter period

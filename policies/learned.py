@@ -1,4 +1,5 @@
-"""Learned interface policies: a stable-baselines3 model loaded from its zip (DESIGN section 5).
+"""Learned interface policies: a stable-baselines3 model loaded from its zip (docs/ARCHITECTURE.md,
+"Policies").
 
 ``LearnedPolicy(path=..., algo=...)`` loads a model saved by stable-baselines3 (``model.save``;
 ``slam-gym train`` writes one) and acts with ``model.predict(obs, deterministic=True)`` on the
@@ -34,18 +35,19 @@ import hashlib
 import json
 import logging
 import zipfile
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
 
+from filters.validation import require
 from policies.base import (
     N_DISCRETE_ACTIONS,
     Policy,
     discrete_action_mask,
     discrete_to_multi,
-    require,
 )
 from policies.heuristics import AGE_TOLERANCE_S
 
@@ -66,7 +68,7 @@ _TRAIN_HINT = (
 )
 
 
-def _resolve_path(path: str | Path | None) -> Path:
+def resolve_model_path(path: str | Path | None) -> Path:
     """The model file: ``path`` (``.zip`` appended if needed) or the packaged default."""
     hint = _TRAIN_HINT.format(default=DEFAULT_MODEL_PATH)
     if path is None:
@@ -91,7 +93,7 @@ def model_digest(path: str | Path | None = None) -> str:
     """The first 16 hex digits of the SHA-256 of the model file ``path`` (None: the packaged
     default): what identifies a model in a benchmark's resumable job keys, so that results of a
     model are never reused for another one saved under the same name."""
-    return hashlib.sha256(_resolve_path(path).read_bytes()).hexdigest()[:16]
+    return hashlib.sha256(resolve_model_path(path).read_bytes()).hexdigest()[:16]
 
 
 def check_model_digest(path: str | Path | None, expected: str | None) -> None:
@@ -144,7 +146,7 @@ provenance_logger = logging.getLogger("policies.provenance")
 """Where a model whose fingerprint differs from the code's is reported (WARNING)."""
 
 
-def _config(model_path: Path) -> dict[str, Any] | None:
+def read_model_config(model_path: Path) -> dict[str, Any] | None:
     """The config JSON beside the model (None: there is none)."""
     config = model_path.with_suffix(".json")
     if not config.is_file():
@@ -157,29 +159,48 @@ def _config(model_path: Path) -> dict[str, Any] | None:
     return data
 
 
+ProvenanceCheck = Callable[[Path, "dict[str, Any] | None"], dict[str, Any]]
+"""``check(model_path, config) -> {"checked": True, "matches": bool, "differences": [...]}``:
+compares a model (its zip and its config JSON, None when it has none) with the system it would
+act in, and warns (:class:`ModelProvenanceWarning`) when they differ."""
+
+_PROVENANCE_CHECK: list[ProvenanceCheck] = []
+"""The check :func:`set_provenance_check` installed in this process (none, or one)."""
+
+NOT_CHECKED: Mapping[str, Any] = MappingProxyType(
+    {"checked": False, "matches": None, "differences": ()})
+"""``policy.provenance`` of a model whose provenance was not checked."""
+
+
+def set_provenance_check(check: ProvenanceCheck | None) -> None:
+    """Install ``check`` as the provenance check of every :class:`LearnedPolicy` loaded in this
+    process from now on (None: remove it), a process-wide hook like :func:`policies.register`.
+
+    The system a model was trained on is the env, a floor above this package (imports run
+    filters <- policies <- slam_gym), so the env fills the hook: ``import slam_gym`` (any of its
+    modules) installs :func:`slam_gym.training.provenance.check_model_provenance`."""
+    if check is not None and not callable(check):
+        raise ValueError(f"check={check!r} is invalid: must be a callable "
+                         "check(model_path, config) or None")
+    _PROVENANCE_CHECK.clear()
+    if check is not None:
+        _PROVENANCE_CHECK.append(check)
+
+
 def check_model_provenance(path: str | Path | None = None,
                            config: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Compare the fingerprint a model records (its config JSON's ``fingerprint``) with the
-    current code's for the same env options (:mod:`slam_gym.training.provenance`; computed once
-    per env options in a process); ``{"checked": True, "matches": bool, "differences": [...]}``.
-    A mismatch, or a model that records no fingerprint, is logged as a WARNING on
-    ``policies.provenance`` and warned as :class:`ModelProvenanceWarning`, naming what differs.
-    ``config``: the model's config JSON when the caller has read it already (else it is read)."""
-    import warnings
-
-    from slam_gym.training.provenance import model_provenance
-
-    model_path = _resolve_path(path)
-    result = model_provenance(config if config is not None else _config(model_path))
-    provenance = {"checked": True, "matches": bool(result["matches"]),
-                  "differences": list(result["differences"])}
-    if not provenance["matches"]:
-        message = (f"learned model {model_path} does not match the code it runs on (it was "
-                   "trained on a different system; its decisions may not mean what they did): "
-                   + "; ".join(provenance["differences"]))
-        provenance_logger.warning("%s", message)
-        warnings.warn(message, ModelProvenanceWarning, stacklevel=3)
-    return provenance
+    """Run the installed provenance check (:func:`set_provenance_check`) on the model at
+    ``path``: ``{"checked": True, "matches": bool, "differences": [...]}``; a mismatch is warned
+    by the check. ``config``: the model's config JSON when the caller has read it already (else
+    it is read). Without an installed check (``slam_gym`` not imported) nothing is compared:
+    :data:`NOT_CHECKED`, and an INFO on ``policies.provenance`` says so."""
+    model_path = resolve_model_path(path)
+    if not _PROVENANCE_CHECK:
+        provenance_logger.info("learned model %s: provenance not checked (no check installed; "
+                               "import slam_gym to install it)", model_path)
+        return {**NOT_CHECKED, "differences": []}
+    return _PROVENANCE_CHECK[0](model_path,
+                                config if config is not None else read_model_config(model_path))
 
 
 def _normalisation(stats: Any) -> tuple[np.ndarray, np.ndarray, float] | None:
@@ -200,8 +221,10 @@ def _normalisation(stats: Any) -> tuple[np.ndarray, np.ndarray, float] | None:
     return mean, np.sqrt(var + float(stats["epsilon"])), float(stats["clip"])
 
 
-def _algorithm_class(algo: str):
-    """The stable-baselines3 class for ``algo`` (imported here, lazily)."""
+def algorithm_class(algo: str):
+    """The stable-baselines3 (or sb3-contrib) class of ``algo``, one of :data:`ALGORITHMS`
+    (imported here, lazily): the class a model is loaded with here and trained with by
+    ``slam-gym train`` (:mod:`slam_gym.training.run`)."""
     import stable_baselines3
 
     if algo in ("maskable-ppo", "recurrent-ppo"):
@@ -244,9 +267,9 @@ class LearnedPolicy(Policy):
     Provenance: on loading (``check_provenance=True``, the default) the fingerprint of the
     system the model was trained on (its config's ``fingerprint``, written by ``slam-gym
     train``) is compared with the current code's for the model's env options
-    (:func:`check_model_provenance`); a difference, or a model without a fingerprint, is warned
-    naming what differs. ``policy.provenance`` holds ``checked``, ``matches`` (None when not
-    checked) and ``differences``.
+    (:func:`check_model_provenance`, the check ``import slam_gym`` installs); a difference, or a
+    model without a fingerprint, is warned naming what differs. ``policy.provenance`` holds
+    ``checked``, ``matches`` (None when not checked) and ``differences``.
     """
 
     name = "learned"
@@ -270,8 +293,8 @@ class LearnedPolicy(Policy):
             "sample_seed", sample_seed, "a non-negative integer",
         )
         require(isinstance(device, str) and device != "", "device", device, "a torch device name")
-        model_path = _resolve_path(path)
-        config = _config(model_path) or {}  # read once: every setting below comes from it
+        model_path = resolve_model_path(path)
+        config = read_model_config(model_path) or {}  # read once: every setting below comes from it
         detected = detect_algorithm(model_path)
         if algo is None:
             algo = detected
@@ -321,7 +344,7 @@ class LearnedPolicy(Policy):
         self.sample_seed = sample_seed
         self._rng = np.random.default_rng(sample_seed)
         self._lstm_state = None  # RecurrentPPO memory (reset() clears it)
-        self.model = _algorithm_class(algo).load(str(model_path), device=device)
+        self.model = algorithm_class(algo).load(str(model_path), device=device)
         intervals = config.get("fusion_intervals_s")
         require(intervals is None or (isinstance(intervals, list) and len(intervals) > 0
                                       and all(isinstance(v, (int, float)) and v > 0
@@ -348,7 +371,7 @@ class LearnedPolicy(Policy):
             )
         self.provenance: dict[str, Any] = (
             check_model_provenance(model_path, config or None) if check_provenance
-            else {"checked": False, "matches": None, "differences": []})
+            else {**NOT_CHECKED, "differences": []})
         logger.info("loaded %s model from %s", algo.upper(), model_path)
 
     def reset(self) -> None:

@@ -39,7 +39,7 @@ from collections.abc import Callable, Mapping
 from importlib.metadata import EntryPoint, entry_points
 from typing import Any
 
-from policies.base import require
+from filters.validation import require
 
 logger = logging.getLogger(__name__)
 

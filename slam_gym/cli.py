@@ -1,4 +1,4 @@
-"""The ``slam-gym`` command line (DESIGN section 7)."""
+"""The ``slam-gym`` command line (docs/ARCHITECTURE.md, "The command line and its output files")."""
 
 from __future__ import annotations
 

@@ -3,7 +3,8 @@
 Measured CPU time can never repeat, and the env's reward must (same seed -> same reward). So the
 reward charges *modelled* seconds: an operation count of each piece of work, which depends only on
 the sizes of the estimates, times a cost per operation fitted once against measured CPU time
-(:func:`calibrate`, run by ``slam-gym speed --calibrate-compute``; the fit and its correlation
+(:func:`calibrate`, on the records ``slam-gym speed --calibrate-compute`` collects
+(:func:`slam_gym.commands.speed.collect_records`); the fit and its correlation
 with the measurements are in docs/PERFORMANCE.md).
 
 Operation counts (the dominant dense or sparse linear algebra of each piece of work):
@@ -167,40 +168,3 @@ def _pearson(a, b) -> float:
     if len(a) < 2 or np.std(a) == 0 or np.std(b) == 0:
         return math.nan
     return float(np.corrcoef(a, b)[0, 1])
-
-
-CALIBRATION_RUNS: tuple[tuple[str, str, dict], ...] = (
-    ("SlamGym/HybridSLAM-v0", "fixed-interval", {"interval_s": 10.0, "optimise": "every-fusion"}),
-    ("SlamGym/HybridSLAM-v0", "always", {"optimise": "never"}),
-    ("SlamGym/HybridSLAM-Relative-v0", "fixed-interval",
-     {"interval_s": 10.0, "optimise": "every-fusion"}),
-    ("SlamGym/HybridSLAM-Relative-v0", "always", {"optimise": "never"}),
-    ("SlamGym/EKFSubmap-v0", "fixed-interval", {"interval_s": 10.0, "optimise": "every-fusion"}),
-)
-"""(env id, policy, options) whose episodes the calibration times: every kind of work, over the
-sizes an episode reaches (optimising at every fusion makes the graph grow to the whole path)."""
-
-
-def collect_records(seeds, n_particles: int = 500, progress=None) -> list[tuple[str, float, float]]:
-    """Run :data:`CALIBRATION_RUNS` on worlds ``seeds`` and return the env's ``(kind, ops,
-    measured CPU s)`` records. ``progress``: an optional callable run once per episode."""
-    import gymnasium as gym
-
-    import policies
-
-    records = []
-    for env_id, name, options in CALIBRATION_RUNS:
-        for seed in seeds:
-            env = gym.make(f"slam_gym:{env_id}", n_particles=n_particles)
-            policy = policies.make(name, **options)
-            obs, info = env.reset(seed=int(seed))
-            policy.reset()
-            done = False
-            while not done:
-                obs, _, terminated, truncated, info = env.step(policy.act(obs, info))
-                done = terminated or truncated
-            records.extend(env.unwrapped.compute_records)
-            env.close()
-            if progress is not None:
-                progress()
-    return records

@@ -1,8 +1,9 @@
 """Play a :class:`~slam_gym.stream.Stream` through a SLAM system and measure it.
 
 :class:`Episode` is the one place where filters meet truth: it hands each step's odometry,
-compass and observations to the system, keeps the truth apart, and tracks the metrics of DESIGN
-section 6 (NEES against the chi-square band, BB's failure criterion, pose error, map error through
+compass and observations to the system, keeps the truth apart, and tracks the metrics of
+docs/ARCHITECTURE.md, "Evaluation metrics" (NEES against the chi-square band, BB's failure
+criterion, pose error, map error through
 :class:`~slam_gym.metrics.FeatureTruth`). The fixed-schedule runner, the evaluation and the
 Gymnasium env all drive systems through it, so the env adds no behaviour of its own.
 """
@@ -189,7 +190,7 @@ class Episode:
         return np.asarray(ids)[keep], np.asarray(means)[keep]
 
     def metrics(self) -> dict:
-        """The metrics of DESIGN section 6 for the run so far."""
+        """The metrics (docs/ARCHITECTURE.md, "Evaluation metrics") of the run so far."""
         score = self.map_score()
         n = max(self._nees_count, 1)
         return {

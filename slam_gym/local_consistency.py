@@ -55,3 +55,25 @@ def local_pose_nees_at_fusion(front_end, stream, interval_steps: int = 100,
             error[2] = wrap_angle(error[2])
             values.append(float(error @ np.linalg.solve(local.P[:3, :3], error)))
     return np.array(values)
+
+
+def add_fusion_run_arguments(parser) -> None:
+    """The positional options of a run of local maps over BB's path at several clutter levels
+    and seeds (the local-map diagnostics of scripts/results/ take them): ``LEVELS`` (e.g.
+    ``0,1,2,3``), ``SEEDS`` (a count N: seeds 0..N-1, or a range FIRST-LAST), ``N_STEPS``,
+    ``[N_PARTICLES]`` (default 500), ``[known]`` (the true associations). Parsed, they are
+    ``levels``, ``seeds`` (a ``range``), ``n_steps``, ``n_particles`` and ``known`` (a bool)."""
+    parser.add_argument("levels", type=lambda text: [int(x) for x in text.split(",")],
+                        help="clutter levels, e.g. 0,1,2,3")
+    parser.add_argument("seeds", type=seed_range,
+                        help="a count N (seeds 0..N-1) or a range FIRST-LAST (inclusive)")
+    parser.add_argument("n_steps", type=int)
+    parser.add_argument("n_particles", nargs="?", type=int, default=500)
+    parser.add_argument("known", nargs="?", type=lambda text: text == "known", default=False,
+                        choices=[True], help="'known': the true associations")
+
+
+def seed_range(text: str) -> range:
+    """``"N"`` -> seeds 0..N-1; ``"FIRST-LAST"`` -> FIRST..LAST inclusive."""
+    first, _, last = text.partition("-")
+    return range(int(first), int(last) + 1) if last else range(int(first))

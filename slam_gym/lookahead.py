@@ -46,7 +46,8 @@ from typing import Any
 import numpy as np
 
 import policies
-from policies.base import Policy, check_range, make_action, require
+from filters.validation import check_range, require
+from policies.base import Policy, make_action
 
 ALTERNATIVES: tuple[tuple[int, int], ...] = ((1, 1), (1, 0), (0, 0))
 """The (fuse, optimise) actions tried where the base rule fuses (module docstring)."""

@@ -1,4 +1,4 @@
-"""Evaluation metrics (DESIGN section 6).
+"""Evaluation metrics (docs/ARCHITECTURE.md, "Evaluation metrics").
 
 * Vehicle NEES ``e^T P^-1 e`` with the heading error wrapped, its 95 % chi-square band for one run
   and for the average of N runs (ANEES: ``chi2(3N)/N``).

@@ -1,4 +1,5 @@
-"""Named scenarios (DESIGN section 2): frozen, validated configurations of the simulated world.
+"""Named scenarios (docs/ARCHITECTURE.md, "The data stream"): frozen, validated configurations of
+the simulated world.
 
 ``brooks-bailey`` (BB 5.2): 120 m x 120 m, 35 uniform point landmarks, a random path near the
 extremities closing one ~430 m loop (BB Fig. 4: the loop closes near iteration 4400, i.e. ~440 m at
@@ -308,12 +309,3 @@ def get_scenario(name: str | Scenario, **overrides) -> Scenario:
             raise ValueError(f"scenario={name!r} is unknown: must be one of {sorted(presets)}")
         base = presets[name]
     return base.replace(**overrides) if overrides else base
-
-
-def make_stream(name: str | Scenario, seed: int, **overrides):
-    """Simulate the scenario ``name`` (with overrides) for ``seed``, as a ``Stream`` (a world
-    simulated recently in this process is shared read-only, not simulated again:
-    :func:`slam_gym.world.simulate_cached`)."""
-    from slam_gym.world import simulate_cached
-
-    return simulate_cached(get_scenario(name, **overrides), seed)

@@ -1,4 +1,5 @@
-"""The data stream every filter, the env and the evaluation consume (DESIGN section 2).
+"""The data stream every filter, the env and the evaluation consume (docs/ARCHITECTURE.md, "The
+data stream").
 
 A :class:`Stream` is a re-iterable, deterministic sequence of :class:`Step` s plus the constants a
 filter needs (sensor, clutter and odometry-noise models). Truth is kept apart in

@@ -1,4 +1,5 @@
-"""SLAM systems by name, built for a :class:`~slam_gym.stream.Stream` (DESIGN section 3).
+"""SLAM systems by name, built for a :class:`~slam_gym.stream.Stream` (docs/ARCHITECTURE.md,
+"Filter interface").
 
 =================  ============================================================================
 ``dead-reckoning``  odometry (and compass) only

@@ -1,4 +1,4 @@
-"""The cluttered 2-D world simulator (DESIGN section 2).
+"""The cluttered 2-D world simulator (docs/ARCHITECTURE.md, "The data stream").
 
 :func:`simulate` turns a :class:`slam_gym.scenarios.Scenario` and a seed into a
 :class:`slam_gym.stream.Stream`. Randomness comes from three independent generators spawned from
@@ -43,7 +43,7 @@ from filters.models import (
     RangeBearingSensor,
     observe,
 )
-from slam_gym.scenarios import Scenario
+from slam_gym.scenarios import Scenario, get_scenario
 from slam_gym.stream import Step, StepTruth, Stream, steps_from_list
 
 WAYPOINT_SWITCH_RADIUS_M = 2.0
@@ -403,6 +403,13 @@ def simulate_cached(scenario: Scenario, seed: int) -> Stream:
     _check_seed(seed)
     world = _remembered_world(scenario, int(seed))
     return dataclasses.replace(world, metadata=dict(world.metadata))
+
+
+def make_stream(name: str | Scenario, seed: int, **overrides) -> Stream:
+    """Simulate the scenario ``name`` (a preset name or a :class:`Scenario`, with fields
+    overridden by keyword) for ``seed``, as a ``Stream`` (a world simulated recently in this
+    process is shared read-only, not simulated again: :func:`simulate_cached`)."""
+    return simulate_cached(get_scenario(name, **overrides), seed)
 
 
 def simulate(scenario: Scenario, seed: int) -> Stream:

@@ -1,4 +1,5 @@
-"""Options and output shared by every subcommand (DESIGN section 7)."""
+"""Options and output shared by every subcommand (docs/ARCHITECTURE.md, "The command line and its
+output files")."""
 
 from __future__ import annotations
 

@@ -34,14 +34,14 @@ def add_parser(subparsers) -> None:
 
 
 def run(args) -> int:
-    from policies.learned import _config, _resolve_path
+    from policies.learned import read_model_config, resolve_model_path
     from slam_gym.training.provenance import compare_fingerprints, system_fingerprint
 
     try:
-        path = _resolve_path(args.model)
+        path = resolve_model_path(args.model)
     except FileNotFoundError as exc:
         raise ValueError(f"MODEL={args.model!r} is invalid: {exc}") from exc
-    config = _config(path)
+    config = read_model_config(path)
     if config is None:
         raise ValueError(f"MODEL={str(path)!r} is invalid: it has no config JSON "
                          f"({path.with_suffix('.json').name}, written by slam-gym train), so "

@@ -168,8 +168,8 @@ def run_cm(
     (figure data: ``{method: {"before": ..., "after": ...}}``) and ``"stream"``.
     """
     from slam_gym.episode import Episode
-    from slam_gym.scenarios import make_stream
     from slam_gym.systems import make_system
+    from slam_gym.world import make_stream
 
     if method not in OPTIMISER_METHODS:
         raise ValueError(f"method={method!r} is invalid: must be one of {OPTIMISER_METHODS}")

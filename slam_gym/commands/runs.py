@@ -60,6 +60,6 @@ def print_table(args, doc, paper=None, title=None) -> None:
         return
     from rich.console import Console
 
-    from slam_gym.evaluation import format_table
+    from slam_gym.evaluation.summary import format_table
 
     Console(width=160).print(format_table(doc, paper=paper, title=title))

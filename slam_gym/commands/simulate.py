@@ -104,7 +104,7 @@ def draw(stream, means, covs, path) -> None:
 
 
 def run(args) -> int:
-    from slam_gym.scenarios import make_stream
+    from slam_gym.world import make_stream
 
     overrides = {} if args.clutter_level is None else {"clutter_level": args.clutter_level}
     if args.path_perturbation_m is not None:

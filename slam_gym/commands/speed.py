@@ -174,8 +174,8 @@ def measure_optimise(seeds, counts, steps_per_fusion: int = 50, n_particles: int
     median CPU ms, iterations and redundant-call microseconds of the optimisations with
     ``n - 2 .. n + 2`` sub-maps, over the worlds ``seeds`` (their first ``n_steps`` iterations
     if given)."""
-    from slam_gym.scenarios import make_stream
     from slam_gym.systems import make_system
+    from slam_gym.world import make_stream
 
     samples = []
     for seed in seeds:
@@ -258,7 +258,7 @@ ESDF state grows about tenfold while the per-update work should stay the same.""
 def measure_esdf(seed):
     """ESDF per-update time against state size, binned into five state-size ranges."""
     from filters.esdf import ESDF
-    from slam_gym.scenarios import make_stream
+    from slam_gym.world import make_stream
 
     stream = make_stream("conte-martinelli-1", seed=seed, **ESDF_GROWTH_SCENARIO)
     f = ESDF(stream.sensor, stream.clutter, stream.odometry_noise, initial_pose=stream.initial_pose)
@@ -285,11 +285,48 @@ def measure_esdf(seed):
     return table
 
 
+CALIBRATION_RUNS: tuple[tuple[str, str, dict], ...] = (
+    ("SlamGym/HybridSLAM-v0", "fixed-interval", {"interval_s": 10.0, "optimise": "every-fusion"}),
+    ("SlamGym/HybridSLAM-v0", "always", {"optimise": "never"}),
+    ("SlamGym/HybridSLAM-Relative-v0", "fixed-interval",
+     {"interval_s": 10.0, "optimise": "every-fusion"}),
+    ("SlamGym/HybridSLAM-Relative-v0", "always", {"optimise": "never"}),
+    ("SlamGym/EKFSubmap-v0", "fixed-interval", {"interval_s": 10.0, "optimise": "every-fusion"}),
+)
+"""(env id, policy, options) whose episodes the calibration times: every kind of work, over the
+sizes an episode reaches (optimising at every fusion makes the graph grow to the whole path)."""
+
+
+def collect_records(seeds, n_particles: int = 500, progress=None) -> list[tuple[str, float, float]]:
+    """Run :data:`CALIBRATION_RUNS` on worlds ``seeds`` and return the env's ``(kind, ops,
+    measured CPU s)`` records. ``progress``: an optional callable run once per episode."""
+    import gymnasium as gym
+
+    import policies
+
+    records = []
+    for env_id, name, options in CALIBRATION_RUNS:
+        for seed in seeds:
+            env = gym.make(f"slam_gym:{env_id}", n_particles=n_particles)
+            policy = policies.make(name, **options)
+            obs, info = env.reset(seed=int(seed))
+            policy.reset()
+            done = False
+            while not done:
+                obs, _, terminated, truncated, info = env.step(policy.act(obs, info))
+                done = terminated or truncated
+            records.extend(env.unwrapped.compute_records)
+            env.close()
+            if progress is not None:
+                progress()
+    return records
+
+
 def calibrate_compute(args) -> int:
     """Fit the compute-cost model; write ``compute_calibration.json`` and print the fit."""
     from tqdm import tqdm
 
-    from slam_gym.compute_cost import CALIBRATION_RUNS, calibrate, collect_records
+    from slam_gym.compute_cost import calibrate
 
     seeds = int_list(args.calibration_seeds)
     bar = tqdm(total=len(CALIBRATION_RUNS) * len(seeds), desc="calibration episodes",

@@ -1,4 +1,5 @@
-"""Real data sets as :class:`slam_gym.stream.Stream` s (DESIGN section 2), and SE(2) alignment.
+"""Real data sets as :class:`slam_gym.stream.Stream` s (docs/ARCHITECTURE.md, "The data stream"),
+and SE(2) alignment.
 
 * :func:`load_mrclam` — UTIAS MRCLAM, any data set directory, robots 1-5, with ground-truth poses
   and landmarks; sensor, odometry and clutter models estimated from the data

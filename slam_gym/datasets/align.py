@@ -11,8 +11,8 @@ Two groups of helpers shared by the real-data loaders (:mod:`slam_gym.datasets.m
 * **Rigid alignment.** :func:`fit_se2` is the least-squares rotation and translation (no scale)
   mapping one 2-D point set onto another (Kabsch/Umeyama without scale; in 2-D the optimal angle
   has a closed form). :func:`path_error_after_alignment` compares an estimated path with a
-  reference that lives in another frame (Victoria Park's GPS is rotated and shifted, DESIGN 2 /
-  data README): interpolate the estimate at the reference times, fit SE(2), report the RMSE.
+  reference that lives in another frame (Victoria Park's GPS is rotated and shifted; the data
+  set's README): interpolate the estimate at the reference times, fit SE(2), report the RMSE.
 """
 
 from __future__ import annotations

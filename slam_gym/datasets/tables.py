@@ -11,6 +11,19 @@ import numpy as np
 from filters.validation import require
 
 
+def check_max_steps(max_steps) -> None:
+    """A loader's ``max_steps``: None (the whole recording) or an integer >= 1, else
+    ``ValueError`` naming ``max_steps``."""
+    if max_steps is not None:
+        require(
+            isinstance(max_steps, (int, np.integer)) and not isinstance(max_steps, bool)
+            and max_steps >= 1,
+            "max_steps",
+            max_steps,
+            "None or an integer >= 1",
+        )
+
+
 def load_table(path: Path, columns: int, *, sorted_times: bool = False) -> np.ndarray:
     """The numeric rows of ``path`` (``#`` comments and blank lines skipped), ``columns`` wide.
 

@@ -1,4 +1,5 @@
-"""ACFR Victoria Park (Sydney) as a :class:`~slam_gym.stream.Stream` (DESIGN section 2).
+"""ACFR Victoria Park (Sydney) as a :class:`~slam_gym.stream.Stream` (docs/ARCHITECTURE.md, "The
+data stream").
 
 Guivant and Nebot, "Optimization of the simultaneous localization and map-building algorithm for
 real-time implementation", IEEE T-RA 17(3), 2001. A directory holds ``inputs.dat`` (t, speed of
@@ -74,7 +75,7 @@ import numpy as np
 from filters.models import ClutterModel, ProportionalVelocityNoise, RangeBearingSensor
 from filters.validation import check_range, require
 from slam_gym.datasets.align import hold_average
-from slam_gym.datasets.tables import load_table
+from slam_gym.datasets.tables import check_max_steps, load_table
 from slam_gym.stream import ArraySteps, Stream
 
 logger = logging.getLogger(__name__)
@@ -213,14 +214,7 @@ def load_victoria_park(
         check_range("max_range_m", max_range_m, 0.0, 1000.0, low_open=True)
     check_range("detection_probability", detection_probability, 0.0, 1.0, low_open=True)
     check_range("false_alarm_probability", false_alarm_probability, 0.0, 1.0, high_open=True)
-    if max_steps is not None:
-        require(
-            isinstance(max_steps, (int, np.integer)) and not isinstance(max_steps, bool)
-            and max_steps >= 1,
-            "max_steps",
-            max_steps,
-            "None or an integer >= 1",
-        )
+    check_max_steps(max_steps)
     rec = read_victoria_park(directory, geometry)
     geometry = rec.geometry
     t_in = rec.inputs[:, 0]

@@ -106,6 +106,26 @@ time is always in ``env.unwrapped.episode.compute_time_s`` and in every evaluati
 Seeding: ``reset(seed=s)`` seeds ``self.np_random``; the world seed (unless given in
 ``options["world_seed"]``) and the filter's generator are drawn from it, so the same seed gives the
 same episode bit for bit in any process.
+
+Version History
+    The id's version moves with every change to the reward, the observation or the dynamics
+    (Gymnasium's convention), from now on: the next such change registers ``-v1`` and keeps
+    this list. The changes made so far all kept ``-v0`` (the shipped model and the docs refer to
+    it); a model's provenance fingerprint (:mod:`slam_gym.training.provenance`, issue 29) is what
+    tells which of them a saved model was trained on.
+
+    * v0 (2026-11-21, aa8eb86): the first release. Reward ``-(w_nees nees_excess + w_pose
+      pose_error_m + w_map map_error_m + fusion_cost fused + optimise_cost optimised +
+      failure_penalty failed)``; observation: the sub-map system's interface features.
+    * v0, issue 13 (2026-11-24, 85d2828 and ef8a992): the loop-closure features reach the
+      observation; the reward stated under "Reward" replaces the first one: a failure charged
+      the worst case of the remaining path, an OSPA map term, a two-sided NEES term, a
+      deterministic compute term (:mod:`slam_gym.compute_cost`); 500 particles by default.
+    * v0, issue 27 (2026-11-25, 725f6ef; 2026-11-26, ae61ce6): the compute model's costs
+      refitted twice, so the compute term of the same decisions changed.
+    * v0, issue 29 (2026-11-25, 9331d23 and e86c661): the price of compute per episode (reset
+      option ``w_compute``, feature ``compute_price_per_s``) and the action masks
+      (``info["optimise_redundant"]``, ``action_masks()``).
 """
 
 from __future__ import annotations
@@ -126,7 +146,8 @@ from filters.validation import check_range, require
 from slam_gym.compute_cost import ComputeModel, filter_ops, fusion_ops, optimise_ops
 from slam_gym.episode import Episode
 from slam_gym.metrics import nees_band
-from slam_gym.scenarios import CLUTTER_LEVELS, get_scenario, make_stream, scenario_names
+from slam_gym.scenarios import CLUTTER_LEVELS, get_scenario, scenario_names
+from slam_gym.world import make_stream
 
 logger = logging.getLogger(__name__)
 

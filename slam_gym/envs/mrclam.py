@@ -28,7 +28,7 @@ Keyword arguments (besides those of :class:`~slam_gym.envs.hybrid_slam.HybridSLA
     estimated on the first 300 s of the recording; ``corrections=False`` gives the plain
     stream (the noise the root mean square of the residuals). ``sensor_noise_window_s`` sets
     the window of the white-noise rule for the camera's time-correlated errors
-    (:func:`slam_gym.datasets.mrclam.correlated_noise_std`; default: one pass over a landmark,
+    (:func:`slam_gym.datasets.estimators.correlated_noise_std`; default: one pass over a landmark,
     measured); ``sensor_noise_scale`` multiplies the result.
 ``front_end_options``
     Keyword options of the front-end filter (:class:`filters.fastslam.FastSLAM2` or
@@ -68,7 +68,7 @@ import numpy as np
 from filters.models import RangeBearingSensor
 from filters.validation import check_range, require
 from slam_gym.datasets.location import default_data_dir
-from slam_gym.datasets.mrclam import DEFAULT_CALIBRATION_S
+from slam_gym.datasets.mrclam import DEFAULT_CALIBRATION_S, MrclamOptions
 from slam_gym.envs.hybrid_slam import HybridSLAMEnv
 
 MRCLAM_ROBOTS = (1, 2, 3, 4, 5)
@@ -121,25 +121,23 @@ def check_mrclam_dir(data_dir, robot: int) -> Path:
 
 def mrclam_stream(
     data_dir, robot: int, *, max_steps=None, sensor_noise_scale: float = 1.0,
-    noise_window_s: float | None = None, sensor_bias_correction: bool | None = None,
-    motion_compensation: bool | None = None, corrections: bool = True,
-    calibration_s: float | None = DEFAULT_CALIBRATION_S,
+    options: MrclamOptions | None = None,
 ):
     """The MRCLAM stream of ``robot`` with its range and bearing std scaled by
     ``sensor_noise_scale`` (the outlier labels, field of view and clutter rates stay those of
     the loader's calibration); shared by the env and ``reproduce mrclam`` so both play the same
-    stream. ``noise_window_s``, ``sensor_bias_correction``, ``motion_compensation``,
-    ``corrections`` and ``calibration_s`` go to :func:`slam_gym.datasets.load_mrclam` (its
-    defaults: every correction on, calibrated on the first 300 s)."""
+    stream. ``options``: the loader's calibration options
+    (:class:`slam_gym.datasets.mrclam.MrclamOptions`; None: its defaults, every correction on,
+    calibrated on the first 300 s)."""
     from slam_gym.datasets import load_mrclam
 
     robot = check_robot(robot)
     check_range("sensor_noise_scale", sensor_noise_scale, 0.0, 1000.0, low_open=True)
+    require(options is None or isinstance(options, MrclamOptions), "options", options,
+            "None or a MrclamOptions")
     stream = load_mrclam(
         check_mrclam_dir(data_dir, robot), robot, max_steps=max_steps,
-        noise_window_s=noise_window_s, sensor_bias_correction=sensor_bias_correction,
-        motion_compensation=motion_compensation, corrections=corrections,
-        calibration_s=calibration_s,
+        **(options or MrclamOptions()).as_kwargs(),
     )
     if sensor_noise_scale == 1.0:
         return stream
@@ -185,22 +183,20 @@ class MRCLAMEnv(HybridSLAMEnv):
         self.data_dir = check_mrclam_dir(data_dir, self.robot)
         check_range("sensor_noise_scale", sensor_noise_scale, 0.0, 1000.0, low_open=True)
         self.sensor_noise_scale = float(sensor_noise_scale)
-        if sensor_noise_window_s is not None:
-            check_range("sensor_noise_window_s", sensor_noise_window_s, 0.0, 1e6, low_open=True)
-        for name, flag in (("sensor_bias_correction", sensor_bias_correction),
-                           ("motion_compensation", motion_compensation)):
-            require(flag is None or isinstance(flag, bool), name, flag, "None or a bool")
-        require(isinstance(corrections, bool), "corrections", corrections, "a bool")
-        if calibration_s is not None:
-            check_range("calibration_s", calibration_s, 10.0, 1e7)
-        self.stream_options = {
-            "corrections": corrections,
-            "calibration_s": None if calibration_s is None else float(calibration_s),
-            "noise_window_s": None if sensor_noise_window_s is None
+        options = MrclamOptions(
+            corrections=corrections,
+            calibration_s=calibration_s,
+            noise_window_s=sensor_noise_window_s,
+            sensor_bias_correction=sensor_bias_correction,
+            motion_compensation=motion_compensation,
+            names={"noise_window_s": "sensor_noise_window_s"},
+        )
+        self.stream_options = dataclasses.replace(
+            options,
+            calibration_s=None if calibration_s is None else float(calibration_s),
+            noise_window_s=None if sensor_noise_window_s is None
             else float(sensor_noise_window_s),
-            "sensor_bias_correction": sensor_bias_correction,
-            "motion_compensation": motion_compensation,
-        }
+        )
         require(
             front_end_options is None or isinstance(front_end_options, dict),
             "front_end_options", front_end_options, "a dict of front-end filter options or None",
@@ -227,7 +223,7 @@ class MRCLAMEnv(HybridSLAMEnv):
         if key not in self._streams:
             self._streams[key] = mrclam_stream(
                 self.data_dir, self.robot, max_steps=self.config.n_steps,
-                sensor_noise_scale=self.sensor_noise_scale, **self.stream_options,
+                sensor_noise_scale=self.sensor_noise_scale, options=self.stream_options,
             )
         return self._streams[key]
 

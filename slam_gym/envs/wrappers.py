@@ -6,27 +6,9 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-
-def discrete_to_multi(action: int) -> np.ndarray:
-    """``Discrete(4)`` -> (fuse, optimise) with ``a = 2 * fuse + optimise``.
-
-    The same mapping as ``policies.base.discrete_to_multi`` (a test checks they agree; the env
-    does not import ``policies``, see docs/ARCHITECTURE.md).
-    """
-    a = int(action)
-    if not 0 <= a < 4:
-        raise ValueError(f"action={action!r} is invalid: must be in Discrete(4)")
-    return np.array([a // 2, a % 2], dtype=np.int64)
-
-
-def discrete_action_mask(optimise_redundant: bool) -> np.ndarray:
-    """The exact mask of ``Discrete(4)`` (``a = 2 fuse + optimise``): ``a = 1`` (optimise only)
-    is invalid exactly when the optimisation would be redundant (a no-op, env docstring); the
-    other three are never no-ops (``a = 3`` optimises the sub-map it has just fused).
-
-    The same as ``policies.base.discrete_action_mask`` (a test checks they agree).
-    """
-    return np.array([True, not bool(optimise_redundant), True, True])
+# the one Discrete(4) encoding (a = 2 fuse + optimise) and its exact mask, shared with the
+# learned policies that act through it
+from policies.base import discrete_action_mask, discrete_to_multi
 
 
 class DiscreteActions(gym.ActionWrapper):

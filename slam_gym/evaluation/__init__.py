@@ -14,72 +14,18 @@ objects) is one call, the function ``slam-gym benchmark`` runs (:mod:`.benchmark
     result = benchmark(["fixed-10s", MyRule()], clutter_levels=[2], seeds=5, out="out/mine")
     result.rows, result.summary, result.figures
 
-The output files and their keys are a public contract (DESIGN section 7). The plotting
+The output files and their keys are a public contract (docs/ARCHITECTURE.md, "The command line and
+its output files"). The plotting
 functions are imported lazily (matplotlib is not needed by the worker processes).
 """
 
 from typing import Any
 
 from slam_gym.evaluation.benchmarking import BenchmarkResult, benchmark
-from slam_gym.evaluation.executors import EXECUTORS, execute_job, run_jobs
-from slam_gym.evaluation.jobs import JOB_KINDS, Job, expand_grid
-from slam_gym.evaluation.results import (
-    REQUIRED_ROW_KEYS,
-    RESULT_KEYS,
-    RESULTS_FILENAME,
-    ResultError,
-    ResultsWriter,
-    finished_keys,
-    read_results,
-    validate_result,
-)
-from slam_gym.evaluation.summary import (
-    SUMMARY_FILENAME,
-    TABLE_FILENAME,
-    Z95,
-    format_table,
-    markdown_table,
-    summarise,
-    summary_document,
-    wilson_interval,
-    write_summary,
-)
-
-__all__ = [
-    "BenchmarkResult",
-    "EXECUTORS",
-    "JOB_KINDS",
-    "REQUIRED_ROW_KEYS",
-    "RESULTS_FILENAME",
-    "RESULT_KEYS",
-    "SUMMARY_FILENAME",
-    "TABLE_FILENAME",
-    "Z95",
-    "Job",
-    "ResultError",
-    "ResultsWriter",
-    "benchmark",
-    "execute_job",
-    "expand_grid",
-    "finished_keys",
-    "format_table",
-    "markdown_table",
-    "nees_band",
-    "pareto_front",
-    "plot_episode_map",
-    "plot_nees",
-    "plot_pareto",
-    "plot_run_map",
-    "plot_success_rates",
-    "plot_uncertainty_traces",
-    "read_results",
-    "run_jobs",
-    "summarise",
-    "summary_document",
-    "validate_result",
-    "wilson_interval",
-    "write_summary",
-]
+from slam_gym.evaluation.executors import run_jobs
+from slam_gym.evaluation.jobs import Job, expand_grid
+from slam_gym.evaluation.results import RESULT_KEYS, ResultError, read_results, validate_result
+from slam_gym.evaluation.summary import markdown_table, summarise, wilson_interval, write_summary
 
 _PLOTS = (
     "nees_band",
@@ -91,6 +37,28 @@ _PLOTS = (
     "plot_success_rates",
     "plot_uncertainty_traces",
 )
+"""The plotting functions, imported from :mod:`.plots` on first use."""
+
+__all__ = [
+    "RESULT_KEYS",
+    "BenchmarkResult",
+    "Job",
+    "ResultError",
+    "benchmark",
+    "expand_grid",
+    "markdown_table",
+    "read_results",
+    "run_jobs",
+    "summarise",
+    "validate_result",
+    "wilson_interval",
+    "write_summary",
+    *_PLOTS,
+]
+"""The user-facing names: the benchmark, jobs and their execution, the results file, the
+summary and the figures. The machinery behind them (executors, the writer, file names, the
+table formats) is imported from its module (:mod:`.executors`, :mod:`.results`,
+:mod:`.summary`)."""
 
 
 def __getattr__(name: str) -> Any:

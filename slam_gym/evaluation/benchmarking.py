@@ -185,8 +185,11 @@ def benchmark(
     one). ``workers``, ``executor`` (``"process"``, ``"ray"``, ``"serial"``) and
     ``ray_address`` as :func:`slam_gym.evaluation.run_jobs`.
     """
-    from slam_gym.evaluation import Job, plot_pareto, plot_success_rates, run_jobs, write_summary
     from slam_gym.evaluation.core import learned_options, run_job
+    from slam_gym.evaluation.executors import run_jobs
+    from slam_gym.evaluation.jobs import Job
+    from slam_gym.evaluation.plots import plot_pareto, plot_success_rates
+    from slam_gym.evaluation.summary import write_summary
 
     entries = resolve_policies(policies, model)
     if env is not None:

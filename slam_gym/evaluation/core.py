@@ -3,7 +3,7 @@
 :func:`run_job` is the single run function behind ``slam-gym benchmark``, every ``slam-gym
 reproduce`` and the training callback. It builds the stream, the system (or the env and the
 policy), plays the whole path through :class:`~slam_gym.episode.Episode`, and returns the metrics
-of DESIGN section 6.
+of docs/ARCHITECTURE.md, "Evaluation metrics".
 
 System jobs (BB Table 1, CM) take options:
 ``n_particles`` (500), ``fusion_interval_s`` (10, BB's rule; sub-map systems only),
@@ -69,15 +69,16 @@ def _options(given: dict, defaults: dict, what: str) -> dict:
     return defaults | given
 
 
-def _seeds(seed: int):
-    """Independent generators for the filter from the job's seed (the world uses the seed)."""
+def filter_rng(seed: int):
+    """The filter's generator for a job's seed, independent of the world's (the world uses the
+    seed itself); every run of a system on a job's world draws from it (scripts too)."""
     return np.random.default_rng(np.random.SeedSequence([int(seed), 7919]))
 
 
 def make_job_stream(scenario: str, clutter_level, seed: int, n_steps=None, **scenario_overrides):
     """The world of a job: scenario ``scenario`` at ``clutter_level`` for ``seed``, with the path
     cut to ``n_steps`` and any other scenario fields overridden by name (validated)."""
-    from slam_gym.scenarios import make_stream
+    from slam_gym.world import make_stream
 
     overrides = {k: v for k, v in scenario_overrides.items() if v is not None}
     if clutter_level is not None:
@@ -117,7 +118,7 @@ def run_system(
         key = "front_existence_model" if name in SUBMAP_SYSTEMS else "existence_model"
         if name in SUBMAP_SYSTEMS or name in ("fastslam", "ekf-slam"):
             system_options[key] = existence_model
-    system = make_system(name, stream, _seeds(seed), n_particles=n_particles, back_end=back_end,
+    system = make_system(name, stream, filter_rng(seed), n_particles=n_particles, back_end=back_end,
                          **system_options)
     known = bool(known_association) or name in KNOWN_ASSOCIATION_ONLY
     episode = Episode(system, stream, known_association=known, record_trace=record_trace)

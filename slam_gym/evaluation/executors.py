@@ -10,7 +10,7 @@
   ``ray_address``); an optional dependency, ``pip install slam-gym[ray]``;
 - ``"serial"``: in this process, one after the other (debugging, profiling).
 
-Guarantees (DESIGN sections 6 and 7):
+Guarantees (docs/ARCHITECTURE.md, "The command line and its output files"):
 
 - resumable: jobs whose key already has a row in ``out_dir/results.jsonl`` are skipped, and each
   row is appended, flushed and ``fsync`` -ed as its run finishes, so killing the benchmark (even

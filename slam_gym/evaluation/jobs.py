@@ -1,7 +1,8 @@
 """Benchmark jobs: one job = one run of a system or policy on a scenario, clutter level and seed.
 
 A :class:`Job` is frozen and hashable, pickles to worker processes (process pool or Ray) and has a
-stable string :attr:`Job.key` that identifies it in ``results.jsonl`` (DESIGN section 7): a rerun
+stable string :attr:`Job.key` that identifies it in ``results.jsonl`` (docs/ARCHITECTURE.md, "The
+command line and its output files"): a rerun
 with the same output directory skips the jobs whose key is already there.
 """
 

@@ -1,4 +1,5 @@
-"""``results.jsonl``: one JSON object per finished run (DESIGN section 7, a public contract).
+"""``results.jsonl``: one JSON object per finished run, a public contract (docs/ARCHITECTURE.md,
+"The command line and its output files").
 
 Each row carries the job's fields (``system`` or ``policy``, ``scenario``, ``clutter_level``,
 ``seed``, ``options``, ``key``), the run function's returned metrics (at least
@@ -35,7 +36,8 @@ logger = logging.getLogger(__name__)
 
 RESULTS_FILENAME = "results.jsonl"
 
-#: Metrics every run function must return (DESIGN sections 6 and 7). Null is allowed as a value
+#: Metrics every run function must return (docs/ARCHITECTURE.md, "The command line and its output
+#: files"). Null is allowed as a value
 #: (e.g. ``failure_iteration`` of a successful run); a missing key makes the run an error row.
 RESULT_KEYS = (
     "alpha",
@@ -50,7 +52,8 @@ RESULT_KEYS = (
     "n_optimisations",
 )
 
-#: Keys every row has besides exactly one of ``system`` / ``policy`` (DESIGN section 7).
+#: Keys every row has besides exactly one of ``system`` / ``policy`` (docs/ARCHITECTURE.md, "The
+#: command line and its output files").
 REQUIRED_ROW_KEYS = (
     "scenario",
     "clutter_level",

@@ -1,7 +1,8 @@
 """Aggregate ``results.jsonl`` rows into ``summary.json``, ``table.md`` and a console table.
 
 One summary group per (system or policy, scenario, clutter level, options) — for one scenario and
-fixed options this is DESIGN section 7's "per (system or policy, clutter level)". Each group has
+fixed options this is the "per group" of docs/ARCHITECTURE.md, "The command line and its output
+files". Each group has
 ``n`` (all recorded runs), ``n_ok``, ``n_errors`` (runs whose ``status`` is ``"error"``),
 ``n_success``, ``success_rate`` = successes / ``n_ok`` with its Wilson 95 % score interval
 ``success_ci95`` = [lo, hi], and means over the ok runs of ``anees``, ``nees_in_band_fraction``,

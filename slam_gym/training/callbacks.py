@@ -29,7 +29,6 @@ object and returns the same record.
 
 from __future__ import annotations
 
-import csv
 import json
 import logging
 import math
@@ -45,6 +44,7 @@ from filters.validation import require
 from slam_gym.training.evaluation import (
     DEFAULT_EVAL_SEEDS,
     EVAL_METRICS,
+    append_csv_row,
     evaluate_model_file,
     evaluation_options,
     evaluation_record,
@@ -185,9 +185,4 @@ class BenchmarkEvalCallback(BaseCallback):
         path = self.log_path / "evaluations.csv"
         fields = ["timesteps", *EVAL_METRICS,
                   *(f"success_level_{level}" for level in self.clutter_levels)]
-        new = not path.is_file()
-        with path.open("a", newline="") as fh:
-            writer = csv.DictWriter(fh, fieldnames=fields, extrasaction="ignore")
-            if new:
-                writer.writeheader()
-            writer.writerow(record)
+        append_csv_row(path, fields, record)

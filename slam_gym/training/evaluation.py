@@ -47,6 +47,19 @@ FORWARDED_ENV_OPTIONS: tuple[str, ...] = (
 """Env options the evaluation builds its env with (the benchmark's policy-job options)."""
 
 
+def append_csv_row(path: Path, fields: list[str], record: Mapping[str, Any]) -> None:
+    """Append ``record`` (its ``fields``, in order; other keys ignored) to the CSV log ``path``,
+    writing the header first when the file is new (the training logs)."""
+    import csv
+
+    new = not path.is_file()
+    with path.open("a", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=fields, extrasaction="ignore")
+        if new:
+            writer.writeheader()
+        writer.writerow(record)
+
+
 def evaluation_record(rows: Sequence[Mapping[str, Any]], levels: Iterable[int]) -> dict[str, Any]:
     """The means of :data:`EVAL_METRICS` over benchmark rows (map error over the runs that did
     not fail: a run that fails early keeps a small map with small errors) and the success rate

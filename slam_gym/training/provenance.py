@@ -37,6 +37,7 @@ import logging
 import math
 import time
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -283,6 +284,33 @@ def compare_fingerprints(saved: Mapping[str, Any] | None,
         out.append("every summary number agrees: a change below the rounding or float noise at "
                    "a rounding boundary")
     return out
+
+
+def check_model_provenance(model_path: Path, config: Mapping[str, Any] | None) -> dict[str, Any]:
+    """Compare the fingerprint a model records (its config JSON's ``fingerprint``) with the
+    current code's for the same env options (computed once per env options in a process);
+    ``{"checked": True, "matches": bool, "differences": [...]}``. A mismatch, or a model that
+    records no fingerprint, is logged as a WARNING on ``policies.provenance`` and warned as
+    :class:`policies.learned.ModelProvenanceWarning`, naming what differs.
+
+    Every :class:`policies.learned.LearnedPolicy` loaded in a process that imported ``slam_gym``
+    runs this check (``slam_gym/__init__.py`` installs it:
+    :func:`policies.learned.set_provenance_check`)."""
+    import warnings
+
+    from policies.learned import ModelProvenanceWarning, provenance_logger
+
+    result = model_provenance(config)
+    provenance = {"checked": True, "matches": bool(result["matches"]),
+                  "differences": list(result["differences"])}
+    if not provenance["matches"]:
+        message = (f"learned model {model_path} does not match the code it runs on (it was "
+                   "trained on a different system; its decisions may not mean what they did): "
+                   + "; ".join(provenance["differences"]))
+        provenance_logger.warning("%s", message)
+        # attributed to the caller of LearnedPolicy(...), as before the check moved here
+        warnings.warn(message, ModelProvenanceWarning, stacklevel=4)
+    return provenance
 
 
 def model_provenance(config: Mapping[str, Any] | None) -> dict[str, Any]:

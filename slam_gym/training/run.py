@@ -42,7 +42,8 @@ from typing import Any
 
 import numpy as np
 
-from slam_gym.training.evaluation import DEFAULT_EVAL_SEEDS
+from policies.learned import algorithm_class
+from slam_gym.training.evaluation import DEFAULT_EVAL_SEEDS, append_csv_row
 from slam_gym.training.hyperparams import ALGO_KEYS
 
 logger = logging.getLogger(__name__)
@@ -355,12 +356,7 @@ def _append_eval(run_dir: Path, record: dict[str, Any]) -> None:
     if any(k.startswith("sampled_") for k in record):
         fields += ["sampled_" + k for k in EVAL_FIELDS[1:] if k != "eval_time_s"]
         fields += ["sampled_" + k for k in levels]
-    new = not path.is_file()
-    with path.open("a", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=fields, extrasaction="ignore")
-        if new:
-            writer.writeheader()
-        writer.writerow(record)
+    append_csv_row(path, fields, record)
 
 
 def _forget_after(run_dir: Path, checkpoint: int) -> None:
@@ -442,20 +438,6 @@ def _multi_discrete(model) -> bool:
     return isinstance(model.action_space, spaces.MultiDiscrete)
 
 
-def _algorithm(algo: str):
-    import stable_baselines3
-
-    if algo in ("maskable-ppo", "recurrent-ppo"):
-        try:
-            import sb3_contrib
-        except ImportError as exc:
-            raise ImportError(f"algo={algo!r} needs sb3-contrib: pip install "
-                              "slam-gym[contrib] (or pip install sb3-contrib)") from exc
-        return sb3_contrib.MaskablePPO if algo == "maskable-ppo" else sb3_contrib.RecurrentPPO
-    return {"ppo": stable_baselines3.PPO, "a2c": stable_baselines3.A2C,
-            "dqn": stable_baselines3.DQN}[algo]
-
-
 def train_run(setup: TrainingSetup, run_dir: Path, *, resume: bool = False,
               progress: bool = True) -> dict[str, Any]:
     """Train (or resume) one run into ``run_dir``; returns its final ``model.json`` content.
@@ -486,7 +468,7 @@ def train_run(setup: TrainingSetup, run_dir: Path, *, resume: bool = False,
     params = setup.hyperparams
     total = int(params["n_timesteps"])
     vec = _build_vec_env(setup, run_dir, t0, checkpoint)
-    algo_cls = _algorithm(setup.algo)
+    algo_cls = algorithm_class(setup.algo)
     # a copy: SB3 writes into the dicts it is given (A2C puts RMSprop's class in policy_kwargs)
     kwargs = copy.deepcopy({k: v for k, v in params.items() if k in ALGO_KEYS[setup.algo]})
     if checkpoint is None:

@@ -642,7 +642,7 @@ def _load_script(name):
     import importlib.util
     from pathlib import Path
 
-    path = Path(__file__).resolve().parents[2] / "scripts" / f"{name}.py"
+    path = Path(__file__).resolve().parents[2] / "scripts" / "tools" / f"{name}.py"
     spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
@@ -699,7 +699,7 @@ def _assert_covariances_match(name, expected, got):
 
 @pytest.fixture(scope="module")
 def pose_replay():
-    """One replay of the seeded run of scripts/make_pose_reference.py: its arrays, and
+    """One replay of the seeded run of scripts/tools/make_pose_reference.py: its arrays, and
     :func:`_f658fba_pose_moments` of the front-end's cloud at each of its poses (``{"prior" |
     "post": (means, covariances)}``), for the two tests below."""
     expected = {"prior": ([], []), "post": ([], [])}
@@ -728,8 +728,8 @@ def test_compiled_pose_matches_the_numpy_pose_of_f658fba_on_a_seeded_run(pose_re
 
 def test_seeded_run_reproduces_the_poses_and_local_maps_f658fba_wrote(pose_replay):
     """Issue 27: the same seeded HYBRID run against what the numpy code of commit f658fba wrote
-    (tests/data/pose_reference.npz, scripts/make_pose_reference.py): the front-end's means, the
-    composed global pose and the local maps at fusion, to float rounding. The front-end's
+    (tests/data/pose_reference.npz, scripts/tools/make_pose_reference.py): the front-end's means,
+    the composed global pose and the local maps at fusion, to float rounding. The front-end's
     covariances are compared on this machine (previous test), not with the file: the run's
     degenerate steps make them differ across CPUs by more than rounding bounds (f658fba's own
     code, re-run on 2026-11-26's machine, was up to 5.8 times the bound from the file it had

@@ -25,7 +25,7 @@ from filters.models import (
     observe,
 )
 from filters.types import FeatureIds
-from slam_gym.scenarios import make_stream
+from slam_gym.world import make_stream
 
 SENSOR = RangeBearingSensor()
 NOISE = ProportionalVelocityNoise(v_floor_mps=0.005, omega_floor_radps=0.005)

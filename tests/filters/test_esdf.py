@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from filters.esdf import ESDF, SparseInformation
+from filters.esdf import ESDF
 from filters.geometry import compose, compose_jacobians, wrap_angle
+from filters.information import SparseInformation
 from filters.models import (
     ProportionalVelocityNoise,
     RangeBearingSensor,

@@ -25,7 +25,8 @@ from filters.models import (
     observe_jacobians,
 )
 from filters.types import FeatureIds
-from slam_gym.scenarios import SQUARE_LOOP_OVERRIDES, make_stream
+from slam_gym.scenarios import SQUARE_LOOP_OVERRIDES
+from slam_gym.world import make_stream
 
 LOCAL_KEYS = {
     "local_map_age_s", "local_map_distance_m", "ess_ratio", "particle_position_spread_m",

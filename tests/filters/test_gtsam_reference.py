@@ -1,4 +1,4 @@
-"""The sub-map optimiser against GTSAM (scripts/gtsam_reference.py) on a small problem.
+"""The sub-map optimiser against GTSAM (scripts/performance/gtsam_reference.py) on a small problem.
 
 The helpers come from the script itself, so the reference the script reports and the one tested
 here are the same code.
@@ -20,7 +20,7 @@ def _load_script(name):
     import sys
     from pathlib import Path
 
-    path = Path(__file__).resolve().parents[2] / "scripts" / f"{name}.py"
+    path = Path(__file__).resolve().parents[2] / "scripts" / "performance" / f"{name}.py"
     spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
     sys.modules[name] = module  # its dataclass looks its module up there

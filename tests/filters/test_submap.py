@@ -26,7 +26,8 @@ from filters.submap import (
     _nearest_global_innovations,
 )
 from filters.types import GaussianMap
-from slam_gym.scenarios import SQUARE_LOOP_OVERRIDES, make_stream
+from slam_gym.scenarios import SQUARE_LOOP_OVERRIDES
+from slam_gym.world import make_stream
 
 SENSOR = RangeBearingSensor()
 NOISE = ProportionalVelocityNoise(v_floor_mps=0.005, omega_floor_radps=0.005)

@@ -1,4 +1,4 @@
-"""Sub-map optimisation (filters/submap_optimise.py, DESIGN 3.10) and the relative back-end
+"""Sub-map optimisation (filters/submap_optimise.py, CM III.C) and the relative back-end
 (filters/back_ends.py)."""
 
 from __future__ import annotations
@@ -22,7 +22,8 @@ from filters.submap_optimise import (
 )
 from filters.types import GaussianMap
 from slam_gym.episode import Episode
-from slam_gym.scenarios import SQUARE_LOOP_OVERRIDES, make_stream
+from slam_gym.scenarios import SQUARE_LOOP_OVERRIDES
+from slam_gym.world import make_stream
 
 FUSE_EVERY = 100
 #: a small closed loop (side 27 m, ~1100 iterations) in a 60 m world: fast, with a loop closure

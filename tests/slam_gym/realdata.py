@@ -1,7 +1,7 @@
 """Where the real-data tests find their data (issue 17: a clean clone passes its tests).
 
 ``SLAM_GYM_DATA`` set (CI sets it to ``../shared/data``): the whole recordings there. Unset: the
-excerpts in ``tests/data`` (cut by ``scripts/make_test_excerpts.py``, which says how), and the
+excerpts in ``tests/data`` (cut by ``scripts/tools/make_test_excerpts.py``, which says how), and the
 tests that need the whole recordings are skipped with :data:`needs_full_data`'s reason.
 """
 

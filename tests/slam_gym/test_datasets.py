@@ -26,14 +26,14 @@ from slam_gym.datasets import (
     path_error_after_alignment,
     read_mrclam,
 )
-from slam_gym.datasets.mrclam import (
-    compensate_motion,
+from slam_gym.datasets.estimators import (
     correlated_noise_std,
     estimate_odometry_noise,
     estimate_sensor_bias,
     estimate_sensor_noise,
     true_velocities,
 )
+from slam_gym.datasets.mrclam import compensate_motion
 from slam_gym.datasets.victoria_park import VehicleGeometry, laser_to_vehicle, read_geometry
 
 ROBOT = 3  # has robot sightings and unknown barcodes (34, 52)
@@ -764,3 +764,25 @@ def test_short_calibration_part_shortens_the_odometry_window_and_says_so(caplog)
     assert f"odometry noise fitted over {window:g} s windows" in caplog.text
     assert load_mrclam(MRCLAM_DIR, 1, max_steps=200).metadata["calibration"][
         "odometry_window_s"] == 10.0
+
+
+def test_the_mrclam_options_object_validates_once_for_every_user():
+    """One validated options object (issue 37 item 2): the loader, the calibration, the env and
+    ``reproduce mrclam`` build it, so a bad value names the field the user wrote."""
+    from slam_gym.datasets.mrclam import CORRECTION_SWITCHES, MrclamOptions
+
+    defaults = MrclamOptions()
+    assert defaults.switches() == dict.fromkeys(CORRECTION_SWITCHES, True)
+    off = MrclamOptions(corrections=False, timing_correction=True)
+    assert off.switches() == {**dict.fromkeys(CORRECTION_SWITCHES, False),
+                              "timing_correction": True}
+    assert set(defaults.as_kwargs()) == {"calibration_s", "corrections", "noise_window_s",
+                                         *CORRECTION_SWITCHES}
+    for kwargs, field in (({"calibration_s": 5.0}, "calibration_s"),
+                          ({"corrections": 1}, "corrections"),
+                          ({"correlated_noise": "yes"}, "correlated_noise"),
+                          ({"noise_window_s": 0.0}, "noise_window_s")):
+        with pytest.raises(ValueError, match=f"^{field}="):
+            MrclamOptions(**kwargs)
+    with pytest.raises(ValueError, match="^sensor_noise_window_s="):
+        MrclamOptions(noise_window_s=-1.0, names={"noise_window_s": "sensor_noise_window_s"})

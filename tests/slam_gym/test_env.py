@@ -224,7 +224,7 @@ def test_sb3_subproc_vec_env_runs():
 
 
 def test_policies_know_the_same_feature_names():
-    """``policies`` imports nothing of ours, so it keeps its own copy of the names."""
+    """``policies`` reads the names' one definition (``filters.interface_features``)."""
     from policies.base import INTERFACE_FEATURES
 
     assert tuple(INTERFACE_FEATURES) == FEATURE_NAMES

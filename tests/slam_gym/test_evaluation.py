@@ -19,13 +19,9 @@ import numpy as np
 import pytest
 
 from slam_gym.evaluation import (
-    REQUIRED_ROW_KEYS,
     RESULT_KEYS,
     Job,
-    ResultsWriter,
     expand_grid,
-    finished_keys,
-    format_table,
     markdown_table,
     read_results,
     run_jobs,
@@ -33,6 +29,8 @@ from slam_gym.evaluation import (
     wilson_interval,
     write_summary,
 )
+from slam_gym.evaluation.results import REQUIRED_ROW_KEYS, ResultsWriter, finished_keys
+from slam_gym.evaluation.summary import format_table
 
 TEST_DIR = Path(__file__).resolve().parent
 REPO = TEST_DIR.parents[1]
@@ -600,7 +598,7 @@ def test_decision_timeline_records_what_the_system_did():
     acted = acted[acted > 0]
     assert np.all(compute[acted] > compute[acted - 1])
     # BB's whole path returns over its start once, in its second half
-    from slam_gym.scenarios import make_stream
+    from slam_gym.world import make_stream
 
     stream = make_stream("brooks-bailey", seed=3, clutter_level=0)
     closure = true_loop_closure_s(stream)

@@ -8,7 +8,7 @@ from filters.dead_reckoning import DeadReckoning
 from filters.ekf_slam import EKFSLAM
 from filters.fastslam import LOCAL_MAP_MAX_EXISTENCE, FastSLAM2
 from slam_gym.local_consistency import local_pose_nees_at_fusion
-from slam_gym.scenarios import make_stream
+from slam_gym.world import make_stream
 
 LO, HI = chi2.ppf([0.025, 0.975], 3)
 
@@ -70,7 +70,7 @@ def _fastslam_nees(levels, seeds=range(4), n_steps=1000, sample_clutter=False,
                    lineage_correction=True, small_sample_correction=True):
     """Local-pose NEES of FastSLAM 2.0 (DAS, 500 particles, built as HYBRID's front-end: the
     existence clip is the float guard) at fusion, BB's path, per level and seed: the measurement
-    of scripts/local_pose_nees.py."""
+    of scripts/results/local_pose_nees.py."""
     values = []
     for level in levels:
         for seed in seeds:

@@ -259,7 +259,7 @@ def test_benchmark_rows_carry_whether_the_model_matches_the_code(model_zip, stal
 def test_reproduce_mrclam_rows_carry_whether_the_model_matches_the_code(stale_zip):
     from realdata import MRCLAM_DIR
 
-    from slam_gym.commands.reproduce_real import run_mrclam_policy
+    from slam_gym.evaluation.real_data import run_mrclam_policy
 
     with pytest.warns(UserWarning):
         row = run_mrclam_policy("learned", 5, 0, data=str(MRCLAM_DIR), max_steps=50,
@@ -298,7 +298,7 @@ def test_tables_mark_a_learned_row_whose_model_does_not_match():
 
 
 def test_the_mrclam_table_marks_a_model_that_does_not_match():
-    from slam_gym.commands.reproduce_real import mrclam_table
+    from slam_gym.commands.real_tables import mrclam_table
 
     rows = [dict(_row("learned", False, differences=["digest: a != b"]), robot=1,
                  association="unknown", driven_system="hybrid"),
@@ -326,7 +326,7 @@ def test_ship_model_refuses_a_model_of_another_system(stale_zip, tmp_path, monke
     import importlib.util
     from pathlib import Path
 
-    script = Path(__file__).resolve().parents[2] / "scripts" / "ship_model.py"
+    script = Path(__file__).resolve().parents[2] / "scripts" / "tools" / "ship_model.py"
     spec = importlib.util.spec_from_file_location("ship_model", script)
     ship = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(ship)

@@ -20,7 +20,7 @@ from slam_gym.commands.reproduce_cm import (
     run_cm_job,
 )
 from slam_gym.evaluation import RESULT_KEYS, Job, read_results, validate_result
-from slam_gym.scenarios import make_stream
+from slam_gym.world import make_stream
 
 #: CM sim 1 on a 25 m square loop (~1000 iterations, closes at ~600)
 SHORT_LOOP = dict(path_length_m=100.0, world_size_m=60.0)

@@ -15,9 +15,11 @@ import pytest
 from realdata import MRCLAM_DIR, VP_DIR, needs_full_data
 from scipy.spatial import cKDTree
 
+from slam_gym.commands import real_tables
 from slam_gym.commands import reproduce_real as rr
 from slam_gym.datasets import load_mrclam
 from slam_gym.evaluation import RESULT_KEYS, Job, read_results, validate_result
+from slam_gym.evaluation import real_data as rd
 from slam_gym.evaluation.results import check_row
 
 FINITE_KEYS = ("map_error_m", "pose_rmse_m", "anees", "nees_in_band_fraction",
@@ -41,7 +43,7 @@ def mrclam_job(name, kind="system", robot=1, **options):
                                          ("fastslam", True)])
 def test_mrclam_run_function_returns_required_finite_keys(name, known):
     # robot 5 sees several landmarks in its first 20 s (robot 1 maps none there from the excerpt)
-    row = validate_result(rr.run_real_job(mrclam_job(name, robot=5, known_association=known)))
+    row = validate_result(rd.run_real_job(mrclam_job(name, robot=5, known_association=known)))
     assert set(RESULT_KEYS) <= set(row)
     for key in FINITE_KEYS:
         assert isinstance(row[key], float) and math.isfinite(row[key]), key
@@ -58,14 +60,14 @@ def test_mrclam_run_function_returns_required_finite_keys(name, known):
 
 
 def test_mrclam_noise_scale_reaches_the_filters():
-    row = rr.run_real_job(mrclam_job("ekf-slam", noise_scale=3.0, max_steps=50))
+    row = rd.run_real_job(mrclam_job("ekf-slam", noise_scale=3.0, max_steps=50))
     stream = load_mrclam(MRCLAM_DIR, 1, max_steps=50)
     assert row["range_std_m"] == pytest.approx(3.0 * stream.sensor.range_std_m)
     assert row["bearing_std_rad"] == pytest.approx(3.0 * stream.sensor.bearing_std_rad)
 
 
 def test_policy_job_drives_hybrid_in_the_mrclam_env():
-    row = validate_result(rr.run_real_job(mrclam_job("fixed-10s", kind="policy",
+    row = validate_result(rd.run_real_job(mrclam_job("fixed-10s", kind="policy",
                                                      max_steps=250)))
     assert row["driven_system"] == "hybrid" and row["iterations"] == 250
     assert row["n_fusions"] == 2  # fixed 10 s rule within 25 s
@@ -83,8 +85,8 @@ def test_known_association_only_where_the_system_has_it():
     assert rr.supports_known_association("ekf-slam", stream)
     assert not rr.supports_known_association("hybrid", stream)
     with pytest.raises(ValueError, match="known_association"):
-        rr.run_real_job(mrclam_job("ekf-submap", known_association=True, max_steps=20))
-    row = rr.run_real_job(mrclam_job("ekf-slam", known_association=True, max_steps=300))
+        rd.run_real_job(mrclam_job("ekf-submap", known_association=True, max_steps=20))
+    row = rd.run_real_job(mrclam_job("ekf-slam", known_association=True, max_steps=300))
     assert row["association"] == "known" and row["n_spurious"] == 0
 
 
@@ -92,13 +94,13 @@ def test_mrclam_corrections_and_calibration_part_reach_the_stream():
     """By default the loader's corrections are on and calibrated on the first 300 s;
     ``corrections=False`` and ``calibration_s`` reach the stream; the row reports the pose
     RMSE over the held-out steps (none here: 20 s) and the map completeness."""
-    row = rr.run_real_job(mrclam_job("ekf-slam", max_steps=200))
+    row = rd.run_real_job(mrclam_job("ekf-slam", max_steps=200))
     stream = load_mrclam(MRCLAM_DIR, 1, max_steps=200)
     assert row["corrections"] is True and row["calibration_s"] == 300.0
     assert row["range_std_m"] == stream.sensor.range_std_m
     assert row["pose_rmse_held_out_m"] is None
     assert row["completeness"] is None or 0.0 <= row["completeness"] <= 1.0
-    plain = rr.run_real_job(mrclam_job("ekf-slam", max_steps=200, corrections=False,
+    plain = rd.run_real_job(mrclam_job("ekf-slam", max_steps=200, corrections=False,
                                        calibration_s=10.0))
     ref = load_mrclam(MRCLAM_DIR, 1, max_steps=200, corrections=False, calibration_s=10.0)
     assert plain["range_std_m"] == ref.sensor.range_std_m != row["range_std_m"]
@@ -106,17 +108,17 @@ def test_mrclam_corrections_and_calibration_part_reach_the_stream():
 
 
 def test_mrclam_calibration_and_fastslam_options_reach_stream_and_filters(monkeypatch):
-    row = rr.run_real_job(mrclam_job("ekf-slam", noise_window_s=30.0, max_steps=50))
+    row = rd.run_real_job(mrclam_job("ekf-slam", noise_window_s=30.0, max_steps=50))
     stream = load_mrclam(MRCLAM_DIR, 1, max_steps=50, noise_window_s=30.0)
     assert row["range_std_m"] == stream.sensor.range_std_m
     assert row["bearing_std_rad"] == stream.sensor.bearing_std_rad
     assert row["noise_window_s"] == 30.0 and row["landmark_density_per_m2"] is None
     # the FastSLAM options go to FASTSLAM and to HYBRID's front-end, not to the EKF filters
-    fs = rr.fastslam_options(1e-4, 40.0)
+    fs = rd.fastslam_options(1e-4, 40.0)
     assert fs == {"new_landmark_density_per_m2": 1e-4, "gate_chi2": 40.0}
-    assert rr._system_options("hybrid", fs) == {"front_new_landmark_density_per_m2": 1e-4,
+    assert rd._system_options("hybrid", fs) == {"front_new_landmark_density_per_m2": 1e-4,
                                                 "front_gate_chi2": 40.0}
-    assert rr._system_options("ekf-slam", fs) == {} == rr._system_options("ekf-submap", fs)
+    assert rd._system_options("ekf-slam", fs) == {} == rd._system_options("ekf-submap", fs)
     built = {}
     from slam_gym import systems
 
@@ -129,7 +131,7 @@ def test_mrclam_calibration_and_fastslam_options_reach_stream_and_filters(monkey
 
     monkeypatch.setattr(systems, "make_system", spy)
     for name in ("fastslam", "hybrid"):
-        rr.run_real_job(mrclam_job(name, landmark_density_per_m2=1e-4, gate_chi2=40.0,
+        rd.run_real_job(mrclam_job(name, landmark_density_per_m2=1e-4, gate_chi2=40.0,
                                    max_steps=20))
     f = built["fastslam"].estimator
     h = built["hybrid"].estimator.front_end
@@ -202,7 +204,7 @@ def test_victoria_park_end_to_end_writes_the_map_png(tmp_path, capsys):
 def test_victoria_park_aligned_path_is_in_the_gps_frame_and_matches_the_rmse():
     from slam_gym.datasets import load_victoria_park
 
-    row = rr.run_real_job(Job("system", "ekf-submap", "victoria-park", None, 0,
+    row = rd.run_real_job(Job("system", "ekf-submap", "victoria-park", None, 0,
                               {"data": str(VP_DIR), "max_steps": 1600}))
     assert math.isclose(row["duration_s"], 40.0)
     est = np.asarray(row["figure"]["est_path_xy"])  # aligned, one point per second
@@ -248,7 +250,7 @@ def test_victoria_park_hybrid_maps_each_tree_once_on_a_stream_that_drifted_befor
     pair is discounted. Measured 5.37 m, 206 trees, 8 pairs (with the front-end's old 0.999
     existence clip: 5.34 m, 198, 28; lineage term alone: 5.23 m, 241, 79) (docs/RESULTS.md,
     Victoria Park)."""
-    row = rr.run_real_job(Job("system", "hybrid", "victoria-park", None, 1, {"data": str(VP_DIR)}))
+    row = rd.run_real_job(Job("system", "hybrid", "victoria-park", None, 1, {"data": str(VP_DIR)}))
     assert row["iterations"] == 61944
     assert row["gps_rmse_m"] <= 1.2 * 5.62
     assert row["n_trees"] <= 280
@@ -268,9 +270,9 @@ def test_mrclam_paired_table_pairs_each_policy_with_fixed_10s_optimise():
                 "n_optimisations": 10}
     ref = [row("fixed-10s-optimise", r, s, 1.0, 0.5) for r in (1, 2) for s in (0, 1)]
     rule = [row("fixed-10s", r, s, 1.0 + 0.1 * r, 0.25) for r in (1, 2) for s in (0, 1)]
-    text = rr.mrclam_paired_table(ref + rule)
+    text = real_tables.mrclam_paired_table(ref + rule)
     line = next(ln for ln in text.splitlines() if ln.startswith("| fixed-10s |"))
     cells = [c.strip() for c in line.strip("|").split("|")]
     assert cells[1] == "4" and cells[3].startswith("+0.15")  # mean of +0.1, +0.1, +0.2, +0.2
     assert cells[7] == "0.50"  # interface CPU ratio
-    assert rr.mrclam_paired_table(rule) is None  # no reference, no pairing
+    assert real_tables.mrclam_paired_table(rule) is None  # no reference, no pairing

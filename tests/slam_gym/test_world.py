@@ -11,9 +11,9 @@ from slam_gym.scenarios import (
     CLUTTER_LEVELS,
     SQUARE_LOOP_OVERRIDES,
     get_scenario,
-    make_stream,
     scenario_names,
 )
+from slam_gym.world import make_stream
 
 
 def path_length(stream):

@@ -9,8 +9,8 @@ def untrained_model(tmp_path, algo, fuse=None, optimise=None, policy_kwargs=None
     """An untrained ``algo`` model on ``SlamGym/HybridSLAM-v0`` (5 particles, no normalisation)
     started at the given chances of fusing and optimising (None: SB3's 0.5), and the path of the
     ``model.zip`` (+ ``model.json``) it was saved to."""
+    from policies.learned import algorithm_class
     from slam_gym.training.run import (
-        _algorithm,
         _build_vec_env,
         save_model,
         set_initial_action_probabilities,
@@ -25,7 +25,7 @@ def untrained_model(tmp_path, algo, fuse=None, optimise=None, policy_kwargs=None
     params = validate_hyperparams(algo, params)
     setup = TrainingSetup(algo, "SlamGym/HybridSLAM-v0", 0, params)
     vec = _build_vec_env(setup, tmp_path, 0, None)
-    model = _algorithm(algo)(params["policy"], vec, seed=0, device="cpu",
+    model = algorithm_class(algo)(params["policy"], vec, seed=0, device="cpu",
                              policy_kwargs=policy_kwargs)
     set_initial_action_probabilities(model, params)
     path = save_model(model, vec, setup, tmp_path / "m" / "model.zip", 0)

@@ -22,8 +22,14 @@ once at the end and reports:
   a local feature moves to another global feature when the move gains 100:1 likelihood odds
   (``map_error_reassociated``), or any gain at all (``..._greedy``).
 
-Usage: ``python scripts/mrclam_optimise_diagnosis.py DATA_DIR [--robots 1,2,3,4,5]
+Usage: ``python scripts/results/mrclam_optimise_diagnosis.py DATA_DIR [--robots 1,2,3,4,5]
 [--system hybrid] [--particles 200] [--seed 0] [--max-steps N]``.
+
+Supports docs/results/history.md, "optimise() on MRCLAM, step by step to the small-sample factor
+(issue 16 items 2, 3)".
+The command behind it::
+
+    python scripts/results/mrclam_optimise_diagnosis.py .../MRCLAM_Dataset7 --seeds 0,1,2
 """
 
 from __future__ import annotations
@@ -46,7 +52,7 @@ from filters.geometry import (
 from filters.submap_optimise import build_submap_problem, floored_covariance
 from slam_gym.envs.mrclam import mrclam_stream
 from slam_gym.episode import Episode
-from slam_gym.evaluation.core import _seeds
+from slam_gym.evaluation.core import filter_rng
 from slam_gym.systems import make_system
 
 logger = logging.getLogger(__name__)
@@ -65,7 +71,7 @@ class SubmapTruth:
 def play(stream, system_name, seed, particles):
     """The run without optimisation; per sub-map the truth of its local features, and the true
     fusion poses (index 0 = the initial pose)."""
-    system = make_system(system_name, stream, _seeds(seed), n_particles=particles)
+    system = make_system(system_name, stream, filter_rng(seed), n_particles=particles)
     episode = Episode(system, stream, record_trace=False)
     votes: dict[int, Counter] = defaultdict(Counter)
     true_poses = [np.asarray(stream.initial_pose, dtype=float)]

@@ -1,12 +1,12 @@
 """Local maps at fusion against their lineage count (#14 item 2, docs/RESULTS.md).
 
-Usage: python scripts/lineage_diagnosis.py LEVELS SEEDS N_STEPS [N_PARTICLES] [known]
-e.g.   python scripts/lineage_diagnosis.py 0,1,2,3 0-3 1000 500 known
+Usage: python scripts/results/lineage_diagnosis.py LEVELS SEEDS N_STEPS [N_PARTICLES] [known]
+e.g.   python scripts/results/lineage_diagnosis.py 0,1,2,3 0-3 1000 500 known
 
 Runs FastSLAM 2.0 over BB's path with :func:`slam_gym.local_consistency.local_maps` (restart
-every 100 steps, the same random streams as scripts/local_pose_nees.py) and, at every fusion,
-converts the local map three ways: by BB (7) alone, with the lineage term, and with the lineage
-term and the small-sample factor (the filtering is the same; only the Gaussian differs).
+every 100 steps, the same random streams as scripts/results/local_pose_nees.py) and, at every
+fusion, converts the local map three ways: by BB (7) alone, with the lineage term, and with the
+lineage term and the small-sample factor (the filtering is the same; only the Gaussian differs).
 Reports the median number of lineages (distinct ancestors at the restart) and of effective
 lineages (1 / sum of squared lineage weights) at fusion, the per-component mean square error of
 the local pose over its reported variance, the share of over-confident fusions by lineage count,
@@ -14,11 +14,19 @@ and by the effective degrees of freedom ``nu`` of :func:`filters.conversion.smal
 SEEDS is a count or a range FIRST-LAST (inclusive).
 FastSLAM keeps the filter's default existence clip 0.999, with which its figures in
 docs/results/history.md were measured (HYBRID's front-end now uses the float guard,
-:data:`filters.fastslam.LOCAL_MAP_MAX_EXISTENCE`; ``scripts/local_pose_nees.py`` measures both).
+:data:`filters.fastslam.LOCAL_MAP_MAX_EXISTENCE`; ``scripts/results/local_pose_nees.py``
+measures both).
+
+Supports docs/results/history.md, "Local maps at fusion with FastSLAM's 0.999 existence clip (issue
+14 item 2)".
+The command behind it::
+
+    python scripts/results/lineage_diagnosis.py 0,1,2,3 0-3 1000 500 known
 """
 
 from __future__ import annotations
 
+import argparse
 import logging
 import sys
 
@@ -27,8 +35,8 @@ from scipy.stats import chi2
 
 from filters.fastslam import FastSLAM2
 from filters.geometry import relative, wrap_angle
-from slam_gym.local_consistency import local_maps
-from slam_gym.scenarios import make_stream
+from slam_gym.local_consistency import add_fusion_run_arguments, local_maps
+from slam_gym.world import make_stream
 
 logger = logging.getLogger(__name__)
 BINS = ((1, 5), (5, 10), (10, 20), (20, 50), (50, 10**9))
@@ -70,12 +78,11 @@ def fusion_records(level, seed, n_steps, n_particles, known):
 
 def main(argv) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    levels = [int(x) for x in argv[0].split(",")]
-    first, _, last = argv[1].partition("-")
-    seeds = range(int(first), int(last) + 1) if last else range(int(first))
-    n_steps = int(argv[2])
-    n_particles = int(argv[3]) if len(argv) > 3 else 500
-    known = len(argv) > 4 and argv[4] == "known"
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    add_fusion_run_arguments(parser)
+    args = parser.parse_args(argv)
+    levels, seeds, n_steps = args.levels, args.seeds, args.n_steps
+    n_particles, known = args.n_particles, args.known
     r = np.array([row for level in levels for seed in seeds
                   for row in fusion_records(level, seed, n_steps, n_particles, known)])
     hi = chi2.ppf(0.975, 3)

@@ -10,8 +10,14 @@ describes the motion since the lineages coalesced, whatever the true uncertainty
 over-confidence that makes FASTSLAM fail). The resampling indices are recomputed from a copy of
 the filter's generator state, so the filter runs exactly as it does without this script.
 
-Usage: ``python scripts/mrclam_depletion.py DATA_DIR [--robots 1,2,3,4,5] [--particles 200]
+Usage: ``python scripts/results/mrclam_depletion.py DATA_DIR [--robots 1,2,3,4,5] [--particles 200]
 [--seed 0]``.
+
+Supports docs/results/real_data.md, "HYBRID, robots 1-5, seeds 0-2, 200 particles, fusion every 10
+s, the loader's defaults".
+The command behind it::
+
+    python scripts/results/mrclam_depletion.py .../MRCLAM_Dataset7
 """
 
 from __future__ import annotations
@@ -24,7 +30,7 @@ import numpy as np
 
 from slam_gym.envs.mrclam import mrclam_stream
 from slam_gym.episode import Episode
-from slam_gym.evaluation.core import _seeds
+from slam_gym.evaluation.core import filter_rng
 from slam_gym.systems import make_system
 
 logger = logging.getLogger(__name__)
@@ -66,7 +72,7 @@ class AncestorTracker:
 
 
 def run(stream, name, seed, particles):
-    system = make_system(name, stream, _seeds(seed), n_particles=particles)
+    system = make_system(name, stream, filter_rng(seed), n_particles=particles)
     filt = system.front_end if name == "hybrid" else system.estimator
     tracker = AncestorTracker(filt)
     episode = Episode(system, stream, record_trace=True)

@@ -1,6 +1,6 @@
 """Issue 16: how MRCLAM's odometry error grows with the span it is integrated over.
 
-For each robot, fits :func:`slam_gym.datasets.mrclam.estimate_odometry_noise` on the loader's
+For each robot, fits :func:`slam_gym.datasets.estimators.estimate_odometry_noise` on the loader's
 calibration part (the first ``--calibration-s`` seconds, odometry corrected as the loader does)
 with windows of 1, 2, 5, 10, 20 and 30 s, and prints the fitted per-step std at the robot's
 typical motion (v = 0.1 m/s, omega = 0.3 rad/s). Errors that were white would give the same std
@@ -8,8 +8,14 @@ for every window; errors correlated over seconds give a std that grows with the 
 window outlasts the correlation. The loader's window (``DEFAULT_ODOMETRY_WINDOW_S``, BB's 10 s
 local map) is the span over which a front-end integrates the odometry between fusions.
 
-Usage: ``python scripts/mrclam_odometry_windows.py DATA_DIR [--robots 1,2,3,4,5]
+Usage: ``python scripts/results/mrclam_odometry_windows.py DATA_DIR [--robots 1,2,3,4,5]
 [--calibration-s 300] [--windows 1,2,5,10,20,30]``.
+
+Supports docs/results/real_data.md, "HYBRID, robots 1-5, seeds 0-2, 200 particles, fusion every 10
+s, the loader's defaults".
+The command behind it::
+
+    python scripts/results/mrclam_odometry_windows.py .../MRCLAM_Dataset7
 """
 
 from __future__ import annotations

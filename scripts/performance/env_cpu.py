@@ -1,7 +1,7 @@
 """The env's CPU cost as a whole process, for paired comparisons of two commits (issue 27).
 
-Usage: python scripts/env_cpu.py [DECISIONS] [POLICY]
-e.g.   /usr/bin/time -f "%U %S" python scripts/env_cpu.py 300 fixed-10s
+Usage: python scripts/performance/env_cpu.py [DECISIONS] [POLICY]
+e.g.   /usr/bin/time -f "%U %S" python scripts/performance/env_cpu.py 300 fixed-10s
 
 Plays ``POLICY`` (default ``fixed-10s``) in ``HybridSLAMEnv(n_particles=500,
 clutter_level=2)`` for ``DECISIONS`` decisions (default 300) from ``reset(seed=0)``; an episode
@@ -10,10 +10,17 @@ included. Prints the CPU seconds of the imports and of the decisions (the first 
 loads the compiled kernels from numba's cache, included) and the decisions per CPU second.
 Run it alternately on the two commits (A B A B ..., each process timed from outside) and quote
 the median of the pairwise ratios: the machine's speed drifts between runs.
+
+Supports docs/PERFORMANCE.md, "The targets, measured on 2026-11-26: met" (and the paired
+comparisons of "The same numbers, less work").
+The command behind it::
+
+    /usr/bin/time -f "%U %S" python scripts/performance/env_cpu.py 600 fixed-10s
 """
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 
@@ -25,8 +32,11 @@ from slam_gym.envs.hybrid_slam import HybridSLAMEnv  # noqa: E402
 
 def main(argv: list[str]) -> int:
     imported_cpu_s = time.process_time()
-    n_decisions = int(argv[0]) if argv else 300
-    name = argv[1] if len(argv) > 1 else "fixed-10s"
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("decisions", nargs="?", type=int, default=300)
+    parser.add_argument("policy", nargs="?", default="fixed-10s")
+    args = parser.parse_args(argv)
+    n_decisions, name = args.decisions, args.policy
     env = HybridSLAMEnv(n_particles=500, clutter_level=2)
     policy = policies.make(name)
     seed = 0

@@ -3,7 +3,7 @@
 
 Supports docs/PERFORMANCE.md, "Copies of the env (lookahead)". Command::
 
-    python scripts/clone_cost.py --decisions 300 --repeats 20
+    python scripts/performance/clone_cost.py --decisions 300 --repeats 20
 
 Plays ``fixed-10s-optimise`` for ``--decisions`` decisions of world ``--world`` at level 2 (500
 particles), then times each kind of copy ``--repeats`` times in CPU seconds (``process_time``)

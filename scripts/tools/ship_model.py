@@ -1,7 +1,7 @@
 """Ship the best of several ``slam-gym train`` outputs as the default learned policy (#15).
 
-Usage: python scripts/ship_model.py [--force] TRAIN_OUT [TRAIN_OUT ...]
-e.g.   python scripts/ship_model.py out/train15/ppo out/train15/a2c
+Usage: python scripts/tools/ship_model.py [--force] TRAIN_OUT [TRAIN_OUT ...]
+e.g.   python scripts/tools/ship_model.py out/train15/ppo out/train15/a2c
 
 Each TRAIN_OUT is the ``--out`` of one ``slam-gym train`` (one algorithm, several seeds): its
 ``summary.json`` names the seed chosen there and ``model.zip``/``model.json`` are that seed's
@@ -23,6 +23,7 @@ with a warning (the packaged-model test then fails until a matching model ships)
 
 from __future__ import annotations
 
+import argparse
 import json
 import logging
 import shutil
@@ -32,7 +33,7 @@ from pathlib import Path
 import yaml
 
 logger = logging.getLogger(__name__)
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 TARGET = ROOT / "policies" / "models" / "learned-default.zip"
 FIGURES = ROOT / "docs" / "figures"
 
@@ -61,13 +62,20 @@ def provenance_differences(config: dict) -> list[str]:
     return compare_fingerprints(config.get("fingerprint"), fingerprint_of_config(config))
 
 
+def parse_args(argv: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("train_out", nargs="+", metavar="TRAIN_OUT",
+                        help="the --out of one slam-gym train (one algorithm, several seeds)")
+    parser.add_argument("--force", action="store_true",
+                        help="ship a model whose fingerprint does not match the code")
+    return parser.parse_args(argv)
+
+
 def main(argv: list[str]) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    force = "--force" in argv
-    argv = [a for a in argv if a != "--force"]
-    if not argv:
-        print(__doc__)
-        return 2
+    args = parse_args(argv)
+    force = args.force
+    argv = list(args.train_out)
     found = candidates([Path(a) for a in argv])
     best = max(found, key=lambda c: (c["mean_return"], c["success_rate"]))
     source = Path(best["out"]) / "model.zip"
@@ -82,7 +90,7 @@ def main(argv: list[str]) -> int:
         logger.warning("%s\nshipping it anyway (--force)", message)
     shutil.copyfile(source, TARGET)
     config["chosen_among_algorithms"] = found
-    config["shipped_by"] = "python scripts/ship_model.py " + " ".join(argv)
+    config["shipped_by"] = "python scripts/tools/ship_model.py " + " ".join(argv)
     TARGET.with_suffix(".json").write_text(json.dumps(config, indent=2) + "\n")
     header = (f"# The hyper-parameters of policies/models/learned-default.zip ({best['algo']}, "
               f"seed {best['seed']}),\n# as trained by: {config['command']}\n")

@@ -1,8 +1,8 @@
 """Why the sub-map systems fail after fusions (docs/RESULTS.md): consistency at every fusion.
 
-Usage: python scripts/fusion_consistency.py SEEDS [NOISE_SCALE] [N_STEPS]
-e.g.   python scripts/fusion_consistency.py 0-9          # BB's path as is
-       python scripts/fusion_consistency.py 0-5 0.01     # every noise std times 0.01
+Usage: python scripts/results/fusion_consistency.py SEEDS [NOISE_SCALE] [N_STEPS]
+e.g.   python scripts/results/fusion_consistency.py 0-9          # BB's path as is
+       python scripts/results/fusion_consistency.py 0-5 0.01     # every noise std times 0.01
 
 Runs ``ekf-submap`` on ``brooks-bailey`` at clutter level 0 with BB's fusion every 100 steps,
 to the end of the path (no stop at BB's failure), with every noise std of the world (odometry
@@ -18,8 +18,14 @@ the simulator's truth ids (the votes of :class:`slam_gym.metrics.FeatureTruth`):
   same local map's covariance and feature set with its mean redrawn around the truth,
   ``x ~ N(x_true, P_L)``: consistent local maps by construction, so only the back-end (fusion
   equations and their linearisation) can make it inconsistent. Its pose NEES after each fusion.
+
+Supports docs/RESULTS.md, "Why the sub-map systems fail after fusions".
+The command behind it::
+
+    PYTHONPATH=. python scripts/results/fusion_consistency.py 0-9
 """
 
+import argparse
 import logging
 import sys
 
@@ -30,10 +36,11 @@ from filters.back_ends import GlobalMap
 from filters.geometry import point_to_frame, relative, wrap_angle
 from filters.types import GaussianMap
 from slam_gym.episode import Episode
-from slam_gym.evaluation.core import _seeds
+from slam_gym.evaluation.core import filter_rng
 from slam_gym.metrics import nees
-from slam_gym.scenarios import get_scenario, make_stream
+from slam_gym.scenarios import get_scenario
 from slam_gym.systems import make_system
+from slam_gym.world import make_stream
 
 logger = logging.getLogger(__name__)
 
@@ -77,7 +84,7 @@ def local_truth(origin_true, pose_true, landmarks):
 def run(seed: int, noise_scale: float, n_steps) -> list[dict]:
     stream = scaled_stream(seed, noise_scale, n_steps)
     truth_xy = stream.landmarks_true
-    system = make_system("ekf-submap", stream, _seeds(seed))
+    system = make_system("ekf-submap", stream, filter_rng(seed))
     episode = Episode(system, stream, record_trace=False)
     synthetic = GlobalMap(initial_pose=stream.initial_pose)
     rng = np.random.default_rng([seed, 2024])
@@ -154,9 +161,14 @@ def summarise(rows: list[dict], label: str) -> None:
 
 
 def main(argv) -> int:
-    seeds = parse_seeds(argv[0])
-    noise_scale = float(argv[1]) if len(argv) > 1 else 1.0
-    n_steps = int(argv[2]) if len(argv) > 2 else None
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("seeds", help="a count N (seeds 0..N-1) or a range FIRST-LAST")
+    parser.add_argument("noise_scale", nargs="?", type=float, default=1.0)
+    parser.add_argument("n_steps", nargs="?", type=int, default=None)
+    args = parser.parse_args(argv)
+    argv = [args.seeds]
+    seeds = parse_seeds(args.seeds)
+    noise_scale, n_steps = args.noise_scale, args.n_steps
     everything = []
     for seed in seeds:
         rows = run(seed, noise_scale, n_steps)

@@ -1,7 +1,7 @@
 """Whole env episodes written out for a bit-for-bit comparison of two commits (issue 27).
 
-Usage: PYTHONPATH=<tree> python scripts/episode_bits.py dump OUT.pkl
-       python scripts/episode_bits.py compare A.pkl B.pkl
+Usage: PYTHONPATH=<tree> python scripts/performance/episode_bits.py dump OUT.pkl
+       python scripts/performance/episode_bits.py compare A.pkl B.pkl
 
 ``dump`` plays ``fixed-10s``, ``fixed-10s-optimise`` and ``always`` on ``SlamGym/HybridSLAM-v0``
 (500 particles; clutter levels 0, 2 and 3, worlds 0, 1 and 2) and ``fixed-10s`` and
@@ -9,10 +9,19 @@ Usage: PYTHONPATH=<tree> python scripts/episode_bits.py dump OUT.pkl
 (level 2, world 4), and pickles every observation, reward, termination flag and info, and the
 final pose and map. ``compare`` prints every entry that differs (NaN equals NaN) and the number
 of differing episodes; a change meant to leave the numbers alone must print 0.
+
+Supports docs/PERFORMANCE.md, "The code of 15bcb7d (2026-11-25 evening, the slower machine): five
+more bit-identical speed-ups, and a sixth" (every speed-up leaves the episodes bit for bit).
+The command behind it::
+
+    PYTHONPATH=<tree of A> python scripts/performance/episode_bits.py dump /tmp/a.pkl
+    python scripts/performance/episode_bits.py dump /tmp/b.pkl
+    python scripts/performance/episode_bits.py compare /tmp/a.pkl /tmp/b.pkl
 """
 
 from __future__ import annotations
 
+import argparse
 import pickle
 import sys
 
@@ -71,6 +80,14 @@ def differences(a, b, path: str) -> list[str]:
 
 
 def main(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    commands = parser.add_subparsers(dest="command", required=True)
+    commands.add_parser("dump", help="play the episodes, pickle them").add_argument("out")
+    compare = commands.add_parser("compare", help="print where two dumps differ")
+    compare.add_argument("a")
+    compare.add_argument("b")
+    args = parser.parse_args(argv)
+    argv = [args.command, args.out] if args.command == "dump" else [args.command, args.a, args.b]
     if len(argv) == 2 and argv[0] == "dump":
         records = [(episode, play(*episode)) for episode in EPISODES]
         with open(argv[1], "wb") as f:

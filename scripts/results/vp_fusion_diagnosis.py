@@ -23,9 +23,16 @@ option (``hybrid.front_max_existence=0.999999999`` for one system only), and
 ``--omega-noise-scale`` multiplies the assumed turn-rate noise of the stream (a sensitivity
 check of the odometry assumption of :mod:`slam_gym.datasets.victoria_park`).
 
-Usage: ``python scripts/vp_fusion_diagnosis.py DATA_DIR [--systems hybrid,ekf-submap]
+Usage: ``python scripts/results/vp_fusion_diagnosis.py DATA_DIR [--systems hybrid,ekf-submap]
 [--seed 0] [--max-steps N] [--particles 200] [--near 1.5] [--option K=V]
 [--omega-noise-scale 1] [--json out.json]``.
+
+Supports docs/results/real_data.md, "HYBRID's duplicate trees (issue 16 item 4): fixed by the
+lineage term and the small-sample factor".
+The command behind it::
+
+    python scripts/results/vp_fusion_diagnosis.py ../shared/data/victoria_park --seed S \
+        --systems hybrid --option hybrid.front_lineage_correction=False
 """
 
 from __future__ import annotations
@@ -44,7 +51,7 @@ from filters.geometry import compose, wrap_angle
 from slam_gym.datasets import load_victoria_park, path_error_after_alignment
 from slam_gym.datasets.victoria_park import DEFAULT_DT_S, default_odometry_noise
 from slam_gym.episode import Episode
-from slam_gym.evaluation.core import _seeds
+from slam_gym.evaluation.core import filter_rng
 from slam_gym.systems import make_system
 
 logger = logging.getLogger(__name__)
@@ -227,7 +234,7 @@ def run(data, name, *, max_steps, particles, near_m, seed=0, fusion_interval_s=1
         omega_floor_radps=noise.omega_floor_radps * omega_noise_scale,
     )
     stream = load_victoria_park(data, max_steps=max_steps, odometry_noise=noise)
-    system = make_system(name, stream, _seeds(seed), n_particles=particles,
+    system = make_system(name, stream, filter_rng(seed), n_particles=particles,
                          **(system_options or {}))
     recorder = FusionRecorder(system.estimator, near_m)
     episode = Episode(system, stream, record_trace=False)

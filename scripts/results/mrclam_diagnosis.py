@@ -6,8 +6,14 @@ noise) and (2) EKF-SLAM with known association under each of the loader's correc
 all but one, and with the motion capture's own velocities as odometry (the floor the odometry
 leaves). EKF-SLAM is deterministic, so one run per robot.
 
-Usage: ``python scripts/mrclam_diagnosis.py DATA_DIR [--robots 1,2,3,4,5] [--calibration-s 300]``
+Usage: ``python scripts/results/mrclam_diagnosis.py DATA_DIR [--robots 1,2,3,4,5]
+[--calibration-s 300]``
 (DATA_DIR: an MRCLAM data set directory, e.g. .../MRCLAM_Dataset7).
+
+Supports docs/results/real_data.md, "Why known association left 0.7 m (issue 16 diagnosis)".
+The command behind it::
+
+    python scripts/results/mrclam_diagnosis.py .../MRCLAM_Dataset7
 """
 
 from __future__ import annotations
@@ -19,10 +25,10 @@ import logging
 
 import numpy as np
 
-from slam_gym.commands.reproduce_real import _mrclam_result
 from slam_gym.datasets import load_mrclam, read_mrclam
-from slam_gym.datasets.mrclam import true_velocities
+from slam_gym.datasets.estimators import true_velocities
 from slam_gym.evaluation.core import run_system
+from slam_gym.evaluation.real_data import mrclam_result
 
 logger = logging.getLogger(__name__)
 
@@ -53,7 +59,7 @@ def run(data, robots, options, after_s, true_odometry=False):
             stream = with_true_odometry(stream, data, robot)
         episode = run_system("ekf-slam", stream, 0, known_association=True,
                              stop_on_failure=False, record_trace=True)
-        row = _mrclam_result(episode, stream, robot, "known")
+        row = mrclam_result(episode, stream, robot, "known")
         errors = np.asarray(episode.trace.position_error_m, dtype=float)
         late = errors[np.asarray(episode.trace.t_s, dtype=float) > after_s]
         rows.append([row["map_error_m"], row["pose_rmse_m"], np.sqrt(np.mean(late**2)),

@@ -1,18 +1,24 @@
 """What an optimisation with no fusion since the previous one changes, and what the reward
 charges for it (#15).
 
-Usage: python scripts/redundant_optimise.py [SEED] [CLUTTER_LEVEL]
-e.g.   python scripts/redundant_optimise.py 900001 3
+Usage: python scripts/results/redundant_optimise.py [SEED] [CLUTTER_LEVEL]
+e.g.   python scripts/results/redundant_optimise.py 900001 3
 
 Plays ``fixed-10s-optimise`` on one world of ``SlamGym/HybridSLAM-v0`` twice: as it is, and with
 an extra optimisation at every decision that follows an optimisation and fuses nothing. Prints
 the features that differ between the two runs (expected: ``time_since_optimise_s`` only), the
 map errors, both returns and the largest per-decision difference in reward: the compute term's
 charge for an optimisation that changes nothing.
+
+Supports docs/results/history.md, "Learned interface policies (issue 15)".
+The command behind it::
+
+    python scripts/results/redundant_optimise.py 900001 3
 """
 
 from __future__ import annotations
 
+import argparse
 import logging
 import sys
 
@@ -47,8 +53,11 @@ def play(seed: int, level: int, extra: bool):
 
 def main(argv: list[str]) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    seed = int(argv[0]) if argv else 900001
-    level = int(argv[1]) if len(argv) > 1 else 3
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("seed", nargs="?", type=int, default=900001)
+    parser.add_argument("clutter_level", nargs="?", type=int, default=3)
+    args = parser.parse_args(argv)
+    seed, level = args.seed, args.clutter_level
     r0, o0, i0 = play(seed, level, extra=False)
     r1, o1, i1 = play(seed, level, extra=True)
     n = min(len(r0), len(r1))

@@ -1,6 +1,6 @@
 """Victoria Park: trees mapped twice, and how many of a map's trees another system maps too.
 
-Usage: python scripts/vp_close_pairs.py OUT_DIR [OUT_DIR ...] [--reference OUT_DIR:SYSTEM]
+Usage: python scripts/results/vp_close_pairs.py OUT_DIR [OUT_DIR ...] [--reference OUT_DIR:SYSTEM]
 
 Reads the ``results.jsonl`` of ``slam-gym reproduce victoria-park`` runs (their
 ``figure.trees_xy``: the confirmed trees at the end) and prints, per system and seed, the trees
@@ -20,6 +20,12 @@ no single rigid fit; ``--local-radius R`` (e.g. 40 m) then also fits, for each t
 within R of it onto the reference by the same iterated closest points (starting from the global
 fit) and tests that tree only, in both directions: which trees the two maps share, whatever the
 bending.
+
+Supports docs/results/real_data.md, "HYBRID's duplicate trees (issue 16 item 4): fixed by the
+lineage term and the small-sample factor".
+The command behind it::
+
+    python scripts/results/vp_close_pairs.py out/vp-ekf out/vp-lineage out/vp-lineage-5-9 out/vp-ss
 """
 
 from __future__ import annotations

@@ -32,7 +32,13 @@ with several, OpenBLAS's spinning threads dominate the process time on busy core
 
 Run (from the repository root)::
 
-    .venv/bin/python scripts/gtsam_reference.py --submaps 40 --seed 0 --particles 100 --repeats 7
+    .venv/bin/python scripts/performance/gtsam_reference.py --submaps 40 --seed 0 \
+        --particles 100 --repeats 7
+
+Supports docs/PERFORMANCE.md, "optimise() (issue 27 item 2)".
+The command behind it::
+
+    python scripts/performance/gtsam_reference.py --submaps 40 --seed 0 --particles 100 --repeats 7
 """
 
 from __future__ import annotations
@@ -58,8 +64,8 @@ from filters.submap_optimise import (
     gaussian_information,
 )
 from slam_gym.cli import one_blas_thread_per_process
-from slam_gym.scenarios import make_stream
 from slam_gym.systems import make_system
+from slam_gym.world import make_stream
 
 
 # --------------------------------------------------------------------------- the problem

@@ -4,7 +4,7 @@ privileged bound against ``fixed-10s-optimise`` on the same worlds, paired world
 Supports docs/RESULTS.md, "Learned interface policies, round three": "The ceiling". The
 declared run::
 
-    python scripts/lookahead_ceiling.py --seeds 10 --seed-start 500 --workers 2 \
+    python scripts/results/lookahead_ceiling.py --seeds 10 --seed-start 500 --workers 2 \
         --out out/ceiling39
 
 Runs ``fixed-10s-optimise``, ``lookahead`` and ``lookahead-privileged`` (default options:

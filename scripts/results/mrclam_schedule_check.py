@@ -1,6 +1,6 @@
 """Issue 16 item 3: the MRCLAM runs where optimising after every fusion ends worse than never.
 
-Usage: python scripts/mrclam_schedule_check.py DATA_DIR [--robots 1,2,3,4,5] [--seeds 0,1,2]
+Usage: python scripts/results/mrclam_schedule_check.py DATA_DIR [--robots 1,2,3,4,5] [--seeds 0,1,2]
 [--particles 200]
 
 Plays HYBRID over each robot and seed on BB's 10 s schedule (as ``reproduce mrclam`` does) three
@@ -10,6 +10,12 @@ associations were numerically chaotic, it alone would move the map error), and o
 every fusion. Per run it reports the final map error of each, and for ``never`` and
 ``every-fusion`` the largest global heading error at a fusion and the first fusion where it
 exceeds 0.2 rad.
+
+Supports docs/results/history.md, "optimise() on MRCLAM, step by step to the small-sample factor
+(issue 16 items 2, 3)".
+The command behind it::
+
+    python scripts/results/mrclam_schedule_check.py .../MRCLAM_Dataset7
 """
 
 from __future__ import annotations
@@ -22,7 +28,7 @@ import numpy as np
 from filters.geometry import wrap_angle
 from slam_gym.envs.mrclam import mrclam_stream
 from slam_gym.episode import Episode
-from slam_gym.evaluation.core import _seeds
+from slam_gym.evaluation.core import filter_rng
 from slam_gym.systems import make_system
 
 logger = logging.getLogger(__name__)
@@ -34,7 +40,7 @@ HEADING_LIMIT_RAD = 0.2
 
 def play(stream, seed, particles, mode, noise_rng=None):
     """Final map error and the global heading error (rad) at every fusion."""
-    system = make_system("hybrid", stream, _seeds(seed), n_particles=particles)
+    system = make_system("hybrid", stream, filter_rng(seed), n_particles=particles)
     episode = Episode(system, stream, record_trace=False)
     headings = []
     while not episode.done:

@@ -1,21 +1,29 @@
 """Feature NEES (2 dof) of FastSLAM's converted local maps at BB's fusion points, on the simulator.
 
-Usage: python scripts/local_feature_nees.py LEVELS SEEDS N_STEPS [N_PARTICLES]
-e.g.   python scripts/local_feature_nees.py 0,3 4 2000
+Usage: python scripts/results/local_feature_nees.py LEVELS SEEDS N_STEPS [N_PARTICLES]
+e.g.   python scripts/results/local_feature_nees.py 0,3 4 2000
 
 FastSLAM 2.0 with the true associations (so that every converted feature has a known landmark)
 over BB's path, restarted every 100 steps by :func:`slam_gym.local_consistency.local_maps`; at
 every fusion each converted feature's mean and marginal
 covariance are compared with its landmark's true position in the frame of the true pose at the
 local map's start. SEEDS is a count (seeds 0 .. SEEDS-1). The reference for the same measurement
-on MRCLAM is ``scripts/mrclam_optimise_diagnosis.py`` (docs/RESULTS.md, issue 16 item 3).
+on MRCLAM is ``scripts/results/mrclam_optimise_diagnosis.py`` (docs/RESULTS.md, issue 16 item 3).
 FastSLAM keeps the filter's default existence clip 0.999, with which its figures in
 docs/results/history.md were measured (HYBRID's front-end now uses the float guard,
-:data:`filters.fastslam.LOCAL_MAP_MAX_EXISTENCE`; ``scripts/local_pose_nees.py`` measures both).
+:data:`filters.fastslam.LOCAL_MAP_MAX_EXISTENCE`; ``scripts/results/local_pose_nees.py``
+measures both).
+
+Supports docs/results/history.md, "optimise() on MRCLAM, step by step to the small-sample factor
+(issue 16 items 2, 3)".
+The command behind it::
+
+    python scripts/results/local_feature_nees.py 0,1,2,3 4 2000
 """
 
 from __future__ import annotations
 
+import argparse
 import logging
 import sys
 
@@ -25,7 +33,7 @@ from scipy.stats import chi2
 from filters.fastslam import FastSLAM2
 from filters.geometry import point_to_frame
 from slam_gym.local_consistency import local_maps
-from slam_gym.scenarios import make_stream
+from slam_gym.world import make_stream
 
 logger = logging.getLogger(__name__)
 
@@ -56,9 +64,15 @@ def feature_nees(level, seed, n_steps, n_particles):
 
 def main(argv) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    levels = [int(x) for x in argv[0].split(",")]
-    seeds, n_steps = range(int(argv[1])), int(argv[2])
-    n_particles = int(argv[3]) if len(argv) > 3 else 500
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("levels", help="clutter levels, e.g. 0,3")
+    parser.add_argument("seeds", type=int, help="a count N: seeds 0..N-1")
+    parser.add_argument("n_steps", type=int)
+    parser.add_argument("n_particles", nargs="?", type=int, default=500)
+    args = parser.parse_args(argv)
+    argv = [args.levels]
+    levels = [int(x) for x in args.levels.split(",")]
+    seeds, n_steps, n_particles = range(args.seeds), args.n_steps, args.n_particles
     v = np.array([x for level in levels for seed in seeds
                   for x in feature_nees(level, seed, n_steps, n_particles)])
     logger.info("%d features at fusion, levels %s, seeds 0-%d, %d particles: NEES median %.2f "

@@ -14,12 +14,13 @@ How the excerpts are cut (every kept line is copied byte for byte, header commen
 * Victoria Park (``victoria_park``): ``info.txt`` whole; the rows of ``inputs.dat``,
   ``measurements.dat`` and ``gps.dat`` with time below 120 s (the car starts moving after ~20 s).
 
-Usage: ``python scripts/make_test_excerpts.py SOURCE_DATA_DIR [OUT_DIR]`` (default OUT_DIR:
+Usage: ``python scripts/tools/make_test_excerpts.py SOURCE_DATA_DIR [OUT_DIR]`` (default OUT_DIR:
 tests/data beside this script's repository).
 """
 
 from __future__ import annotations
 
+import argparse
 import sys
 from pathlib import Path
 
@@ -71,11 +72,13 @@ def cut_victoria_park(source: Path, out: Path) -> None:
 
 
 def main(argv: list[str]) -> int:
-    if not 1 <= len(argv) <= 2:
-        print(__doc__, file=sys.stderr)
-        return 2
-    source = Path(argv[0])
-    out = Path(argv[1]) if len(argv) > 1 else Path(__file__).resolve().parents[1] / "tests/data"
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("source", type=Path, help="the data directory (mrclam/, victoria_park/)")
+    parser.add_argument("out", type=Path, nargs="?",
+                        default=Path(__file__).resolve().parents[2] / "tests/data",
+                        help="where to write the excerpts (default: tests/data)")
+    args = parser.parse_args(argv)
+    source, out = args.source, args.out
     cut_mrclam(source / "mrclam" / "MRCLAM_Dataset7", out / "mrclam" / "MRCLAM_Dataset7")
     cut_victoria_park(source / "victoria_park", out / "victoria_park")
     return 0

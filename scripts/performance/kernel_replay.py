@@ -1,9 +1,9 @@
 """The compiled FastSLAM scan timed on captured scans, two versions side by side (issue 27).
 
-Usage: python scripts/kernel_replay.py capture SCANS.pkl
-       python scripts/kernel_replay.py time SCANS.pkl KERNEL_A.py KERNEL_B.py [...]
+Usage: python scripts/performance/kernel_replay.py capture SCANS.pkl
+       python scripts/performance/kernel_replay.py time SCANS.pkl KERNEL_A.py KERNEL_B.py [...]
 e.g.   git show c92c4a3:filters/fastslam_kernel.py > /tmp/old_kernel.py
-       python scripts/kernel_replay.py time /tmp/scans.pkl /tmp/old_kernel.py \\
+       python scripts/performance/kernel_replay.py time /tmp/scans.pkl /tmp/old_kernel.py \\
            filters/fastslam_kernel.py
 
 ``capture`` plays 60 ``fixed-10s`` decisions of ``HybridSLAMEnv(n_particles=500)`` on world 5
@@ -13,10 +13,19 @@ in a temporary directory, so numba compiles it there and no cache is shared), re
 captured scan through each version in turn, 9 rounds after one warm-up, and prints each
 version's median time per scan, its median ratio to the first, and whether all its outputs
 equal the first's to the bit.
+
+Supports docs/PERFORMANCE.md, "The code of 15bcb7d (2026-11-25 evening, the slower machine): five
+more bit-identical speed-ups, and a sixth".
+The command behind it::
+
+    python scripts/performance/kernel_replay.py capture /tmp/scans.pkl
+    python scripts/performance/kernel_replay.py time /tmp/scans.pkl OLD_KERNEL.py \
+        filters/fastslam_kernel.py
 """
 
 from __future__ import annotations
 
+import argparse
 import importlib.util
 import pickle
 import shutil
@@ -103,12 +112,16 @@ def time_versions(scans_path: str, kernel_paths: list[str]) -> int:
 
 
 def main(argv: list[str]) -> int:
-    if len(argv) == 2 and argv[0] == "capture":
-        return capture(argv[1])
-    if len(argv) >= 3 and argv[0] == "time":
-        return time_versions(argv[1], argv[2:])
-    print(__doc__)
-    return 2
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    commands = parser.add_subparsers(dest="command", required=True)
+    commands.add_parser("capture", help="capture scans").add_argument("scans")
+    timing = commands.add_parser("time", help="time kernel versions on captured scans")
+    timing.add_argument("scans")
+    timing.add_argument("kernels", nargs="+")
+    args = parser.parse_args(argv)
+    if args.command == "capture":
+        return capture(args.scans)
+    return time_versions(args.scans, args.kernels)
 
 
 if __name__ == "__main__":

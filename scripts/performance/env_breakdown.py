@@ -1,7 +1,7 @@
 """Where an env decision's time goes: wall time of the main calls of a step (issue 27).
 
-Usage: python scripts/env_breakdown.py [POLICY] [DECISIONS]
-e.g.   python scripts/env_breakdown.py fixed-10s 400
+Usage: python scripts/performance/env_breakdown.py [POLICY] [DECISIONS]
+e.g.   python scripts/performance/env_breakdown.py fixed-10s 400
 
 Wraps the pieces of a ``HybridSLAMEnv(n_particles=500, clutter_level=2)`` step in
 ``perf_counter`` timers (the compiled scan, FastSLAM's update around it, its resampling and
@@ -10,10 +10,17 @@ score, the interface features, fusions, optimisations, resets), plays ``POLICY``
 ``fixed-10s``) for ``DECISIONS`` decisions (default 400) from ``reset(seed=0)`` after a warm-up,
 and prints each piece's milliseconds per decision and share of the wall time. Nested pieces
 are included in their callers (the scan in FastSLAM's update, which is in the interval).
+
+Supports docs/PERFORMANCE.md, "The code of 15bcb7d (2026-11-25 evening, the slower machine): five
+more bit-identical speed-ups, and a sixth".
+The command behind it::
+
+    python scripts/performance/env_breakdown.py fixed-10s 400
 """
 
 from __future__ import annotations
 
+import argparse
 import collections
 import sys
 import time
@@ -53,8 +60,11 @@ def _timed(function, label, seconds, calls):
 
 
 def main(argv: list[str]) -> int:
-    name = argv[0] if argv else "fixed-10s"
-    n_decisions = int(argv[1]) if len(argv) > 1 else 400
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("policy", nargs="?", default="fixed-10s")
+    parser.add_argument("decisions", nargs="?", type=int, default=400)
+    args = parser.parse_args(argv)
+    name, n_decisions = args.policy, args.decisions
     seconds, calls = collections.defaultdict(float), collections.Counter()
     for owner, attribute, label in PIECES:
         setattr(owner, attribute, _timed(getattr(owner, attribute), label, seconds, calls))

@@ -5,7 +5,7 @@ every fusion (``FastSLAM2.to_gaussian()``, BB 3.2).
 
 The committed file was written at commit f658fba, before the pose was compiled (issue 27), by
 
-    python scripts/make_pose_reference.py tests/data/pose_reference.npz
+    python scripts/tools/make_pose_reference.py tests/data/pose_reference.npz
 
 ``tests/filters/test_conversion.py`` replays the same run and compares to float rounding.
 """
@@ -25,8 +25,8 @@ def reference_run(observe=None):
     """Replay :data:`REFERENCE_RUN`; returns the arrays the reference file holds. ``observe``, if
     given, is called as ``observe("prior" | "post", front_end)`` right after each front-end pose
     is recorded (the test computes its own reference from the same particle cloud there)."""
-    from slam_gym.scenarios import make_stream
     from slam_gym.systems import make_system
+    from slam_gym.world import make_stream
 
     run = REFERENCE_RUN
     stream = make_stream(run["scenario"], seed=run["seed"], clutter_level=run["clutter_level"],

@@ -1,7 +1,8 @@
 """Local-pose NEES of a front-end's local maps at BB's fusion points (#14, docs/RESULTS.md).
 
-Usage: python scripts/local_pose_nees.py FRONT_END LEVELS SEEDS N_STEPS [N_PARTICLES] [known]
-e.g.   python scripts/local_pose_nees.py fastslam 0,1,2,3 4 1000 500
+Usage: python scripts/results/local_pose_nees.py FRONT_END LEVELS SEEDS N_STEPS [N_PARTICLES]
+           [known]
+e.g.   python scripts/results/local_pose_nees.py fastslam 0,1,2,3 4 1000 500
 SEEDS is a count (seeds 0 .. SEEDS-1) or a range FIRST-LAST (inclusive), e.g. 4-11.
 FRONT_END is fastslam, fastslam-no-small-sample (the lineage term without the small-sample
 factor, ``small_sample_correction=False``), fastslam-no-lineage (BB (7) alone,
@@ -12,8 +13,14 @@ associations. FastSLAM is built as HYBRID's front-end (existence clip
 filter's default clip 0.999 instead (how the figures in docs/results/history.md,
 "Local maps at fusion with FastSLAM's 0.999 existence clip", were measured; the current ones in
 docs/RESULTS.md, "Local maps at fusion", are without it).
+
+Supports docs/RESULTS.md, "Local maps at fusion: local-pose NEES".
+The command behind it::
+
+    PYTHONPATH=. python scripts/results/local_pose_nees.py fastslam 0,1,2,3 28-43 2000 500
 """
 
+import argparse
 import logging
 import sys
 
@@ -22,16 +29,18 @@ from scipy.stats import chi2
 
 from filters.ekf_slam import EKFSLAM
 from filters.fastslam import LOCAL_MAP_MAX_EXISTENCE, FastSLAM2
-from slam_gym.local_consistency import local_pose_nees_at_fusion
-from slam_gym.scenarios import make_stream
+from slam_gym.local_consistency import add_fusion_run_arguments, local_pose_nees_at_fusion
+from slam_gym.world import make_stream
 
 
 def main(argv) -> int:
-    front, levels, n_steps = argv[0], argv[1], int(argv[3])
-    first, _, last = argv[2].partition("-")
-    seeds = range(int(first), int(last) + 1) if last else range(int(first))
-    n_particles = int(argv[4]) if len(argv) > 4 else 500
-    known = len(argv) > 5 and argv[5] == "known"
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("front_end")
+    add_fusion_run_arguments(parser)
+    args = parser.parse_args(argv)
+    front, n_steps, seeds = args.front_end, args.n_steps, args.seeds
+    levels = ",".join(str(level) for level in args.levels)
+    n_particles, known = args.n_particles, args.known
     lo, hi = chi2.ppf([0.025, 0.975], 3)
     name = front.removesuffix("+clip")
     max_existence = 0.999 if front.endswith("+clip") else LOCAL_MAP_MAX_EXISTENCE

@@ -1,8 +1,8 @@
 """When an interface policy fuses and optimises, over several worlds (#15: "whether the learned
 policy uses the optimise action, and when").
 
-Usage: python scripts/learned_decisions.py [POLICY] [SEED_START] [N_SEEDS] [LEVELS]
-e.g.   python scripts/learned_decisions.py learned 100 5 0,1,2,3
+Usage: python scripts/results/learned_decisions.py [POLICY] [SEED_START] [N_SEEDS] [LEVELS]
+e.g.   python scripts/results/learned_decisions.py learned 100 5 0,1,2,3
 
 Plays POLICY (default ``learned``: the shipped model) on ``SlamGym/HybridSLAM-v0`` worlds
 SEED_START..SEED_START+N_SEEDS-1 at each clutter level (the benchmark's worlds and seeds, so the
@@ -21,10 +21,16 @@ episodes are the benchmark's) and prints per episode, then pooled:
 * whether the policy acts in turns: the rate of fusions and of optimisations per decision in
   the decisions whose interval turned faster than ``TURN_RADPS`` (mean odometry turn rate)
   against the rate in the others.
+
+Supports docs/results/history.md, "Learned interface policies (issue 15)".
+The command behind it::
+
+    python scripts/results/learned_decisions.py learned 100 5 0,1,2,3
 """
 
 from __future__ import annotations
 
+import argparse
 import logging
 import sys
 
@@ -78,10 +84,14 @@ def decision_counts(timeline, turn_rates) -> dict[str, float]:
 
 def main(argv: list[str]) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    name = argv[0] if argv else "learned"
-    seed_start = int(argv[1]) if len(argv) > 1 else 100
-    n_seeds = int(argv[2]) if len(argv) > 2 else 5
-    levels = [int(x) for x in (argv[3] if len(argv) > 3 else "0,1,2,3").split(",")]
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("policy", nargs="?", default="learned")
+    parser.add_argument("seed_start", nargs="?", type=int, default=100)
+    parser.add_argument("n_seeds", nargs="?", type=int, default=5)
+    parser.add_argument("levels", nargs="?", default="0,1,2,3")
+    args = parser.parse_args(argv)
+    name, seed_start, n_seeds = args.policy, args.seed_start, args.n_seeds
+    levels = [int(x) for x in args.levels.split(",")]
     rows = []
     for level in levels:
         for seed in range(seed_start, seed_start + n_seeds):

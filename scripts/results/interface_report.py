@@ -1,7 +1,7 @@
 """The interface decisions of a benchmark, as docs/RESULTS.md reports them (#13).
 
-Usage: python scripts/interface_report.py OUT_DIR [OUT_DIR ...]
-e.g.   python scripts/interface_report.py out/bench-relative
+Usage: python scripts/results/interface_report.py OUT_DIR [OUT_DIR ...]
+e.g.   python scripts/results/interface_report.py out/bench-relative
 
 Reads the ``results.jsonl`` of ``slam-gym benchmark`` runs (rules only: baselines such as dead
 reckoning have no decisions and no return) and prints, per rule and clutter level:
@@ -21,10 +21,16 @@ reckoning have no decisions and no return) and prints, per rule and clutter leve
 * the paired check the reward is built for: over every world (clutter level, seed) and every pair
   of rules where one failed and the other survived, how often the failed run's return is the
   higher one (it must be never). Exit status 1 if it ever is.
+
+Supports docs/RESULTS.md, "The front on worlds never used before, and the goal".
+The command behind it::
+
+    python scripts/results/interface_report.py out/front27/rules
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import logging
 import sys
@@ -203,9 +209,9 @@ def returns_table(runs) -> str:
 
 
 def main(argv) -> int:
-    if not argv:
-        raise ValueError("out_dir is missing: give one or more benchmark --out directories")
-    runs = load_runs(argv)
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("out_dir", nargs="+", help="slam-gym benchmark --out directories")
+    runs = load_runs(parser.parse_args(argv).out_dir)
     n_pairs, n_bad, bad = paired_failures(runs)
     logger.info("decisions per rule and clutter level:\n%s", decisions_table(runs))
     if any(r["policy"] == "fixed-10s" for r in runs):
