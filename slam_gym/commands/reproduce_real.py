@@ -79,7 +79,14 @@ import numpy as np
 from filters.existence import CONFIRMED_PROBABILITY
 from filters.validation import require
 from slam_gym.commands.common import emit, out_dir
-from slam_gym.commands.runs import add_run_options, int_list, name_list
+from slam_gym.commands.runs import (
+    add_run_options,
+    check_run_options,
+    errors_exit_code,
+    int_list,
+    name_list,
+    run_options,
+)
 from slam_gym.datasets.location import default_data_dir
 from slam_gym.datasets.mrclam import DEFAULT_CALIBRATION_S
 from slam_gym.evaluation.core import OPTIMISE_MODES
@@ -315,10 +322,8 @@ def available_policies(names, model_path=None) -> tuple[list[str], dict[str, str
 def _execute(args, jobs, out):
     from slam_gym.evaluation import run_jobs
 
-    return run_jobs(
-        jobs, run_real_job, out, workers=args.workers, executor=args.executor,
-        ray_address=args.ray_address, progress=not args.quiet and not args.json,
-    )
+    check_run_options(args)
+    return run_jobs(jobs, run_real_job, out, **run_options(args))
 
 
 def run_mrclam(args) -> int:
@@ -408,7 +413,7 @@ def run_mrclam(args) -> int:
         [table, f"wrote {out / 'results.jsonl'}, summary.json, table.md, "
                 f"{REAL_TABLE_FILENAME} and {len(figures)} figures"],
     )
-    return 0
+    return errors_exit_code(args, rows)
 
 
 def run_victoria_park(args) -> int:
@@ -446,7 +451,7 @@ def run_victoria_park(args) -> int:
         [table, f"wrote {out / 'results.jsonl'}, summary.json, table.md, "
                 f"{REAL_TABLE_FILENAME} and {len(figures)} figures"],
     )
-    return 0
+    return errors_exit_code(args, rows)
 
 
 def _mrclam_notes(args, skipped, no_known_mode, known_capable) -> list[str]:
