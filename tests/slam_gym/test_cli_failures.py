@@ -376,3 +376,51 @@ def test_a_run_over_its_time_limit_becomes_an_error_row(user_dir, tmp_path, caps
     assert rows[1]["wall_time_s"] >= limit_s
     assert elapsed < 600 / 2  # not the sleep
     assert "1 of 3 runs failed" in capsys.readouterr().err
+
+
+def test_intervals_of_non_negative_quantities_stay_within_the_runs():
+    """Three runs 0.1, 0.2 and 30: the t-interval of their mean reaches far below 0; the
+    bootstrap interval the summary gives such quantities stays within [0.1, 30]."""
+    from slam_gym.evaluation.summary import interval, mean_interval
+
+    values = [0.1, 0.2, 30.0]
+    assert mean_interval(values)[0] < -20.0
+    for key in ("map_error_m", "interface_cpu_s", "anees", "map_completeness"):
+        lo, hi = interval(key, values)
+        assert 0.1 <= lo < np.mean(values) < hi <= 30.0
+    assert interval("return", values) == list(mean_interval(values))  # may be negative
+
+
+def test_the_benchmark_figures_stay_within_their_quantities_bounds(tmp_path, capsys):
+    """A small benchmark's Pareto figure: a logarithmic CPU axis, every error bar at CPU > 0 and
+    map error >= 0, axes in words with units, and the runs behind each point written beside it."""
+    from matplotlib.collections import LineCollection
+
+    from slam_gym.evaluation.plots import pareto_figure
+
+    out = tmp_path / "out"
+    assert main(["benchmark", "--policies", "fixed-10s,fixed-10s-optimise", "--seeds", "3",
+                 *[a for a in TINY if a != "--no-figures"], "--executor", "serial",
+                 "--out", str(out), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)["summary"]
+    assert (out / "pareto_interface.png").stat().st_size > 10_000
+    for x in ("interface_cpu_s", "total_cpu_s"):
+        fig = pareto_figure(doc, x=x)
+        ax = fig.axes[0]
+        assert ax.get_xscale() == "log" and "(s, log scale)" in ax.get_xlabel()
+        assert ax.get_ylabel() == "map error of the successful runs (m)"
+        assert ax.get_ylim()[0] >= 0.0
+        segments = [s for c in ax.collections if isinstance(c, LineCollection)
+                    for s in c.get_segments()]
+        assert len(segments) >= 2  # both policies' intervals are drawn
+        points = np.concatenate(segments)
+        # a run without a fusion has no interface CPU: a lower bound may be 0 (drawn to the
+        # log axis's edge), never below
+        assert np.all(points[:, 0] >= 0.0) and np.all(points[:, 1] >= 0.0)
+        assert all(x_ > 0.0 for x_, _ in (line.get_xydata()[0] for line in ax.lines
+                                           if line.get_marker() == "o"))
+        groups = [g for g in doc["groups"] if g.get("map_error_m_succeeded") is not None]
+        written = sorted(t.get_text() for t in ax.texts)
+        counts = [(g["n_values"]["map_error_m_succeeded"], g["n_values"][x]) for g in groups]
+        assert written == sorted(str(a) if a == b else f"{a}/{b}" for a, b in counts)
+        assert any(b == 3 for _, b in counts)  # the CPU time of all 3 runs
