@@ -171,7 +171,7 @@ def plot_success_rates(
     ax.set_xlim(all_levels[0] - 0.5, all_levels[-1] + 0.5)
     ax.set_ylim(-4, 104)
     ax.set_xlabel("clutter level")
-    ax.set_ylabel("success rate (% of runs; bars: Wilson 95 % interval)")
+    ax.set_ylabel("success rate (%; bars: Wilson 95 % interval)")
     if title:
         ax.set_title(title)
     handles, labels = ax.get_legend_handles_labels()

@@ -424,3 +424,19 @@ def test_the_benchmark_figures_stay_within_their_quantities_bounds(tmp_path, cap
         counts = [(g["n_values"]["map_error_m_succeeded"], g["n_values"][x]) for g in groups]
         assert written == sorted(str(a) if a == b else f"{a}/{b}" for a, b in counts)
         assert any(b == 3 for _, b in counts)  # the CPU time of all 3 runs
+
+
+def test_the_ray_executor_stops_a_run_over_its_time_limit(tmp_path):
+    """Ray runs each job in a worker process's main thread, where the time limit's timer
+    interrupts it: the sleeping run is an error row saying so, the other one completes."""
+    from slam_gym.evaluation import Job, run_jobs
+    from test_evaluation import slow_run
+
+    jobs = [Job("policy", "toy", "brooks-bailey", 0, seed, {"sleep_s": sleep_s})
+            for seed, sleep_s in ((0, 0.0), (1, 600.0))]
+    t0 = time.monotonic()
+    rows = run_jobs(jobs, slow_run, tmp_path, workers=2, executor="ray", progress=False,
+                    run_timeout_s=5)
+    assert time.monotonic() - t0 < 300
+    assert [r["status"] for r in rows] == ["ok", "error"]
+    assert "per-run limit of 5 s" in rows[1]["error"]
