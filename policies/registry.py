@@ -38,6 +38,7 @@ import importlib
 import inspect
 import logging
 import pickle
+import re
 from collections.abc import Callable, Mapping
 from importlib.metadata import EntryPoint, entry_points
 from typing import Any
@@ -151,20 +152,27 @@ def _source_bytes(module: Any, target: Any) -> bytes:
         return repr(getattr(target, "__qualname__", type(target).__qualname__)).encode()
 
 
-def _state_bytes(target: Any) -> bytes:
-    """What a policy object or a ``functools.partial`` carries: its options. Pickled (stable for
-    the same values), else its ``repr``."""
-    if isinstance(target, functools.partial):
-        state: Any = (target.args, sorted(target.keywords.items()), _state_bytes(target.func))
-    elif isinstance(target, type) or inspect.isroutine(target):
-        return b""
-    else:
-        state = getattr(target, "__dict__", None)
-        state = sorted(state.items()) if isinstance(state, dict) else target
+def _value_bytes(value: Any) -> bytes:
+    """A value pickled (the same bytes for the same values), else its ``repr`` without memory
+    addresses (an object that does not pickle counts by its type and printable content)."""
     try:
-        return pickle.dumps(state, protocol=4)
+        return pickle.dumps(value, protocol=4)
     except Exception:
-        return repr(state).encode()
+        return re.sub(r" at 0x[0-9a-fA-F]+", "", repr(value)).encode()
+
+
+def _state_bytes(target: Any) -> bytes:
+    """What a policy object or a ``functools.partial`` carries: its options (attributes)."""
+    if isinstance(target, functools.partial):
+        return b"\0".join([_value_bytes(target.args), _value_bytes(sorted(target.keywords)),
+                           *(_value_bytes(target.keywords[k]) for k in sorted(target.keywords)),
+                           _state_bytes(target.func)])
+    if isinstance(target, type) or inspect.isroutine(target):
+        return b""
+    state = getattr(target, "__dict__", None)
+    if not isinstance(state, dict):
+        return _value_bytes(target)
+    return b"\0".join(k.encode() + b"=" + _value_bytes(state[k]) for k in sorted(state))
 
 
 def policy_digest(target: Any) -> str:
