@@ -429,8 +429,9 @@ def test_the_benchmark_figures_stay_within_their_quantities_bounds(tmp_path, cap
 def test_the_ray_executor_stops_a_run_over_its_time_limit(tmp_path):
     """Ray runs each job in a worker process's main thread, where the time limit's timer
     interrupts it: the sleeping run is an error row saying so, the other one completes."""
-    from slam_gym.evaluation import Job, run_jobs
     from test_evaluation import slow_run
+
+    from slam_gym.evaluation import Job, run_jobs
 
     jobs = [Job("policy", "toy", "brooks-bailey", 0, seed, {"sleep_s": sleep_s})
             for seed, sleep_s in ((0, 0.0), (1, 600.0))]
