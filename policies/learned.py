@@ -3,8 +3,10 @@
 
 ``LearnedPolicy(path=..., algo=...)`` loads a model saved by stable-baselines3 (``model.save``;
 ``slam-gym train`` writes one) and acts with ``model.predict(obs, deterministic=True)`` on the
-env's observation vector; it never reads ``info``. stable-baselines3 (and torch) are imported only
-when a model is loaded, so ``import policies`` stays light.
+env's observation vector, or, for a model whose config JSON lists ``feature_names`` (the shipped
+one does), on those features read by name from ``info["features"]``, which it then requires;
+``info["optimise_redundant"]`` gives a MaskablePPO model its mask (below). stable-baselines3 (and
+torch) are imported only when a model is loaded, so ``import policies`` stays light.
 
 Algorithms: PPO (default of ``slam-gym train``), A2C, DQN and sb3-contrib's MaskablePPO
 (``maskable-ppo``) and RecurrentPPO (``recurrent-ppo``; sb3-contrib is needed only to load such a
@@ -242,8 +244,36 @@ def algorithm_class(algo: str):
     return classes[algo]
 
 
+def _load_model(algorithm: Any, model_path: Path, device: str) -> Any:
+    """``algorithm.load`` of the zip; a file it cannot read (a damaged entry such as
+    ``policy.pth``, another kind of file) is a ``ValueError`` naming the file. torch's own
+    message is not repeated: for a damaged file it suggests loading with ``weights_only=False``,
+    which would run arbitrary code from the file."""
+    import warnings
+
+    failure: Exception | None = None
+    with warnings.catch_warnings(record=True) as caught:  # torch's warnings of a damaged file
+        warnings.simplefilter("always")                    # also suggest unsafe loading
+        try:
+            model = algorithm.load(str(model_path), device=device)
+        except ImportError:
+            raise
+        except Exception as exc:
+            failure = exc
+    if failure is not None:
+        raise ValueError(
+            f"model={str(model_path)!r} is invalid: stable-baselines3 cannot load it "
+            f"({type(failure).__name__} while reading the saved policy; the file is damaged or "
+            "is not a model saved by stable-baselines3). Replace it with an intact copy, or "
+            "retrain it (slam-gym train)") from None
+    for w in caught:  # the warnings of a good load are the user's to see
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    return model
+
+
 class LearnedPolicy(Policy):
-    """A stable-baselines3 model as an interface policy: ``act(obs, info)`` reads only ``obs``.
+    """A stable-baselines3 model as an interface policy: ``act(obs, info)`` reads ``obs``, or
+    ``info["features"]`` when the model's config lists ``feature_names`` (below).
 
     A config JSON beside the zip may list ``feature_names``: the interface features the model was
     trained on, in order; the policy then builds its input from ``info["features"]`` by name, so
@@ -344,7 +374,7 @@ class LearnedPolicy(Policy):
         self.sample_seed = sample_seed
         self._rng = np.random.default_rng(sample_seed)
         self._lstm_state = None  # RecurrentPPO memory (reset() clears it)
-        self.model = algorithm_class(algo).load(str(model_path), device=device)
+        self.model = _load_model(algorithm_class(algo), model_path, device)
         intervals = config.get("fusion_intervals_s")
         require(intervals is None or (isinstance(intervals, list) and len(intervals) > 0
                                       and all(isinstance(v, (int, float)) and v > 0

@@ -32,9 +32,13 @@ references resolve in any process that can import them.
 from __future__ import annotations
 
 import copy
+import functools
+import hashlib
 import importlib
 import inspect
 import logging
+import pickle
+import re
 from collections.abc import Callable, Mapping
 from importlib.metadata import EntryPoint, entry_points
 from typing import Any
@@ -70,9 +74,9 @@ def load_reference(reference: str) -> Any:
             reference, "'package.module:attribute'")
     try:
         target: Any = importlib.import_module(module_name)
-    except ImportError as exc:
+    except Exception as exc:  # ImportError, a SyntaxError in the module, its own exceptions
         raise ValueError(f"policy reference={reference!r} is invalid: cannot import module "
-                         f"{module_name!r} ({exc})") from exc
+                         f"{module_name!r} ({type(exc).__name__}: {exc})") from exc
     for part in attribute.split("."):
         if not hasattr(target, part):
             raise ValueError(f"policy reference={reference!r} is invalid: {module_name!r} has "
@@ -102,10 +106,88 @@ def build(target: Any, spec: str, options: Mapping[str, Any]) -> Any:
     if unknown and not accepts_any and params:
         raise ValueError(f"option(s) {', '.join(unknown)} invalid for policy {spec!r}: must be "
                          f"among {', '.join(allowed) if allowed else '(no options)'}")
-    policy = target(**options)
+    try:
+        policy = target(**options)
+    except Exception as exc:
+        raise ValueError(f"policy {spec!r} is invalid: calling it to build a policy failed "
+                         f"({type(exc).__name__}: {exc}); it must name a policy class, a "
+                         "factory returning a policy, or a policy object") from exc
     require(is_policy(policy), f"policy {spec!r}", policy,
             "an object with act(obs, info) and reset() (what its factory returned)")
     return policy
+
+
+def _defining_modules(target: Any) -> list[Any]:
+    """The modules whose code a policy runs: the module defining ``target`` (a class, a function,
+    a ``functools.partial``'s function, or an object's class) and those of its base classes,
+    builtins left out."""
+    while isinstance(target, functools.partial):
+        target = target.func
+    cls = target if isinstance(target, type) else None
+    if cls is None and not inspect.isroutine(target):
+        cls = type(target)
+    found = [inspect.getmodule(target if cls is None else cls)]
+    if cls is not None:
+        found += [inspect.getmodule(base) for base in cls.__mro__]
+    modules = {}
+    for module in found:
+        if module is not None and module.__name__ != "builtins":
+            modules.setdefault(module.__name__, module)
+    return [modules[name] for name in sorted(modules)]
+
+
+def _source_bytes(module: Any, target: Any) -> bytes:
+    """A module's file content; where there is no file (a class typed at a prompt), the
+    target's source, else its qualified name."""
+    path = getattr(module, "__file__", None)
+    if path:
+        try:
+            with open(path, "rb") as f:
+                return f.read()
+        except OSError:
+            pass
+    try:
+        return inspect.getsource(target if isinstance(target, type) else type(target)).encode()
+    except (OSError, TypeError):
+        return repr(getattr(target, "__qualname__", type(target).__qualname__)).encode()
+
+
+def _value_bytes(value: Any) -> bytes:
+    """A value pickled (the same bytes for the same values), else its ``repr`` without memory
+    addresses (an object that does not pickle counts by its type and printable content)."""
+    try:
+        return pickle.dumps(value, protocol=4)
+    except Exception:
+        return re.sub(r" at 0x[0-9a-fA-F]+", "", repr(value)).encode()
+
+
+def _state_bytes(target: Any) -> bytes:
+    """What a policy object or a ``functools.partial`` carries: its options (attributes)."""
+    if isinstance(target, functools.partial):
+        return b"\0".join([_value_bytes(target.args), _value_bytes(sorted(target.keywords)),
+                           *(_value_bytes(target.keywords[k]) for k in sorted(target.keywords)),
+                           _state_bytes(target.func)])
+    if isinstance(target, type) or inspect.isroutine(target):
+        return b""
+    state = getattr(target, "__dict__", None)
+    if not isinstance(state, dict):
+        return _value_bytes(target)
+    return b"\0".join(k.encode() + b"=" + _value_bytes(state[k]) for k in sorted(state))
+
+
+def policy_digest(target: Any) -> str:
+    """The digest (16 hex characters of a SHA-256) of what a user's policy runs: the content of
+    the source files of the modules that define it (the module of its class or factory and of
+    the base classes) and, for a policy object or a ``functools.partial``, its options (its
+    attributes). Editing the module, or changing the object's options, changes the digest; the
+    benchmark keys a user policy's runs with it (``policy_sha256``), so a rerun never reuses the
+    rows of other code (:func:`slam_gym.evaluation.run_jobs`)."""
+    h = hashlib.sha256()
+    for module in _defining_modules(target):
+        h.update(module.__name__.encode() + b"\0")
+        h.update(hashlib.sha256(_source_bytes(module, target)).digest())
+    h.update(_state_bytes(target))
+    return h.hexdigest()[:16]
 
 
 def policy_label(policy: Any) -> str:
@@ -224,6 +306,13 @@ class PolicyRegistry:
         if spec in self._builtin:
             return target(**options)
         return build(target, spec, options)
+
+    def digest(self, spec: str) -> str | None:
+        """:func:`policy_digest` of what ``spec`` resolves to, or None for the project's own
+        names (whose code is the project's)."""
+        if spec in self._builtin:
+            return None
+        return policy_digest(self.factory(spec))
 
     def needs_shipping(self, spec: str) -> bool:
         """Whether a worker process cannot resolve ``spec`` by itself (a name registered at run

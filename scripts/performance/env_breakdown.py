@@ -74,6 +74,8 @@ def main(argv: list[str]) -> int:
     policy.reset()
     for _ in range(30):  # warm-up: the compiled kernels loaded
         obs, _, terminated, truncated, info = env.step(policy.act(obs, info))
+        if terminated or truncated:  # the env raises on a step past the end
+            break
     seconds.clear()
     calls.clear()
     seed = 0

@@ -4,8 +4,18 @@ from __future__ import annotations
 
 import logging
 
-from slam_gym.commands.common import emit, out_dir
-from slam_gym.commands.runs import add_run_options, int_list, name_list, print_table
+from slam_gym.commands.common import emit
+from slam_gym.commands.runs import (
+    Given,
+    add_run_options,
+    check_run_options,
+    errors_exit_code,
+    given,
+    int_list,
+    name_list,
+    print_table,
+    run_options,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -30,7 +40,7 @@ def add_parser(subparsers) -> None:
         "process pool or Ray), write results.jsonl (resumable), summary.json, table.md and "
         "plots. --quick is the README's main job.",
     )
-    p.add_argument("--policies", default=DEFAULT_POLICIES,
+    p.add_argument("--policies", default=DEFAULT_POLICIES, action=Given,
                    help="comma-separated policy names (policies.available(): the project's, "
                    "installed plug-ins' of entry-point group slam_gym.policies) or "
                    "package.module:attribute references to a policy class, factory or object")
@@ -41,9 +51,9 @@ def add_parser(subparsers) -> None:
                    help="systems run on the same worlds beside the policies, comma-separated "
                    "(dead-reckoning; '' for none): dead reckoning meets BB's success "
                    "criterion without a map, which map completeness shows")
-    p.add_argument("--clutter-levels", default="0,1,2,3")
+    p.add_argument("--clutter-levels", default="0,1,2,3", action=Given)
     p.add_argument("--scenario", default="brooks-bailey")
-    p.add_argument("--particles", type=int, default=500)
+    p.add_argument("--particles", type=int, default=500, action=Given)
     p.add_argument("--decision-interval", type=int, default=10)
     p.add_argument("--front-end", choices=["fastslam", "ekf"], default=None,
                    help="default fastslam (or --env's)")
@@ -54,7 +64,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--model", default=None, help="model zip for the learned policy")
     p.add_argument("--quick", action="store_true",
                    help=f"the quick benchmark: {QUICK['seeds']} seeds, {QUICK['particles']} "
-                   "particles, all clutter levels, fixed-10s, esdf-innovation, learned")
+                   "particles, all clutter levels, fixed-10s, esdf-innovation, "
+                   "fixed-10s-optimise, learned (an explicit --seeds or --particles is kept; "
+                   "--policies and --clutter-levels cannot be combined with it)")
     p.add_argument("--no-figures", action="store_true")
     add_run_options(p, default_out="out/benchmark", trials_flag="--seeds")
     p.set_defaults(run=run)
@@ -64,10 +76,8 @@ def run(args) -> int:
     from slam_gym.evaluation import benchmark
 
     if args.quick:
-        args.policies, args.clutter_levels = QUICK["policies"], QUICK["clutter_levels"]
-        args.trials, args.particles = QUICK["seeds"], QUICK["particles"]
-    if args.trials < 1:
-        raise ValueError(f"trials={args.trials} is invalid: must be >= 1")
+        apply_quick(args)
+    check_run_options(args)
     result = benchmark(
         name_list(args.policies),
         clutter_levels=int_list(args.clutter_levels),
@@ -82,15 +92,28 @@ def run(args) -> int:
         n_steps=args.n_steps,
         model=args.model,
         baselines=name_list(args.baselines) if args.baselines else [],
-        out=out_dir(args),
-        workers=args.workers,
-        executor=args.executor,
-        ray_address=args.ray_address,
+        out=args.out,
         figures=not args.no_figures,
-        progress=not args.quiet and not args.json,
+        **run_options(args),
     )
     out, doc, figures = result.out, result.summary, result.figures
     print_table(args, doc, title=f"Policies on {args.scenario} ({args.particles} particles)")
     emit(args, {"summary": doc, "figures": figures, "out": str(out)},
          [f"wrote {out / 'results.jsonl'}, summary.json, table.md and {len(figures)} figures"])
-    return 0
+    return errors_exit_code(args, result.rows)
+
+
+def apply_quick(args) -> None:
+    """``--quick``: the README's main job. It sets the policies and clutter levels (refusing an
+    explicit ``--policies`` or ``--clutter-levels``, which would make it another benchmark) and
+    the seeds and particles the user did not give."""
+    clash = [flag for flag, dest in (("--policies", "policies"),
+                                     ("--clutter-levels", "clutter_levels")) if given(args, dest)]
+    if clash:
+        raise ValueError(f"--quick is invalid with {' and '.join(clash)}: --quick sets them "
+                         "(the README's main job); leave --quick out to choose them")
+    args.policies, args.clutter_levels = QUICK["policies"], QUICK["clutter_levels"]
+    if not given(args, "trials"):
+        args.trials = QUICK["seeds"]
+    if not given(args, "particles"):
+        args.particles = QUICK["particles"]

@@ -19,9 +19,10 @@ def add_common_options(parser, default_out: str) -> None:
 
 
 def out_dir(args) -> Path:
-    path = Path(args.out)
-    path.mkdir(parents=True, exist_ok=True)
-    return path
+    """``--out``, created (``ValueError`` naming it when it cannot be used)."""
+    from slam_gym.evaluation.benchmarking import make_out_dir
+
+    return make_out_dir(args.out)
 
 
 def to_jsonable(value):

@@ -9,6 +9,7 @@ import numpy as np
 from slam_gym.commands.common import emit, out_dir
 from slam_gym.commands.runs import (
     add_run_options,
+    errors_exit_code,
     execute,
     int_list,
     name_list,
@@ -264,7 +265,7 @@ def run_brooks_bailey(args) -> int:
           bb_table_markdown(table1),
           f"wrote {out / 'results.jsonl'}, summary.json, table.md, table1.md and "
           f"{len(figures)} figures"])
-    return 0
+    return errors_exit_code(args, rows)
 
 
 def trace_figures(systems, seed, n_particles, out, scenario="brooks-bailey",

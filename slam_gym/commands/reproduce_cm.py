@@ -51,7 +51,14 @@ from pathlib import Path
 import numpy as np
 
 from slam_gym.commands.common import emit, out_dir
-from slam_gym.commands.runs import add_run_options, int_list, print_table
+from slam_gym.commands.runs import (
+    add_run_options,
+    check_run_options,
+    errors_exit_code,
+    int_list,
+    print_table,
+    run_options,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -403,8 +410,8 @@ def run_conte_martinelli(args) -> int:
         for seed in range(args.seed_start, args.seed_start + args.trials)
         for sim in sims
     ]
-    run_jobs(jobs, run_cm_job, out, workers=args.workers, executor=args.executor,
-             ray_address=args.ray_address, progress=not args.quiet and not args.json)
+    check_run_options(args)
+    run_jobs(jobs, run_cm_job, out, **run_options(args))
     keys = {j.key for j in jobs}
     rows = [r for r in read_results(out) if r.get("key") in keys]
     doc = write_summary(out, rows)
@@ -431,4 +438,4 @@ def run_conte_martinelli(args) -> int:
     human.append(f"wrote {out / 'results.jsonl'}, summary.json, table.md, cm_table.md and "
                  f"{len(figures)} figures")
     emit(args, {"summary": doc, "cm": cm, "figures": figures, "out": str(out)}, human)
-    return 0
+    return errors_exit_code(args, rows)

@@ -85,7 +85,14 @@ from slam_gym.commands.real_tables import (
     victoria_park_figures,
     write_real_table,
 )
-from slam_gym.commands.runs import add_run_options, int_list, name_list
+from slam_gym.commands.runs import (
+    add_run_options,
+    check_run_options,
+    errors_exit_code,
+    int_list,
+    name_list,
+    run_options,
+)
 from slam_gym.datasets.location import default_data_dir
 from slam_gym.datasets.mrclam import DEFAULT_CALIBRATION_S, MrclamOptions
 from slam_gym.evaluation.core import OPTIMISE_MODES
@@ -278,10 +285,8 @@ def available_policies(names, model_path=None) -> tuple[list[str], dict[str, str
 def _execute(args, jobs, out):
     from slam_gym.evaluation import run_jobs
 
-    return run_jobs(
-        jobs, run_real_job, out, workers=args.workers, executor=args.executor,
-        ray_address=args.ray_address, progress=not args.quiet and not args.json,
-    )
+    check_run_options(args)
+    return run_jobs(jobs, run_real_job, out, **run_options(args))
 
 
 def run_mrclam(args) -> int:
@@ -377,7 +382,7 @@ def run_mrclam(args) -> int:
         [table, f"wrote {out / 'results.jsonl'}, summary.json, table.md, "
                 f"{REAL_TABLE_FILENAME} and {len(figures)} figures"],
     )
-    return 0
+    return errors_exit_code(args, rows)
 
 
 def run_victoria_park(args) -> int:
@@ -415,7 +420,7 @@ def run_victoria_park(args) -> int:
         [table, f"wrote {out / 'results.jsonl'}, summary.json, table.md, "
                 f"{REAL_TABLE_FILENAME} and {len(figures)} figures"],
     )
-    return 0
+    return errors_exit_code(args, rows)
 
 
 def _mrclam_notes(args, skipped, no_known_mode, known_capable) -> list[str]:

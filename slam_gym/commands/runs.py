@@ -2,9 +2,33 @@
 
 from __future__ import annotations
 
-import os
+import argparse
+import sys
 
 from slam_gym.commands.common import add_common_options
+
+DEFAULT_RUN_TIMEOUT_S = 3600.0
+"""The default limit of one run (``--run-timeout-s``): an hour, about 20 times the slowest run of
+the benchmark's policies at BB's 500 particles on the whole path (docs/ARCHITECTURE.md)."""
+
+EXIT_USAGE = 2
+"""Exit code of an invalid or conflicting option (argparse's own, and every ``ValueError``)."""
+EXIT_RUN_ERRORS = 3
+"""Exit code of a command that finished but recorded error rows (without ``--allow-errors``)."""
+
+
+class Given(argparse.Action):
+    """Store an option's value and remember that it was given (:func:`given`), so a preset
+    (``--quick``) or a check of unused options can tell a default from the user's choice."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        setattr(namespace, self.dest, values)
+        namespace.given = set(getattr(namespace, "given", None) or ()) | {self.dest}
+
+
+def given(args, dest: str) -> bool:
+    """Whether option ``dest`` was on the command line (options stored with :class:`Given`)."""
+    return dest in (getattr(args, "given", None) or ())
 
 
 def plot_episode_map(episode, path, title: str):
@@ -26,14 +50,82 @@ def name_list(text: str) -> list[str]:
 
 
 def add_run_options(parser, default_out: str, *, trials_flag: str = "--trials") -> None:
-    parser.add_argument(trials_flag, dest="trials", type=int, default=20,
+    parser.add_argument(trials_flag, dest="trials", type=int, default=20, action=Given,
                         help="runs per configuration (seeds)")
     parser.add_argument("--seed-start", type=int, default=0, help="first seed")
-    parser.add_argument("--workers", type=int, default=os.cpu_count() or 1,
-                        help="parallel worker processes (default: all cores)")
+    parser.add_argument("--workers", type=int, default=None, action=Given,
+                        help="parallel worker processes (default: all cores; not with "
+                        "--executor serial)")
     parser.add_argument("--executor", choices=["process", "ray", "serial"], default="process")
-    parser.add_argument("--ray-address", default=None, help="existing Ray cluster (executor ray)")
+    parser.add_argument("--ray-address", default=None,
+                        help="existing Ray cluster (only with --executor ray)")
+    parser.add_argument("--retry-errors", action="store_true",
+                        help="run the error rows already in --out again (e.g. after fixing a "
+                        "policy that raised)")
+    parser.add_argument("--rerun-changed", action="store_true",
+                        help="replace the rows of a user policy whose code or options changed "
+                        "since they were run (without it such a rerun refuses)")
+    parser.add_argument("--run-timeout-s", type=float, default=DEFAULT_RUN_TIMEOUT_S,
+                        metavar="S", help="time limit of one run: a run still going after S "
+                        "seconds becomes an error row and its worker is replaced (default "
+                        f"{DEFAULT_RUN_TIMEOUT_S:g})")
+    parser.add_argument("--allow-errors", action="store_true",
+                        help=f"exit 0 even when some runs are error rows (else exit "
+                        f"{EXIT_RUN_ERRORS})")
     add_common_options(parser, default_out)
+
+
+def check_run_options(args) -> None:
+    """Reject invalid and conflicting run options before any run (``ValueError`` naming the
+    option: exit 2)."""
+    import math
+    import os
+
+    if args.trials < 1:
+        raise ValueError(f"trials={args.trials} is invalid: must be >= 1")
+    if args.workers is not None and args.workers < 1:
+        raise ValueError(f"workers={args.workers} is invalid: must be >= 1")
+    if args.executor == "serial" and given(args, "workers") and args.workers != 1:
+        raise ValueError(f"--workers {args.workers} is invalid with --executor serial, which "
+                         "runs one run at a time: leave --workers out, or use --executor process")
+    if args.ray_address is not None and args.executor != "ray":
+        raise ValueError(f"--ray-address {args.ray_address} is invalid with --executor "
+                         f"{args.executor}: it is used only by --executor ray")
+    if not (math.isfinite(args.run_timeout_s) and args.run_timeout_s > 0):
+        raise ValueError(f"run_timeout_s={args.run_timeout_s} is invalid: must be a number of "
+                         "seconds > 0")
+    if args.workers is None:
+        args.workers = os.cpu_count() or 1
+
+
+def run_options(args) -> dict:
+    """The keyword arguments of :func:`slam_gym.evaluation.run_jobs` the run options set."""
+    return {
+        "workers": args.workers,
+        "executor": args.executor,
+        "ray_address": args.ray_address,
+        "progress": not args.quiet and not args.json,
+        "retry_errors": args.retry_errors,
+        "rerun_changed": args.rerun_changed,
+        "run_timeout_s": args.run_timeout_s,
+    }
+
+
+def errors_exit_code(args, rows) -> int:
+    """0, or :data:`EXIT_RUN_ERRORS` with a line on stderr when some rows are errors and
+    ``--allow-errors`` is not given (after the summary was printed)."""
+    errors = [r for r in rows if r.get("status") == "error"]
+    if not errors:
+        return 0
+    first = errors[0].get("error") or "?"
+    line = (f"slam-gym {args.command}: {len(errors)} of {len(rows)} runs failed (error rows in "
+            f"{args.out}/results.jsonl; the first: {first[:160]})")
+    if getattr(args, "allow_errors", False):
+        print(f"{line}; exit 0 (--allow-errors)", file=sys.stderr)
+        return 0
+    print(f"{line}; fix the cause and rerun with --retry-errors, or pass --allow-errors to exit "
+          f"0 (exit {EXIT_RUN_ERRORS})", file=sys.stderr)
+    return EXIT_RUN_ERRORS
 
 
 def execute(args, jobs, out):
@@ -41,18 +133,8 @@ def execute(args, jobs, out):
     from slam_gym.evaluation import run_jobs
     from slam_gym.evaluation.core import run_job
 
-    if args.trials < 1:
-        raise ValueError(f"trials={args.trials} is invalid: must be >= 1")
-    rows = run_jobs(
-        jobs,
-        run_job,
-        out,
-        workers=args.workers,
-        executor=args.executor,
-        ray_address=args.ray_address,
-        progress=not args.quiet and not args.json,
-    )
-    return rows
+    check_run_options(args)
+    return run_jobs(jobs, run_job, out, **run_options(args))
 
 
 def print_table(args, doc, paper=None, title=None) -> None:

@@ -77,6 +77,10 @@ Episode end
     after ``max_decisions`` decisions. The registered ids also set ``max_episode_steps`` (1.5
     times the decisions of the scenario's nominal path at the default ``decision_interval``), so
     a ``gym.make`` with a shorter ``decision_interval`` should pass its own ``max_episode_steps``.
+    After the episode ended (``terminated`` or ``truncated`` returned True), ``step()`` raises
+    ``gymnasium.error.ResetNeeded`` until ``reset()``, like Gymnasium's order-enforcing wrapper
+    before the first reset: a step past the end would fuse, optimise and charge reward on a
+    finished episode and change its metrics and return. (SB3's vector envs reset on either flag.)
 
 Rendering
     ``"rgb_array"`` returns the frame (truth, global and local map, particles); ``"human"`` draws
@@ -348,6 +352,9 @@ class HybridSLAMEnv(gym.Env):
         self.stream = None
         self.n_decisions = 0
         self.filter_rng: np.random.Generator | None = None
+        self.episode_ended: str | None = None
+        """``"terminated"`` or ``"truncated"`` once the episode ended (then :meth:`step`
+        raises), None while it runs."""
         self._nees_band = nees_band(1)
         self._figure = None
         self._warned_headless = False
@@ -362,6 +369,10 @@ class HybridSLAMEnv(gym.Env):
                 f"unknown reset option(s) {unknown}: must be among {list(self.RESET_OPTIONS)}"
             )
         world_seed = options.pop("world_seed", None)
+        require(world_seed is None or (isinstance(world_seed, (int, np.integer))
+                                       and not isinstance(world_seed, bool)
+                                       and 0 <= world_seed < 2**63),
+                "world_seed", world_seed, "None or an integer in [0, 2**63)")
         if options:
             merged = dataclasses.asdict(self.config)
             if "clutter_level" in options:
@@ -391,6 +402,7 @@ class HybridSLAMEnv(gym.Env):
         self.episode_return = 0.0
         self.episode_compute_term_s = 0.0
         self.compute_records = []
+        self.episode_ended = None
         # run the first interval so the observation describes a local map
         self._reset_nees, _ = self._run_interval()
         features = self._features()
@@ -400,6 +412,11 @@ class HybridSLAMEnv(gym.Env):
     def step(self, action):
         if self.episode is None:
             raise RuntimeError("call reset() before step()")
+        if self.episode_ended is not None:
+            raise gym.error.ResetNeeded(
+                f"step() after the episode ended ({self.episode_ended}=True at decision "
+                f"{self.n_decisions}): call reset() to start a new one (module docstring, "
+                "Episode end)")
         action = np.asarray(action)
         integral = np.issubdtype(action.dtype, np.integer) or action.dtype == np.bool_
         if (
@@ -461,6 +478,8 @@ class HybridSLAMEnv(gym.Env):
         truncated = bool(
             not terminated and c.max_decisions is not None and self.n_decisions >= c.max_decisions
         )
+        if terminated or truncated:
+            self.episode_ended = "terminated" if terminated else "truncated"
         info = self._info(features, components, nees_values, score)
         if self.render_mode == "human":
             self.render()

@@ -66,13 +66,15 @@ class PolicyEntry:
 
     name: str
     shipped: Any = None
+    digest: str | None = None
+    """:func:`policies.registry.policy_digest` of a user's policy (None: the project's)."""
 
 
 def resolve_policies(specs: Any, model: str | None = None) -> list[PolicyEntry]:
     """Check and name the ``policies`` argument of :func:`benchmark` (``ValueError`` naming the
     entry at fault). Names and references are resolved here, so a typo fails before any run."""
     import policies
-    from policies.registry import is_policy, policy_label
+    from policies.registry import is_policy, policy_digest, policy_label
 
     if isinstance(specs, (str, bytes)) or is_policy(specs):
         specs = [specs]
@@ -104,15 +106,20 @@ def resolve_policies(specs: Any, model: str | None = None) -> list[PolicyEntry]:
     entries = []
     for name, value in items:
         if value is not None:
-            entries.append(PolicyEntry(name, value))
+            entries.append(PolicyEntry(name, value, policy_digest(value)))
             continue
         if name == "learned":  # load the model now: a missing file fails before any run
             policies.make("learned", **({"path": model} if model else {}))
             entries.append(PolicyEntry(name))
             continue
         target = policies.REGISTRY.factory(name)  # ValueError for an unknown name
+        digest = policies.REGISTRY.digest(name)
+        if digest is not None:  # a user's policy: one built now, so what is no policy fails here
+            policies.REGISTRY.make(name)
         shipped = target if policies.REGISTRY.needs_shipping(name) else None
-        entries.append(PolicyEntry(name, shipped))
+        entries.append(PolicyEntry(name, shipped, digest))
+    require(model is None or "learned" in names, "model", model,
+            "given only with policy 'learned' (no other policy reads it)")
     return entries
 
 
@@ -137,6 +144,33 @@ def _seed_range(seeds: int | Iterable[int], seed_start: int) -> list[int]:
     require(bool(values) and all(isinstance(s, int) and s >= 0 for s in values), "seeds",
             seeds, "a number of worlds >= 1 or a list of seeds >= 0")
     return values
+
+
+def _check_env_options(scenario: str, levels: Sequence[int], **options: Any) -> None:
+    """The env's own validation of every option, at every level, before any run."""
+    from slam_gym.envs.hybrid_slam import HybridSLAMConfig
+
+    given = {k: v for k, v in options.items() if v is not None}
+    for level in levels:
+        HybridSLAMConfig.from_kwargs(scenario=scenario, clutter_level=level, **given)
+
+
+def make_out_dir(out: str | os.PathLike) -> Path:
+    """Create the output folder ``out``; ``ValueError`` naming it when it cannot be (a file is
+    in the way, no permission, a read-only file system)."""
+    path = Path(out)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        probe = path / ".write-test"
+        probe.touch()
+        probe.unlink()
+    except OSError as exc:
+        reason = exc.strerror or type(exc).__name__
+        if path.exists() and not path.is_dir():
+            reason = "it is a file, not a directory"
+        raise ValueError(f"out={str(path)!r} is invalid: cannot use it as the output directory "
+                         f"({reason})") from exc
+    return path
 
 
 def env_id_ends(env: str) -> tuple[str, str]:
@@ -171,6 +205,9 @@ def benchmark(
     ray_address: str | None = None,
     figures: bool = True,
     progress: bool = False,
+    retry_errors: bool = False,
+    rerun_changed: bool = False,
+    run_timeout_s: float | None = None,
 ) -> BenchmarkResult:
     """Run ``policies`` x ``clutter_levels`` x ``seeds`` in the env (and ``baselines`` on the
     same worlds), write ``results.jsonl`` (resumable: rows already in ``out`` are reused),
@@ -183,7 +220,13 @@ def benchmark(
     the reward's price of compute, so a policy's return is scored under the reward it was
     trained for. ``model``: the model zip of policy ``learned`` (None: the shipped
     one). ``workers``, ``executor`` (``"process"``, ``"ray"``, ``"serial"``) and
-    ``ray_address`` as :func:`slam_gym.evaluation.run_jobs`.
+    ``ray_address`` as :func:`slam_gym.evaluation.run_jobs`, and so are ``retry_errors`` (run
+    the error rows again), ``rerun_changed`` (replace the rows of a user policy whose code or
+    options changed; without it such rows make the call refuse with ``ValueError`` naming the
+    policy) and ``run_timeout_s`` (the time limit of one run; None: none).
+
+    Every option is checked before any run (``ValueError`` naming it): the env's options
+    through :class:`~slam_gym.envs.hybrid_slam.HybridSLAMConfig` at every clutter level.
     """
     from slam_gym.evaluation.core import learned_options, run_job
     from slam_gym.evaluation.executors import run_jobs
@@ -206,10 +249,13 @@ def benchmark(
     levels = [int(level) for level in clutter_levels]
     require(bool(levels), "clutter_levels", levels, "at least one level")
     seed_list = _seed_range(seeds, seed_start)
+    _check_env_options(scenario, levels, n_particles=n_particles,
+                       decision_interval=decision_interval, front_end=front_end,
+                       back_end=back_end, n_steps=n_steps, w_compute=w_compute,
+                       compute_clip_s=compute_clip_s)
     if executor != "serial":
         _check_picklable(entries, executor)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = make_out_dir(out)
 
     options: dict[str, Any] = {"n_particles": n_particles, "decision_interval": decision_interval,
                                "front_end": front_end, "back_end": back_end}
@@ -220,6 +266,8 @@ def benchmark(
     jobs = []
     for entry in entries:
         opts = options | (learned_options(model) if entry.name == "learned" else {})
+        if entry.digest is not None:
+            opts["policy_sha256"] = entry.digest
         jobs += [Job("policy", entry.name, scenario, level, seed, opts)
                  for level in levels for seed in seed_list]
     system_opts = {"n_steps": int(n_steps)} if n_steps is not None else {}
@@ -228,7 +276,8 @@ def benchmark(
     shipped = {e.name: e.shipped for e in entries if e.shipped is not None}
     run_fn = functools.partial(run_job, policy_factories=shipped) if shipped else run_job
     rows = run_jobs(jobs, run_fn, out, workers=workers, executor=executor,
-                    ray_address=ray_address, progress=progress)
+                    ray_address=ray_address, progress=progress, retry_errors=retry_errors,
+                    rerun_changed=rerun_changed, run_timeout_s=run_timeout_s)
     doc = write_summary(out, rows)
     written: dict[str, str] = {}
     if figures:

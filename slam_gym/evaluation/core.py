@@ -17,7 +17,8 @@ fusion had touched for 60 s),
 scenario field, so the world of the job changes with it: issue 28's calibration).
 Policy jobs take ``n_particles`` (500), ``decision_interval`` (10), ``front_end``, ``back_end``,
 ``model_path``, ``model_sha256`` (the model file's :func:`policies.learned.model_digest`: a run
-checks it, so a job key names the model it was run with) and ``deterministic`` (for ``learned``);
+checks it, so a job key names the model it was run with) and ``deterministic`` (for ``learned``),
+``policy_sha256`` (a user policy's :func:`policies.registry.policy_digest`, checked likewise);
 the env ends an episode at BB's failure. A learned policy's rows carry ``model_matches_code`` and
 ``model_differences`` (:func:`provenance_fields`: whether the model's fingerprint matches the code
 that ran it). ``w_compute`` and ``compute_clip_s`` (None: the env's
@@ -57,6 +58,7 @@ POLICY_OPTIONS = {
     "n_steps": None,
     "w_compute": None,
     "compute_clip_s": None,
+    "policy_sha256": None,
 }
 OPTIMISE_MODES = ("never", "at-end", "every-fusion", "after-loop-closure")
 LOOP_CLOSURE_UNSEEN_S = 60.0
@@ -205,6 +207,21 @@ def make_policy(name: str, *, model_path=None, model_sha256=None, deterministic=
     return policies.make("learned", **kwargs)
 
 
+def check_policy_digest(name: str, digest: str | None, factories=None) -> None:
+    """A job keyed by a user policy's digest (``policy_sha256``) runs only that code: a policy
+    this process resolves by name (a reference, a plug-in) whose source now has another digest
+    (its module was edited while the benchmark ran) is a ``ValueError`` naming it. Policies
+    that travel with the job (``factories``) are the objects the digest was taken of."""
+    if digest is None or (factories and name in factories):
+        return
+    import policies
+
+    now = policies.REGISTRY.digest(name)
+    require(now == digest, f"policy {name!r}", f"source digest {now}",
+            f"the digest the job was made with ({digest}): its code changed while the "
+            "benchmark ran")
+
+
 def provenance_fields(policy) -> dict:
     """The row fields of a policy that records its provenance (a learned model:
     :attr:`policies.learned.LearnedPolicy.provenance`): ``model_matches_code`` (True, False, or
@@ -295,6 +312,7 @@ def run_job(job, policy_factories=None) -> dict:
         row["total_cpu_s"] = time.process_time() - cpu_start
         return row
     opts = _options(job.options_dict(), POLICY_OPTIONS, "policy")
+    check_policy_digest(job.name, opts.pop("policy_sha256"), policy_factories)
     policy = make_policy(job.name, model_path=opts.pop("model_path"),
                          model_sha256=opts.pop("model_sha256"),
                          deterministic=opts.pop("deterministic"), factories=policy_factories)

@@ -20,8 +20,18 @@ Guarantees (docs/ARCHITECTURE.md, "The command line and its output files"):
   dies (killed, out of memory, a crash in native code) breaks a process pool: the jobs that were in
   flight are rerun one at a time in a fresh single-worker pool, so the one that kills its worker
   is recorded as an error and the innocent ones complete;
+- a run that takes longer than ``run_timeout_s`` becomes an error row saying so (``RunTimeout``):
+  with the process executor its worker is stopped and the pool replaced (the other runs in flight
+  are started again), in the serial and Ray executors the run is interrupted by a timer signal in
+  the process running it; the other runs go on;
+- a row's key holds a user policy's digest (``policy_sha256``): recorded rows of the same run of
+  other code (same key but for :data:`~slam_gym.evaluation.jobs.VERSION_OPTIONS`) are never
+  reported; ok rows among them make :func:`run_jobs` refuse (:class:`ChangedCodeError`, naming
+  the policies) unless ``rerun_changed``, which drops them and runs the jobs again; error rows
+  among them (a policy that raised, since fixed) are dropped and run again in any case;
 - Ctrl-C (``KeyboardInterrupt``) cancels the pending work, terminates the workers, leaves a valid
-  file and re-raises.
+  file and raises :class:`RunsInterrupted` (a ``KeyboardInterrupt`` saying how many runs are kept
+  and how to resume).
 """
 
 from __future__ import annotations
@@ -39,6 +49,7 @@ import traceback
 from collections import Counter, deque
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures import TimeoutError as FutureTimeoutError
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Any
@@ -47,7 +58,7 @@ from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 from filters.validation import require
-from slam_gym.evaluation.jobs import Job
+from slam_gym.evaluation.jobs import VERSION_OPTIONS, Job
 from slam_gym.evaluation.results import (
     RESULTS_FILENAME,
     STATUS_ERROR,
@@ -70,6 +81,50 @@ RAY_MISSING_MESSAGE = (
 )
 
 
+class ChangedCodeError(ValueError):
+    """Recorded rows of these jobs were run with other code or options of a user policy."""
+
+
+class RunsInterrupted(KeyboardInterrupt):
+    """Ctrl-C during :func:`run_jobs`; its message says which runs are kept and how to resume."""
+
+
+class RunTimeout(BaseException):
+    """A run exceeded its time limit (a ``BaseException``: a policy's ``except Exception`` must
+    not swallow it)."""
+
+
+def _timeout_failure(timeout_s: float, how: str, wall_time_s: float) -> Outcome:
+    outcome = _failure(RunTimeout(
+        f"the run took longer than the per-run limit of {timeout_s:g} s (run_timeout_s, "
+        f"--run-timeout-s); {how}"))
+    outcome["traceback"] = None
+    outcome["wall_time_s"] = wall_time_s
+    return outcome
+
+
+@contextlib.contextmanager
+def _time_limit(timeout_s: float | None):
+    """Raise :class:`RunTimeout` in this thread after ``timeout_s`` (a real-time timer signal;
+    only in the main thread of a process, where signals are delivered: elsewhere no limit)."""
+    usable = (timeout_s is not None and hasattr(signal, "setitimer")
+              and threading.current_thread() is threading.main_thread())
+    if not usable:
+        yield
+        return
+
+    def expire(signum, frame):
+        raise RunTimeout(timeout_s)
+
+    previous = signal.signal(signal.SIGALRM, expire)
+    signal.setitimer(signal.ITIMER_REAL, timeout_s)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0.0)
+        signal.signal(signal.SIGALRM, previous)
+
+
 def _failure(exc: BaseException, tb: str | None = None) -> Outcome:
     return {
         "result": None,
@@ -79,16 +134,20 @@ def _failure(exc: BaseException, tb: str | None = None) -> Outcome:
     }
 
 
-def execute_job(run_fn: RunFn, job: Job) -> Outcome:
+def execute_job(run_fn: RunFn, job: Job, timeout_s: float | None = None) -> Outcome:
     """Run one job and validate its result; runs inside the worker.
 
     Never raises ``Exception``: an exception of ``run_fn`` or an invalid result becomes an error
-    outcome (with the traceback as text, since exceptions do not always pickle).
+    outcome (with the traceback as text, since exceptions do not always pickle), and so does a
+    run stopped after ``timeout_s`` (:func:`_time_limit`; None: no limit).
     ``KeyboardInterrupt`` and ``SystemExit`` pass through.
     """
     t0 = time.perf_counter()
     try:
-        result = validate_result(run_fn(job))
+        with _time_limit(timeout_s):
+            result = validate_result(run_fn(job))
+    except RunTimeout:
+        return _timeout_failure(timeout_s, "it was interrupted", time.perf_counter() - t0)
     except Exception as exc:
         outcome = _failure(exc, traceback.format_exc())
         outcome["wall_time_s"] = time.perf_counter() - t0
@@ -139,11 +198,18 @@ def _run_pool_until_broken(
     run_fn: RunFn,
     workers: int,
     on_outcome: Callable[[Job, Outcome], None],
+    timeout_s: float | None = None,
 ) -> list[Job]:
-    """Run ``queue`` on a pool of ``workers``; return the jobs in flight if the pool broke."""
+    """Run ``queue`` on a pool of ``workers``; return the jobs in flight if the pool broke.
+
+    A job still running ``timeout_s`` after it was handed to a worker (at most ``workers`` are
+    in flight, so it started then) becomes a timeout error; the pool is then terminated, which
+    stops that worker, and the other jobs in flight go back to the front of ``queue`` for the
+    next pool."""
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker,
                                initargs=(os.getpid(),))
     in_flight: dict[Future, Job] = {}
+    started: dict[Future, float] = {}
     broken: list[Job] = []
     pool_broken = False
     try:
@@ -151,14 +217,34 @@ def _run_pool_until_broken(
             while queue and not pool_broken and len(in_flight) < workers:
                 job = queue.popleft()
                 try:
-                    in_flight[pool.submit(execute_job, run_fn, job)] = job
+                    fut = pool.submit(execute_job, run_fn, job)
                 except BrokenProcessPool:
                     queue.appendleft(job)  # never started: goes to the next pool
                     pool_broken = True
+                    continue
+                in_flight[fut] = job
+                started[fut] = time.monotonic()
             if not in_flight:
                 break
-            done, _ = wait(in_flight, return_when=FIRST_COMPLETED)
+            wait_s = None
+            if timeout_s is not None:
+                wait_s = max(0.0, min(started[f] for f in in_flight) + timeout_s
+                             - time.monotonic())
+            done, _ = wait(in_flight, timeout=wait_s, return_when=FIRST_COMPLETED)
+            if not done and timeout_s is not None:
+                now = time.monotonic()
+                late = [f for f in in_flight if now - started[f] >= timeout_s]
+                if late:
+                    for fut in late:
+                        on_outcome(in_flight.pop(fut), _timeout_failure(
+                            timeout_s, "its worker process was stopped and replaced",
+                            now - started.pop(fut)))
+                    queue.extendleft(reversed(list(in_flight.values())))  # started again
+                    in_flight.clear()
+                    pool_broken = True
+                    break
             for fut in done:
+                started.pop(fut, None)
                 job = in_flight.pop(fut)
                 try:
                     outcome = fut.result()
@@ -179,15 +265,20 @@ def _run_pool_until_broken(
     return broken
 
 
-def _run_isolated(ctx: Any, run_fn: RunFn, job: Job) -> Outcome:
-    """Run one job alone in a fresh single-worker pool; a dead worker becomes an error outcome."""
+def _run_isolated(ctx: Any, run_fn: RunFn, job: Job, timeout_s: float | None = None) -> Outcome:
+    """Run one job alone in a fresh single-worker pool; a dead worker, or one still running after
+    ``timeout_s``, becomes an error outcome."""
     pool = ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=_init_worker,
                                initargs=(os.getpid(),))
     t0 = time.perf_counter()
     try:
         fut = pool.submit(execute_job, run_fn, job)
         try:
-            return fut.result()
+            return fut.result(timeout=timeout_s)
+        except FutureTimeoutError:
+            _terminate_pool(pool)
+            return _timeout_failure(timeout_s, "its worker process was stopped and replaced",
+                                    time.perf_counter() - t0)
         except BrokenProcessPool:
             outcome = _failure(
                 BrokenProcessPool(
@@ -207,7 +298,8 @@ def _run_isolated(ctx: Any, run_fn: RunFn, job: Job) -> Outcome:
 
 
 def _run_process(
-    jobs: Sequence[Job], run_fn: RunFn, workers: int, on_outcome: Callable[[Job, Outcome], None]
+    jobs: Sequence[Job], run_fn: RunFn, workers: int, on_outcome: Callable[[Job, Outcome], None],
+    timeout_s: float | None = None,
 ) -> None:
     ctx = multiprocessing.get_context("spawn")
     queue = deque(jobs)
@@ -221,14 +313,14 @@ def _run_process(
 
     while queue:
         before = n_done
-        suspects = _run_pool_until_broken(ctx, queue, run_fn, workers, counted)
+        suspects = _run_pool_until_broken(ctx, queue, run_fn, workers, counted, timeout_s)
         if suspects:
             logger.warning(
                 "a worker process died; rerunning the %d job(s) in flight one at a time",
                 len(suspects),
             )
         for job in suspects:
-            counted(job, _run_isolated(ctx, run_fn, job))
+            counted(job, _run_isolated(ctx, run_fn, job, timeout_s))
         stalls = stalls + 1 if n_done == before else 0
         if stalls >= 3:
             raise RuntimeError(
@@ -252,6 +344,7 @@ def _run_ray(
     workers: int,
     ray_address: str | None,
     on_outcome: Callable[[Job, Outcome], None],
+    timeout_s: float | None = None,
 ) -> None:
     ray = _import_ray()
     started = False
@@ -271,7 +364,7 @@ def _run_ray(
     try:
         remote = ray.remote(num_cpus=1, max_retries=0)(execute_job)
         fn_ref = ray.put(run_fn)
-        refs = {remote.remote(fn_ref, job): job for job in jobs}
+        refs = {remote.remote(fn_ref, job, timeout_s): job for job in jobs}
         while refs:
             done, _ = ray.wait(list(refs), num_returns=1)
             for ref in done:
@@ -291,10 +384,11 @@ def _run_ray(
 
 
 def _run_serial(
-    jobs: Sequence[Job], run_fn: RunFn, on_outcome: Callable[[Job, Outcome], None]
+    jobs: Sequence[Job], run_fn: RunFn, on_outcome: Callable[[Job, Outcome], None],
+    timeout_s: float | None = None,
 ) -> None:
     for job in jobs:
-        on_outcome(job, execute_job(run_fn, job))
+        on_outcome(job, execute_job(run_fn, job, timeout_s))
 
 
 def run_jobs(
@@ -307,6 +401,8 @@ def run_jobs(
     ray_address: str | None = None,
     progress: bool = True,
     retry_errors: bool = False,
+    rerun_changed: bool = False,
+    run_timeout_s: float | None = None,
 ) -> list[dict[str, Any]]:
     """Run every job not yet in ``out_dir/results.jsonl`` and append one row per finished run.
 
@@ -314,7 +410,11 @@ def run_jobs(
     ``process`` and ``ray`` executors it must pickle (a module-level function or a
     ``functools.partial`` of one). ``workers`` defaults to ``os.cpu_count()`` (for ``ray`` with
     ``ray_address`` the cluster decides). With ``retry_errors`` the error rows of these jobs are
-    removed from the file and the jobs are run again.
+    removed from the file and the jobs are run again. Rows of these jobs run with another
+    version of a user policy (the key differs only by :data:`VERSION_OPTIONS`) raise
+    :class:`ChangedCodeError` naming the policies, or with ``rerun_changed`` are removed and
+    their jobs run again. ``run_timeout_s`` (None: no limit) is the time limit of one run (module
+    docstring).
 
     Returns the rows of ``jobs`` (already there or new), in the order of ``jobs``.
 
@@ -345,6 +445,12 @@ def run_jobs(
                 f"run_fn={run_fn!r} is invalid: must pickle for executor={executor!r} (define it "
                 f"at module level, not as a lambda or closure): {exc}"
             ) from exc
+    require(ray_address is None or executor == "ray", "ray_address", ray_address,
+            "given only with executor='ray' (the other executors do not use it)")
+    require(run_timeout_s is None or (isinstance(run_timeout_s, (int, float))
+                                      and not isinstance(run_timeout_s, bool)
+                                      and 0 < run_timeout_s < float("inf")),
+            "run_timeout_s", run_timeout_s, "None or a number of seconds > 0")
     if executor == "ray":
         _import_ray()  # fail before touching the output directory
 
@@ -352,16 +458,23 @@ def run_jobs(
     wanted = set(keys)
     with ResultsWriter(path) as writer:
         existing = writer.existing
-        if retry_errors:
-            kept = [
-                r
-                for r in existing
-                if not (r.get("status") == STATUS_ERROR and row_key(r) in wanted)
-            ]
-            if len(kept) != len(existing):
-                logger.info("retrying %d errored run(s)", len(existing) - len(kept))
-                writer.rewrite(kept)
-                existing = writer.existing
+        stale = _changed_rows(existing, jobs, wanted)
+        stale_ok = [r for r in stale if r.get("status") != STATUS_ERROR]
+        if stale_ok and not rerun_changed:  # error rows of old code hold no result to lose
+            raise ChangedCodeError(_changed_message(stale_ok, path))
+        stale_ids = {id(r) for r in stale}
+        kept = [
+            r for r in existing
+            if not (retry_errors and r.get("status") == STATUS_ERROR and row_key(r) in wanted)
+            and id(r) not in stale_ids
+        ]
+        if len(kept) != len(existing):
+            if stale:
+                logger.warning("%s", _changed_message(stale, path, replacing=True))
+            if retry_errors and len(existing) - len(stale) != len(kept):
+                logger.info("retrying %d errored run(s)", len(existing) - len(stale) - len(kept))
+            writer.rewrite(kept)
+            existing = writer.existing
         rows_by_key = {row_key(r): r for r in existing if row_key(r) in wanted}
         pending = [job for job in jobs if job.key not in rows_by_key]
         n_errors = sum(r.get("status") == STATUS_ERROR for r in rows_by_key.values())
@@ -405,11 +518,49 @@ def run_jobs(
                 if pending:
                     n_workers = min(workers, len(pending))
                     if executor == "process":
-                        _run_process(pending, run_fn, n_workers, on_outcome)
+                        _run_process(pending, run_fn, n_workers, on_outcome, run_timeout_s)
                     elif executor == "ray":
-                        _run_ray(pending, run_fn, n_workers, ray_address, on_outcome)
+                        _run_ray(pending, run_fn, n_workers, ray_address, on_outcome,
+                                 run_timeout_s)
                     else:
-                        _run_serial(pending, run_fn, on_outcome)
+                        _run_serial(pending, run_fn, on_outcome, run_timeout_s)
+        except KeyboardInterrupt as exc:
+            raise RunsInterrupted(
+                f"interrupted: the {len(rows_by_key)} finished run(s) of {len(jobs)} are kept in "
+                f"{path}; rerun the same command (same output directory) to run the other "
+                f"{len(jobs) - len(rows_by_key)}") from exc
         finally:
             bar.close()
     return [rows_by_key[k] for k in keys]
+
+
+def _changed_rows(existing: Sequence[Mapping[str, Any]], jobs: Sequence[Job],
+                  wanted: set[str]) -> list[Mapping[str, Any]]:
+    """Recorded rows that are runs of these jobs with another version of a user policy's code."""
+    identities = {job.identity for job in jobs if dict(job.options).keys() & set(VERSION_OPTIONS)}
+    if not identities:
+        return []
+    stale = []
+    for row in existing:
+        if row_key(row) in wanted:
+            continue
+        try:
+            identity = Job.from_row(row).identity
+        except (ValueError, KeyError, TypeError):
+            continue
+        if identity in identities:
+            stale.append(row)
+    return stale
+
+
+def _changed_message(stale: Sequence[Mapping[str, Any]], path: Path,
+                     replacing: bool = False) -> str:
+    counts = Counter(next((r[k] for k in ("policy", "system", "training") if r.get(k)), "?")
+                     for r in stale)
+    names = ", ".join(f"{name!r} ({n} run(s))" for name, n in sorted(counts.items()))
+    what = (f"the code or options of policy {names} changed since its runs in {path} were "
+            "made")
+    if replacing:
+        return f"{what}: those rows are dropped and the runs made again"
+    return (f"{what}; their rows are not reused. Rerun with --rerun-changed (rerun_changed=True) "
+            "to drop them and run again, or use a new --out")

@@ -24,6 +24,11 @@ JOB_KINDS = ("system", "policy", "training")
 
 _SCALAR_TYPES = (str, int, float, bool, type(None))
 
+VERSION_OPTIONS = ("policy_sha256",)
+"""Options that say which version of the code ran rather than what was run: a job whose key
+differs from a recorded row's only by these is the same run of changed code
+(:attr:`Job.identity`; :func:`slam_gym.evaluation.run_jobs` refuses or reruns it)."""
+
 
 def _check_option_value(name: str, value: Any) -> None:
     """Options must be JSON scalars (so the key is stable and the row serialisable)."""
@@ -105,6 +110,17 @@ class Job:
                 self.seed,
                 dict(self.options),
             ],
+            sort_keys=True,
+            separators=(",", ":"),
+        )
+
+    @property
+    def identity(self) -> str:
+        """:attr:`key` without the :data:`VERSION_OPTIONS`: the same run whatever the version of
+        a user policy's code."""
+        return json.dumps(
+            [self.kind, self.name, self.scenario, self.clutter_level, self.seed,
+             {k: v for k, v in self.options if k not in VERSION_OPTIONS}],
             sort_keys=True,
             separators=(",", ":"),
         )

@@ -30,7 +30,12 @@ from matplotlib.lines import Line2D
 
 from filters.validation import require
 from slam_gym.evaluation.jobs import JOB_KINDS
-from slam_gym.evaluation.summary import PaperValues, options_distinguish, paper_rate
+from slam_gym.evaluation.summary import (
+    NON_NEGATIVE_KEYS,
+    PaperValues,
+    options_distinguish,
+    paper_rate,
+)
 
 DPI = 120
 CURVE_FIGSIZE = (7.0, 4.5)
@@ -134,7 +139,7 @@ def plot_success_rates(
             markersize=5,
             linewidth=1.6,
             capsize=3,
-            label=label,
+            label=f"{label} ({_runs_label(members)})",
         )
         for g, xi in zip(members, x, strict=True):
             name = next(g[k] for k in JOB_KINDS if g.get(k) is not None)
@@ -166,7 +171,7 @@ def plot_success_rates(
     ax.set_xlim(all_levels[0] - 0.5, all_levels[-1] + 0.5)
     ax.set_ylim(-4, 104)
     ax.set_xlabel("clutter level")
-    ax.set_ylabel("success rate (%)")
+    ax.set_ylabel("success rate (%; bars: Wilson 95 % interval)")
     if title:
         ax.set_title(title)
     handles, labels = ax.get_legend_handles_labels()
@@ -177,6 +182,14 @@ def plot_success_rates(
         labels.append(paper_label)
     ax.legend(handles, labels, loc="best", fontsize=9, framealpha=0.9)
     return _save(fig, path, dpi)
+
+
+def _runs_label(members: Sequence[Mapping[str, Any]]) -> str:
+    """The runs behind each point of a series: ``"3 runs per level"`` or ``"3-5 runs per
+    level"`` (the ok runs, over which the rate is taken)."""
+    counts = sorted({int(g.get("n_ok", g.get("n", 0))) for g in members})
+    span = str(counts[0]) if len(counts) == 1 else f"{counts[0]}-{counts[-1]}"
+    return f"{span} run{'s' if counts[-1] != 1 else ''} per level"
 
 
 def _as_series(name: str, values: Any, field: str) -> np.ndarray:
@@ -417,6 +430,105 @@ def pareto_front(points: Sequence[tuple[float, float]]) -> list[int]:
     return front
 
 
+AXIS_LABELS = {
+    "total_cpu_s": "CPU time per run: filtering, fusions and optimisations (s, log scale)",
+    "interface_cpu_s": "CPU time per run of fusions and optimisations (s, log scale)",
+    "fusion_cpu_s": "CPU time per run of fusions (s, log scale)",
+    "optimise_cpu_s": "CPU time per run of optimisations (s, log scale)",
+    "filter_cpu_s": "CPU time per run of filtering (s, log scale)",
+    "map_error_m_succeeded": "map error of the successful runs (m)",
+    "map_error_m": "map error (m)",
+    "anees": "ANEES (average NEES, no unit)",
+    "map_completeness": "map completeness (fraction of landmarks)",
+}
+"""Words and units of the fields :func:`plot_pareto` draws (CPU axes are logarithmic)."""
+
+
+def pareto_figure(
+    summary: Mapping[str, Any] | Sequence[Mapping[str, Any]],
+    *,
+    x: str = "total_cpu_s",
+    y: str = "map_error_m_succeeded",
+    title: str | None = "Map error against compute",
+    dpi: int = DPI,
+) -> Figure:
+    """The figure of :func:`plot_pareto` (not saved): its axes and error bars can be checked."""
+    groups = list(summary["groups"] if isinstance(summary, Mapping) else summary)
+
+    def value(g, key):
+        v = g.get(key)
+        return v.get("mean") if isinstance(v, Mapping) else v
+
+    groups = [g for g in groups if value(g, x) is not None and value(g, y) is not None]
+    require(len(groups) > 0, "summary", "no group", f"groups with {x} and {y}")
+    log_x = x.endswith("_cpu_s")
+    if log_x:  # a point without CPU time has no place on a log axis: said on the figure
+        left_out = sorted({_name(g) for g in groups if value(g, x) <= 0})
+        groups = [g for g in groups if value(g, x) > 0]
+        require(len(groups) > 0, "summary", "no group", f"groups with {x} > 0 and {y}")
+    else:
+        left_out = []
+    levels = sorted({g.get("clutter_level") for g in groups}, key=lambda v: (v is None, v))
+    names = list(dict.fromkeys(_name(g) for g in groups))
+    colors = {n: _COLORS[i % len(_COLORS)] for i, n in enumerate(names)}
+    width = max(3.6 * len(levels) + 3.2, 8.5)
+    fig = Figure(figsize=(width, 4.6), dpi=dpi)
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(1, len(levels), squeeze=False, sharey=True)[0]
+    for ax, level in zip(axes, levels, strict=True):
+        members = [g for g in groups if g.get("clutter_level") == level]
+        pts = [(value(g, x), value(g, y)) for g in members]
+        front = set(pareto_front(pts))
+        for i, g in enumerate(members):
+            name = _name(g)
+            ci = g.get("ci95") or {}
+            xerr = _half_widths(pts[i][0], ci.get(x))
+            yerr = _half_widths(pts[i][1], ci.get(y))
+            ax.errorbar(
+                [pts[i][0]], [pts[i][1]], xerr=xerr, yerr=yerr, fmt="o", ms=7,
+                color=colors[name], mfc=colors[name] if i in front else "white",
+                capsize=2, lw=0.8,
+            )
+            n_y, n_x = ((g.get("n_values") or {}).get(key) for key in (y, x))
+            if n_y is not None:
+                text = str(n_y) if n_x in (None, n_y) else f"{n_y}/{n_x}"
+                ax.annotate(text, (pts[i][0], pts[i][1]), textcoords="offset points",
+                            xytext=(5, 4), fontsize=7, color=colors[name])
+        ordered = sorted(front, key=lambda i: pts[i][0])
+        ax.plot([pts[i][0] for i in ordered], [pts[i][1] for i in ordered], "k--", lw=0.8)
+        if log_x:
+            ax.set_xscale("log")
+        ax.grid(True, alpha=0.3, linewidth=0.6)
+        ax.set_title(f"clutter level {level}" if level is not None else "", fontsize=10)
+        ax.set_xlabel(AXIS_LABELS.get(x, x), fontsize=8)
+    # limits from the points and their intervals: a log axis shows every positive bound (a
+    # bound at 0 runs to its edge), a non-negative quantity starts at 0
+    xs, ys = _extent(groups, x, value), _extent(groups, y, value)
+    if log_x:
+        positive = [v for v in xs if v > 0]
+        for ax in axes:  # one scale for every panel
+            ax.set_xlim(min(positive) / 1.5, max(positive) * 1.5)
+    if y in NON_NEGATIVE_KEYS:
+        axes[0].set_ylim(0.0, max(max(ys), 1e-9) * 1.1)
+    axes[0].set_ylabel(AXIS_LABELS.get(y, y))
+    handles = [Line2D([], [], marker="o", ls="", color=colors[n], label=n) for n in names]
+    handles += [
+        Line2D([], [], marker="o", ls="", color="k", mfc="white", label="dominated"),
+        Line2D([], [], ls="--", color="k", label="non-dominated front"),
+        Line2D([], [], marker="|", ls="-", color="k",
+               label="bars: 95 % interval of the mean\n(percentile bootstrap)"),
+        Line2D([], [], ls="", label="number beside a point: runs\nbehind its mean (y/x where\n"
+               "they differ)"),
+    ]
+    handles += [Line2D([], [], ls="", label=f"not drawn (no {x}):\n{', '.join(left_out)}")
+                ] if left_out else []
+    fig.legend(handles=handles, loc="center right", fontsize=7, frameon=False)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout(rect=(0, 0, 1 - 2.6 / width, 1))
+    return fig
+
+
 def plot_pareto(
     summary: Mapping[str, Any] | Sequence[Mapping[str, Any]],
     path: str | os.PathLike,
@@ -428,64 +540,34 @@ def plot_pareto(
 ) -> Path:
     """Mean ``y`` against mean ``x`` per policy (or system), one panel per clutter level.
 
-    Error bars are the groups' 95 % intervals (``ci95``); the non-dominated points of a panel are
-    filled and joined by the front, dominated ones are hollow. Groups without both values are
-    left out (e.g. a system row without compute). The default ``y`` is the map error of the runs
-    that did not fail: a rule that fails everywhere (pure FastSLAM) has no point, rather than a
-    small early map that would look accurate and cheap.
+    Error bars are the groups' 95 % intervals (``ci95``: percentile bootstrap intervals for the
+    non-negative quantities, so they stay within the runs' range), and the number beside each
+    point is the number of runs behind its ``y`` (``n_values``). A CPU axis is logarithmic (a
+    group without CPU time is left out and named on the figure). Axes are labelled in words
+    with units (:data:`AXIS_LABELS`). The non-dominated points of a panel are filled and joined
+    by the front, dominated ones are hollow. Groups without both values are left out (e.g. a
+    system row without compute). The default ``y`` is the map error of the runs that did not
+    fail: a rule that fails everywhere (pure FastSLAM) has no point, rather than a small early
+    map that would look accurate and cheap.
     """
-    groups = list(summary["groups"] if isinstance(summary, Mapping) else summary)
-
-    def value(g, key):
-        v = g.get(key)
-        return v.get("mean") if isinstance(v, Mapping) else v
-
-    groups = [g for g in groups if value(g, x) is not None and value(g, y) is not None]
-    require(len(groups) > 0, "summary", "no group", f"groups with {x} and {y}")
-    levels = sorted({g.get("clutter_level") for g in groups}, key=lambda v: (v is None, v))
-    names = list(dict.fromkeys(next(g[k] for k in JOB_KINDS if g.get(k)) for g in groups))
-    colors = {n: _COLORS[i % len(_COLORS)] for i, n in enumerate(names)}
-    width = max(3.6 * len(levels) + 2.2, 7.5)
-    fig = Figure(figsize=(width, 4.2), dpi=dpi)
-    FigureCanvasAgg(fig)
-    axes = fig.subplots(1, len(levels), squeeze=False, sharey=True)[0]
-    xs = [value(g, x) for g in groups]
-    log_x = min(xs) > 0 and max(xs) / min(xs) > 100.0  # one scale for every panel
-    for ax, level in zip(axes, levels, strict=True):
-        members = [g for g in groups if g.get("clutter_level") == level]
-        pts = [(value(g, x), value(g, y)) for g in members]
-        front = set(pareto_front(pts))
-        for i, g in enumerate(members):
-            name = next(g[k] for k in JOB_KINDS if g.get(k))
-            ci = g.get("ci95") or {}
-            xerr = _half_widths(pts[i][0], ci.get(x))
-            yerr = _half_widths(pts[i][1], ci.get(y))
-            ax.errorbar(
-                [pts[i][0]], [pts[i][1]], xerr=xerr, yerr=yerr, fmt="o", ms=7,
-                color=colors[name], mfc=colors[name] if i in front else "white",
-                capsize=2, lw=0.8,
-            )
-        ordered = sorted(front, key=lambda i: pts[i][0])
-        ax.plot([pts[i][0] for i in ordered], [pts[i][1] for i in ordered], "k--", lw=0.8)
-        if log_x:
-            ax.set_xscale("log")
-        ax.grid(True, alpha=0.3, linewidth=0.6)
-        ax.set_title(f"clutter level {level}" if level is not None else "", fontsize=10)
-        ax.set_xlabel(f"{x} (mean{', log scale' if log_x else ''})")
-    axes[0].set_ylabel(f"{y} (mean)")
-    handles = [Line2D([], [], marker="o", ls="", color=colors[n], label=n) for n in names]
-    handles += [
-        Line2D([], [], marker="o", ls="", color="k", mfc="white", label="dominated"),
-        Line2D([], [], ls="--", color="k", label="non-dominated front"),
-    ]
-    fig.legend(handles=handles, loc="center right", fontsize=8, frameon=False)
-    if title:
-        fig.suptitle(title, fontsize=10)
-    fig.tight_layout(rect=(0, 0, 1 - 2.0 / width, 1))
+    fig = pareto_figure(summary, x=x, y=y, title=title, dpi=dpi)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=dpi, format="png")
     return path
+
+
+def _extent(groups: Sequence[Mapping[str, Any]], key: str, value: Any) -> list[float]:
+    """Every mean of ``key`` and every bound of its interval, over ``groups``."""
+    out = []
+    for g in groups:
+        out.append(value(g, key))
+        out += list((g.get("ci95") or {}).get(key) or [])
+    return [float(v) for v in out if v is not None]
+
+
+def _name(group: Mapping[str, Any]) -> str:
+    return next(group[k] for k in JOB_KINDS if group.get(k))
 
 
 def _half_widths(centre: float, ci) -> list[list[float]] | None:

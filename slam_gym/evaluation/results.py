@@ -83,6 +83,10 @@ STATUS_OK = "ok"
 STATUS_ERROR = "error"
 
 
+class ResultsLockedError(RuntimeError):
+    """Another process holds the lock of a ``results.jsonl`` (a benchmark writing into it)."""
+
+
 class ResultError(ValueError):
     """A run function returned something that cannot be a results row."""
 
@@ -240,8 +244,9 @@ class ResultsWriter:
     """Append-only, crash-safe writer of ``results.jsonl`` (context manager).
 
     On entry it takes an exclusive advisory lock (a second writer on the same file fails with
-    ``RuntimeError``), cuts off a partial last line left by a killed run, and exposes the rows
-    already there as :attr:`existing`. :meth:`write` appends one line, flushes and ``fsync`` s.
+    :class:`ResultsLockedError`, a ``RuntimeError``), cuts off a partial last line left by a
+    killed run, and exposes the rows already there as :attr:`existing`. :meth:`write` appends
+    one line, flushes and ``fsync`` s.
     """
 
     def __init__(self, path: str | os.PathLike) -> None:
@@ -278,9 +283,10 @@ class ResultsWriter:
                 fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError as exc:
                 f.close()
-                raise RuntimeError(
-                    f"{self.path} is being written by another process; use another output "
-                    "directory or wait for it to finish"
+                raise ResultsLockedError(
+                    f"{self.path} is being written by another process (another run into the "
+                    "same output directory); use another output directory or wait for it to "
+                    "finish"
                 ) from exc
         return f
 

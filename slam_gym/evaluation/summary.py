@@ -12,10 +12,14 @@ interval (``ci95``: mean +- t_{0.975, n-1} s / sqrt(n)) of ``map_error_m``, ``an
 ``map_completeness``, ``return`` and the CPU seconds ``filter_cpu_s``, ``fusion_cpu_s``,
 ``optimise_cpu_s``, ``interface_cpu_s`` (fusions + optimisations), ``total_cpu_s``, the map
 error of the successful runs (``map_error_m_succeeded``), and the mean return of the failed and
-of the successful runs (``return_failed``, ``return_succeeded``). Errored runs never count as
-failures: they are excluded from every rate and mean and reported in ``n_errors`` (per group and
-in total), so a crash cannot pass for a SLAM failure. A null metric (e.g. not computable for that
-run) is left out of its mean.
+of the successful runs (``return_failed``, ``return_succeeded``). The interval of a quantity that
+cannot be negative (:data:`NON_NEGATIVE_KEYS`: errors, ANEES, completeness, CPU seconds) is the
+percentile bootstrap interval of the mean (:func:`bootstrap_interval`), which stays within the
+runs' range (a symmetric t-interval from 3 runs reached -3 s of CPU and -30 m of map error);
+only ``return`` keeps the Student-t interval. ``n_values`` counts the runs behind each
+interval. Errored runs never count as failures: they are excluded from every rate and mean
+and reported in ``n_errors`` (per group and in total), so a crash cannot pass for a SLAM
+failure. A null metric (e.g. not computable for that run) is left out of its mean.
 """
 
 from __future__ import annotations
@@ -45,6 +49,16 @@ CI_KEYS = (
     "filter_cpu_s", "fusion_cpu_s", "optimise_cpu_s", "interface_cpu_s", "total_cpu_s",
 )
 """Metrics whose mean is reported with a 95 % interval (``ci95``) where rows carry them."""
+
+NON_NEGATIVE_KEYS = frozenset(
+    ("map_error_m", "map_error_m_succeeded", "anees", "map_completeness", "filter_cpu_s",
+     "fusion_cpu_s", "optimise_cpu_s", "interface_cpu_s", "total_cpu_s"))
+"""Metrics that cannot be negative: their ``ci95`` is :func:`bootstrap_interval`'s."""
+
+BOOTSTRAP_RESAMPLES = 4000
+BOOTSTRAP_SEED = 20261127
+"""The bootstrap's resamples and the seed of its own generator: the same runs give the same
+interval."""
 
 DERIVED_KEYS = {"interface_cpu_s": ("fusion_cpu_s", "optimise_cpu_s")}
 """Row metrics that are sums of others: the CPU time of the interface decisions' work."""
@@ -84,6 +98,31 @@ def mean_interval(values: Sequence[float], confidence: float = 0.95) -> tuple[fl
     mean = statistics.fmean(values)
     half = float(t.ppf(0.5 + confidence / 2.0, n - 1)) * statistics.stdev(values) / math.sqrt(n)
     return mean - half, mean + half
+
+
+def bootstrap_interval(values: Sequence[float], confidence: float = 0.95
+                       ) -> tuple[float, float] | None:
+    """Percentile bootstrap interval of the mean (Efron): the ``(1 -+ c) / 2`` quantiles of the
+    means of :data:`BOOTSTRAP_RESAMPLES` resamples with replacement (None if n < 2). It lies
+    within ``[min(values), max(values)]``, so a non-negative quantity keeps a non-negative
+    interval; with few runs it is narrow (3 runs: the interval of 27 equally likely means), so
+    read it with the number of runs."""
+    import numpy as np
+
+    require(0.0 < confidence < 1.0, "confidence", confidence, "in (0, 1)")
+    v = np.asarray(values, dtype=float)
+    if len(v) < 2:
+        return None
+    rng = np.random.default_rng(BOOTSTRAP_SEED)
+    means = v[rng.integers(0, len(v), size=(BOOTSTRAP_RESAMPLES, len(v)))].mean(axis=1)
+    lo, hi = np.quantile(means, [0.5 - confidence / 2.0, 0.5 + confidence / 2.0])
+    return float(max(lo, v.min())), float(min(hi, v.max()))
+
+
+def interval(key: str, values: Sequence[float]) -> list[float] | None:
+    """The ``ci95`` of metric ``key``: bootstrap for :data:`NON_NEGATIVE_KEYS`, else Student-t."""
+    ci = bootstrap_interval(values) if key in NON_NEGATIVE_KEYS else mean_interval(values)
+    return None if ci is None else list(ci)
 
 
 def _kind_name(row: Mapping[str, Any]) -> tuple[str, str]:
@@ -182,23 +221,24 @@ def summarise(
         for key in _MEAN_MEDIAN_KEYS:
             values = metric_values(ok, key)
             group[key] = {"mean": _mean(values), "median": _median(values)}
-        intervals = {}
+        intervals, counts = {}, {}
         for key in CI_KEYS:
             values = metric_values(ok, key)
             if values:
                 group.setdefault(key, _mean(values))
-                ci = mean_interval(values)
-                intervals[key] = None if ci is None else list(ci)
+                intervals[key] = interval(key, values)
+                counts[key] = len(values)
         succeeded = [r for r in judged if r["success"]]
         values = metric_values(succeeded, "map_error_m")
         if values and intervals:
             # the map error of the runs that did not fail: a rule that fails early keeps a small
             # map with small errors, which the mean over all runs would reward
             group["map_error_m_succeeded"] = _mean(values)
-            ci = mean_interval(values)
-            intervals["map_error_m_succeeded"] = None if ci is None else list(ci)
+            intervals["map_error_m_succeeded"] = interval("map_error_m_succeeded", values)
+            counts["map_error_m_succeeded"] = len(values)
         if intervals:
             group["ci95"] = intervals
+            group["n_values"] = counts
         if any(r.get("return") is not None for r in ok):
             group["return_failed"] = _mean(metric_values([r for r in judged if not r["success"]],
                                                     "return"))
@@ -401,8 +441,12 @@ def format_table(
         from rich.table import Table
 
         table = Table(title=title, caption=footnote)
+        # the names are never cut short (two names with one prefix would read the same): the
+        # first column is as wide as its longest name, the others fold rather than truncate
+        longest = max((len(r[0]) for r in body), default=0)
         for i, name in enumerate(header):
-            table.add_column(name, justify="left" if i == 0 else "right")
+            table.add_column(name, justify="left" if i == 0 else "right", overflow="fold",
+                             min_width=longest if i == 0 else None)
         for cells in body:
             table.add_row(*cells)
         return table
