@@ -1,1 +1,2 @@
-"""slam-gym's estimation library: numpy/scipy only, importing nothing else of the project."""
+"""slam-gym's estimation library: numpy/scipy (and threadpoolctl for the BLAS thread limit of
+:mod:`filters.blas`) only, importing nothing else of the project."""

@@ -51,6 +51,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
+from filters.blas import DEFAULT_BLAS_THREADS, check_blas_threads, limited_blas_threads
 from filters.esdf import sparse_spd_factor, symmetrise
 from filters.geometry import compose, transform_point, wrap_angle
 from filters.optimiser import (
@@ -468,6 +469,7 @@ def optimise_submaps(
     initial_pose_cov=None,
     min_variance: float = DEFAULT_MIN_VARIANCE,
     solver: str = "compiled",
+    blas_threads: int | None = DEFAULT_BLAS_THREADS,
     **options,
 ) -> OptimiseResult:
     """DESIGN 3.10: minimise CM (12) over the stored sub-maps and write the optimum back.
@@ -491,8 +493,18 @@ def optimise_submaps(
     (a warm start: the sub-maps only grow). A **redundant** call -- no sub-map fused since the
     optimum applied last with the same settings, or none fused at all -- changes nothing (no
     book-keeping either) and returns at once with ``redundant=True``.
+
+    ``blas_threads``: the BLAS threads the optimisation runs with (:mod:`filters.blas`; default
+    one, restored afterwards; None: the process's own setting). It does not enter the settings.
     """
     require(method in METHODS, "method", method, f"one of {METHODS}")
+    with limited_blas_threads(check_blas_threads(blas_threads)):
+        return _optimise_submaps(submap_slam, method, initial_pose, initial_pose_cov,
+                                 min_variance, solver, options)
+
+
+def _optimise_submaps(submap_slam, method, initial_pose, initial_pose_cov, min_variance, solver,
+                      options) -> OptimiseResult:
     t0 = time.perf_counter()
     back = submap_slam.back_end
     submaps = list(submap_slam.submaps)
