@@ -357,7 +357,8 @@ def _apply_optimum(submap_slam, pose_index, x, P) -> None:
 
 
 def _optimise_compiled(submap_slam, submaps, x0, previous, settings, min_variance, t0,
-                       max_iterations: int = 200, xtol: float = 1e-10) -> OptimiseResult:
+                       max_iterations: int = 200, xtol: float = 1e-10,
+                       band: bool = True) -> OptimiseResult:
     """:func:`optimise_submaps` through :mod:`filters.submap_gauss_newton`."""
     back = submap_slam.back_end
     n_poses = 1 + max(int(s.end_index) for s in submaps)
@@ -380,7 +381,8 @@ def _optimise_compiled(submap_slam, submaps, x0, previous, settings, min_varianc
         known_points = {feature_index[g]: p for g, p in warm["features"].items()
                         if g in feature_index}
     poses0, points0 = _chain_guess(arrays, x0, known_poses, known_points)
-    res = gauss_newton(arrays, x0, poses0, points0, max_iterations=max_iterations, xtol=xtol)
+    res = gauss_newton(arrays, x0, poses0, points0, max_iterations=max_iterations, xtol=xtol,
+                       band=band)
     pose_index = n_poses - 1
     columns = [feature_index[int(g)] for g in ids]
     x = np.concatenate([res.poses[pose_index], res.points[columns].ravel()])
@@ -470,6 +472,7 @@ def optimise_submaps(
     min_variance: float = DEFAULT_MIN_VARIANCE,
     solver: str = "compiled",
     blas_threads: int | None = DEFAULT_BLAS_THREADS,
+    band: bool = True,
     **options,
 ) -> OptimiseResult:
     """DESIGN 3.10: minimise CM (12) over the stored sub-maps and write the optimum back.
@@ -495,16 +498,19 @@ def optimise_submaps(
     book-keeping either) and returns at once with ``redundant=True``.
 
     ``blas_threads``: the BLAS threads the optimisation runs with (:mod:`filters.blas`; default
-    one, restored afterwards; None: the process's own setting). It does not enter the settings.
+    one, restored afterwards; None: the process's own setting). ``band``: the compiled solver
+    factorises in a bandwidth-reducing order (:mod:`filters.submap_gauss_newton`; False: dense
+    as before issue 40, the same optimum but for rounding). Neither enters the settings.
     """
+    require(band in (True, False), "band", band, "True or False")
     require(method in METHODS, "method", method, f"one of {METHODS}")
     with limited_blas_threads(check_blas_threads(blas_threads)):
         return _optimise_submaps(submap_slam, method, initial_pose, initial_pose_cov,
-                                 min_variance, solver, options)
+                                 min_variance, solver, band, options)
 
 
 def _optimise_submaps(submap_slam, method, initial_pose, initial_pose_cov, min_variance, solver,
-                      options) -> OptimiseResult:
+                      band, options) -> OptimiseResult:
     t0 = time.perf_counter()
     back = submap_slam.back_end
     submaps = list(submap_slam.submaps)
@@ -529,7 +535,8 @@ def _optimise_submaps(submap_slam, method, initial_pose, initial_pose_cov, min_v
         and _is_zero(P0) and set(options) <= {"robust", "max_iterations", "xtol"}
     ):
         return _optimise_compiled(submap_slam, submaps, x0, previous, settings, min_variance,
-                                  t0, **{k: v for k, v in options.items() if k != "robust"})
+                                  t0, band=band,
+                                  **{k: v for k, v in options.items() if k != "robust"})
     sp_problem = build_submap_problem(submaps, x0, P0, min_variance=min_variance)
     problem = sp_problem.problem
     tau0 = problem.initial_guess(known=_warm_start(sp_problem, previous, settings))
