@@ -26,11 +26,14 @@ Cholesky (``dpbtrf``/``dpbtrs``) factorises it in ``n (b + 1)^2`` operations wit
 outside the band. At the end of a full BB path at clutter level 2 (42 sub-maps, 188 variables)
 the bandwidth is 54: a factorisation and solve take ~75 us against ~210-260 us for the dense
 Cholesky it replaced, and SuperLU with a fill-reducing order (``splu``, COLAMD or
-MMD_AT_PLUS_A) took 300-540 us, its overhead above the operations at this size. Where the band
-does not pay (``9 (b + 1)^2 > n^2``: small graphs) the factor is dense up to
-:data:`DENSE_MAX_VARIABLES`, and SuperLU above. The orders differ, so the optimum differs from
-the dense factorisation's in rounding: the estimate written back by at most ~1e-6 of its
-standard deviation on full paths (tests/filters/test_submap_band_factor.py).
+MMD_AT_PLUS_A) took 300-540 us, its overhead above the operations at this size. The band factor
+was the faster one at every size measured up to :data:`DENSE_MAX_VARIABLES` (44 to 300
+variables, bandwidths 33 to 54: 9-157 us against 20-933 us); above it, it is used when the band
+is at most a third of the matrix, else SuperLU (:attr:`BandOrdering.pays`; on graphs of 652 to
+1274 variables from fusing every second, bandwidths 212-372, a whole optimisation took 26-60 ms
+against 36-100 ms). The orders differ, so the optimum differs from the dense factorisation's in
+rounding: the estimate written back by at most ~1e-6 of its standard deviation on full paths
+(tests/filters/test_submap_band_factor.py).
 
 The Jacobians are those of :mod:`filters.geometry` (``relative`` and ``point_to_frame`` w.r.t.
 the origin pose, the end pose and the point); the heading residual is wrapped to ``(-pi, pi]``
@@ -46,7 +49,6 @@ import scipy.sparse as sp
 from numba import njit
 from scipy.linalg import cho_factor, cho_solve
 from scipy.linalg.lapack import dpbtrf, dpbtrs
-from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 from filters.esdf import sparse_spd_factor
 from filters.geometry import wrap_angle_one as _wrap
@@ -268,82 +270,131 @@ def _band(n_variables, bandwidth, position, rows, cols, vals):
 
 
 @njit(cache=True)
-def _bandwidth(position, rows, cols):
-    width = 0
-    for k in range(len(rows)):
-        width = max(width, abs(position[rows[k]] - position[cols[k]]))
-    return width
-
-
-@njit(cache=True)
 def _entity_graph(n_poses, n_features, origin, end, feature_start, features):
     """The graph of the entities (pose ``k >= 1`` -> ``k - 1``, feature ``j`` ->
     ``n_poses - 1 + j``), joined where one sub-map holds both: the pattern of ``J^T Lambda J``
-    by blocks, as CSR arrays (indptr, indices)."""
+    by blocks, as adjacency lists (indptr, indices; each entity its own neighbour)."""
     n = n_poses - 1 + n_features
-    joined = np.zeros((n, n), dtype=np.bool_)
+    n_pairs = 0
     for k in range(len(origin)):
-        f0, f1 = feature_start[k], feature_start[k + 1]
-        ents = np.empty(2 + f1 - f0, dtype=np.int64)
-        count = 0
+        m = 2 + feature_start[k + 1] - feature_start[k]
+        n_pairs += m * m
+    keys = np.empty(n_pairs, dtype=np.int64)
+    count = 0
+    ents = np.empty(2 + np.max(np.diff(feature_start)) if len(origin) else 2, dtype=np.int64)
+    for k in range(len(origin)):
+        m = 0
         for pose in (origin[k], end[k]):
             if pose > 0:
-                ents[count] = pose - 1
+                ents[m] = pose - 1
+                m += 1
+        for i in range(feature_start[k], feature_start[k + 1]):
+            ents[m] = n_poses - 1 + features[i]
+            m += 1
+        for i in range(m):
+            for j in range(m):
+                keys[count] = ents[i] * n + ents[j]
                 count += 1
-        for i in range(f0, f1):
-            ents[count] = n_poses - 1 + features[i]
-            count += 1
-        for i in range(count):
-            for j in range(count):
-                joined[ents[i], ents[j]] = True
-    indptr = np.zeros(n + 1, dtype=np.int32)
-    for i in range(n):
-        indptr[i + 1] = indptr[i] + joined[i].sum()
-    indices = np.empty(indptr[n], dtype=np.int32)
-    for i in range(n):
-        indices[indptr[i]:indptr[i + 1]] = np.nonzero(joined[i])[0]
-    return indptr, indices
+    keys = np.unique(keys[:count])
+    indptr = np.zeros(n + 1, dtype=np.int64)
+    for key in keys:
+        indptr[key // n + 1] += 1
+    indptr = np.cumsum(indptr)
+    return indptr, keys % n
+
+
+@njit(cache=True)
+def _reverse_cuthill_mckee(indptr, indices):
+    """Reverse Cuthill-McKee: breadth first from a least-connected entity of each component,
+    the neighbours of each in order of their degree, the whole order reversed."""
+    n = len(indptr) - 1
+    degree = np.diff(indptr)
+    visited = np.zeros(n, dtype=np.bool_)
+    order = np.empty(n, dtype=np.int64)
+    by_degree = np.argsort(degree, kind="mergesort")
+    filled = 0
+    for start in by_degree:
+        if visited[start]:
+            continue
+        visited[start] = True
+        order[filled] = start
+        head, filled = filled, filled + 1
+        while head < filled:
+            node = order[head]
+            head += 1
+            first = filled
+            for i in range(indptr[node], indptr[node + 1]):
+                other = indices[i]
+                if not visited[other]:
+                    visited[other] = True
+                    order[filled] = other
+                    filled += 1
+            if filled - first > 1:
+                new = order[first:filled].copy()
+                order[first:filled] = new[np.argsort(degree[new], kind="mergesort")]
+    return order[::-1].copy()
+
+
+@njit(cache=True)
+def _band_order(n_poses, n_features, origin, end, feature_start, features):
+    """The variable order of :class:`BandOrdering` and the bandwidth of its block pattern (an
+    upper bound of the matrix's own: every block two entities share is counted full)."""
+    indptr, indices = _entity_graph(n_poses, n_features, origin, end, feature_start, features)
+    entities = _reverse_cuthill_mckee(indptr, indices)
+    n_entities = len(entities)
+    size = np.empty(n_entities, dtype=np.int64)
+    column = np.empty(n_entities, dtype=np.int64)  # the entity's first variable column
+    for e in range(n_entities):
+        if e < n_poses - 1:
+            size[e], column[e] = 3, 3 * e
+        else:
+            size[e], column[e] = 2, 3 * (n_poses - 1) + 2 * (e - (n_poses - 1))
+    first = np.empty(n_entities, dtype=np.int64)  # the entity's first row in the new order
+    order = np.empty(size.sum(), dtype=np.int64)
+    filled = 0
+    for e in entities:
+        first[e] = filled
+        for i in range(size[e]):
+            order[filled] = column[e] + i
+            filled += 1
+    bandwidth = 0
+    for a in range(n_entities):
+        for i in range(indptr[a], indptr[a + 1]):
+            b = indices[i]
+            if first[a] >= first[b]:
+                bandwidth = max(bandwidth, first[a] + size[a] - 1 - first[b])
+    return order, bandwidth
 
 
 @dataclass(frozen=True)
 class BandOrdering:
     """A bandwidth-reducing order of the variables: reverse Cuthill-McKee on the graph of the
     entities (fusion poses and features, joined where a sub-map holds both), each entity's
-    columns kept together. ``order[new] = old``, ``position[old] = new``; ``bandwidth`` of the
-    permuted ``J^T Lambda J``. A Cholesky factor has no fill outside the band (module
-    docstring)."""
+    columns kept together. ``order[new] = old``, ``position[old] = new``; ``bandwidth``: of the
+    permuted ``J^T Lambda J``'s block pattern, which holds every nonzero. A Cholesky factor has
+    no fill outside the band (module docstring)."""
 
     order: np.ndarray
     position: np.ndarray
     bandwidth: int
 
     @classmethod
-    def of(cls, arrays: SubmapArrays, rows, cols) -> BandOrdering:
-        """The ordering of ``arrays``' problem; ``rows``, ``cols``: the pattern of its normal
-        equations (:func:`_normal_equations`), for the bandwidth."""
+    def of(cls, arrays: SubmapArrays) -> BandOrdering:
         a = arrays
-        n_entities = a.n_poses - 1 + a.n_features
-        indptr, indices = _entity_graph(a.n_poses, a.n_features, a.origin, a.end,
-                                        a.feature_start, a.features)
-        graph = sp.csr_matrix((np.ones(len(indices)), indices, indptr),
-                              shape=(n_entities, n_entities))
-        entities = reverse_cuthill_mckee(graph, symmetric_mode=True)
-        pose_columns = 3 * (a.n_poses - 1)
-        starts = np.where(entities < a.n_poses - 1, 3 * entities,
-                          pose_columns + 2 * (entities - (a.n_poses - 1)))
-        sizes = np.where(entities < a.n_poses - 1, 3, 2)
-        order = (np.repeat(starts - np.cumsum(sizes) + sizes, sizes)
-                 + np.arange(int(sizes.sum()))).astype(np.int64)
+        order, bandwidth = _band_order(a.n_poses, a.n_features, a.origin, a.end,
+                                       a.feature_start, a.features)
         position = np.empty(len(order), dtype=np.int64)
         position[order] = np.arange(len(order))
-        return cls(order, position, int(_bandwidth(position, rows, cols)))
+        return cls(order, position, int(bandwidth))
 
     @property
     def pays(self) -> bool:
-        """Whether the band factor is the cheaper one: ``n (b + 1)^2`` against a dense
-        factor's ``n^3 / 3`` operations, with a margin of 3 for the band's own overhead."""
+        """Whether the band factor is the one to use: up to :data:`DENSE_MAX_VARIABLES`
+        always (LAPACK's band Cholesky was faster than the dense one at every size measured,
+        even at 44 variables with a bandwidth of 33: 9 against 20 us), above it when the band
+        is at most a third of the matrix (else SuperLU's fill-reducing order)."""
         n = len(self.order)
-        return 9 * (self.bandwidth + 1) ** 2 <= n * n
+        return n <= DENSE_MAX_VARIABLES or 3 * (self.bandwidth + 1) <= n
 
 
 class _Normal:
@@ -466,7 +517,7 @@ def gauss_newton(arrays: SubmapArrays, gauge, poses0, points0, *, max_iterations
         cost, g, rows, cols, vals = _normal_equations(poses, points, a.n_poses, *static, n,
                                                       newton)
         if not ordering:
-            ordering.append(BandOrdering.of(a, rows, cols) if band else None)
+            ordering.append(BandOrdering.of(a) if band else None)
         return cost, g, _Normal(n, rows, cols, vals, ordering[0])
 
     def cost_at(t):

@@ -504,13 +504,12 @@ def optimise_submaps(
     """
     require(band in (True, False), "band", band, "True or False")
     require(method in METHODS, "method", method, f"one of {METHODS}")
-    with limited_blas_threads(check_blas_threads(blas_threads)):
-        return _optimise_submaps(submap_slam, method, initial_pose, initial_pose_cov,
-                                 min_variance, solver, band, options)
+    return _optimise_submaps(submap_slam, method, initial_pose, initial_pose_cov, min_variance,
+                             solver, check_blas_threads(blas_threads), band, options)
 
 
 def _optimise_submaps(submap_slam, method, initial_pose, initial_pose_cov, min_variance, solver,
-                      band, options) -> OptimiseResult:
+                      threads, band, options) -> OptimiseResult:
     t0 = time.perf_counter()
     back = submap_slam.back_end
     submaps = list(submap_slam.submaps)
@@ -530,6 +529,14 @@ def _optimise_submaps(submap_slam, method, initial_pose, initial_pose_cov, min_v
             np.asarray(P).copy(), np.asarray(ids).copy(), redundant=True, settings=settings,
         )
     require(solver in SOLVERS, "solver", solver, f"one of {SOLVERS}")
+    with limited_blas_threads(threads):  # not around a redundant call: it has no algebra
+        return _solve_submaps(submap_slam, method, min_variance, solver, band, options, t0,
+                              submaps, x0, P0, settings, previous)
+
+
+def _solve_submaps(submap_slam, method, min_variance, solver, band, options, t0, submaps, x0,
+                   P0, settings, previous) -> OptimiseResult:
+    back = submap_slam.back_end
     if (
         solver == "compiled" and method == "gauss-newton" and options.get("robust") is None
         and _is_zero(P0) and set(options) <= {"robust", "max_iterations", "xtol"}
