@@ -1,5 +1,6 @@
-"""slam-gym's estimation library: numpy/scipy (and numba) only, importing nothing else of the
-project (docs/ARCHITECTURE.md, "Layers").
+"""slam-gym's estimation library: numpy/scipy (and numba, and threadpoolctl for the BLAS thread
+limit of :mod:`filters.blas`) only, importing nothing else of the project (docs/ARCHITECTURE.md,
+"Layers").
 
 The estimators (each a filterpy-like class: ``predict(u, dt)``, ``update(z)``, ``pose()``,
 ``landmarks()``; docs/ARCHITECTURE.md, "Filter interface"):

@@ -42,6 +42,7 @@ from filters.back_ends import (
     make_back_end,
     transform_points_jacobians,
 )
+from filters.blas import DEFAULT_BLAS_THREADS, check_blas_threads
 from filters.existence import CONFIRMED_PROBABILITY
 from filters.geometry import transform_point, wrap_angle
 from filters.interface_features import INTERFACE_FEATURE_NAMES
@@ -96,7 +97,8 @@ class SubmapSLAM:
     ``"ekf"`` the loop-closure test's ``loop_closure_unseen_s`` and ``closure_radius_m``).
     ``closure_radius_m`` also bounds the search of the per-observation innovation test.
     ``robust_kernel``: the kernel :meth:`optimise` uses by default (None: CM (12) as it is;
-    ``"huber"`` / ``"cauchy"``: :mod:`filters.optimiser`).
+    ``"huber"`` / ``"cauchy"``: :mod:`filters.optimiser`). ``blas_threads``: the BLAS threads
+    :meth:`optimise` runs with (default one; None: the process's setting; :mod:`filters.blas`).
 
     Interface events are aggregated over a *decision interval*: :meth:`start_interval` (the env
     calls it before each decision) clears them; until then every update and fusion adds to them.
@@ -114,8 +116,10 @@ class SubmapSLAM:
         loop_closure_unseen_s: float = DEFAULT_LOOP_CLOSURE_UNSEEN_S,
         closure_radius_m: float = DEFAULT_CLOSURE_RADIUS_M,
         robust_kernel: str | None = None,
+        blas_threads: int | None = DEFAULT_BLAS_THREADS,
     ):
         validate_gate_probability(gate_probability)
+        self.blas_threads = check_blas_threads(blas_threads)
         require(robust_kernel in ROBUST_KERNELS, "robust_kernel", robust_kernel,
                 f"one of {ROBUST_KERNELS}")
         validate_node_budget(node_budget)
@@ -263,6 +267,7 @@ class SubmapSLAM:
         by the optimum and its Gauss-Newton covariance (:mod:`filters.submap_optimise`); with the
         system's ``robust_kernel`` (None, ``"huber"``, ``"cauchy"``) unless ``robust`` is given."""
         options.setdefault("robust", self.robust_kernel)
+        options.setdefault("blas_threads", self.blas_threads)
         return optimise_submaps(self, method, **options)
 
     def optimisation_is_redundant(self, method: str = "gauss-newton", **options) -> bool:

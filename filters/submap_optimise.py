@@ -51,6 +51,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
+from filters.blas import DEFAULT_BLAS_THREADS, check_blas_threads, limited_blas_threads
 from filters.geometry import compose, transform_point, wrap_angle
 from filters.information import sparse_spd_factor, symmetrise
 from filters.optimiser import (
@@ -356,7 +357,8 @@ def _apply_optimum(submap_slam, pose_index, x, P) -> None:
 
 
 def _optimise_compiled(submap_slam, submaps, x0, previous, settings, min_variance, t0,
-                       max_iterations: int = 200, xtol: float = 1e-10) -> OptimiseResult:
+                       max_iterations: int = 200, xtol: float = 1e-10,
+                       band: bool = True) -> OptimiseResult:
     """:func:`optimise_submaps` through :mod:`filters.submap_gauss_newton`."""
     back = submap_slam.back_end
     n_poses = 1 + max(int(s.end_index) for s in submaps)
@@ -379,7 +381,8 @@ def _optimise_compiled(submap_slam, submaps, x0, previous, settings, min_varianc
         known_points = {feature_index[g]: p for g, p in warm["features"].items()
                         if g in feature_index}
     poses0, points0 = _chain_guess(arrays, x0, known_poses, known_points)
-    res = gauss_newton(arrays, x0, poses0, points0, max_iterations=max_iterations, xtol=xtol)
+    res = gauss_newton(arrays, x0, poses0, points0, max_iterations=max_iterations, xtol=xtol,
+                       band=band)
     pose_index = n_poses - 1
     columns = [feature_index[int(g)] for g in ids]
     x = np.concatenate([res.poses[pose_index], res.points[columns].ravel()])
@@ -468,6 +471,8 @@ def optimise_submaps(
     initial_pose_cov=None,
     min_variance: float = DEFAULT_MIN_VARIANCE,
     solver: str = "compiled",
+    blas_threads: int | None = DEFAULT_BLAS_THREADS,
+    band: bool = True,
     **options,
 ) -> OptimiseResult:
     """CM III.C: minimise CM (12) over the stored sub-maps and write the optimum back.
@@ -491,8 +496,20 @@ def optimise_submaps(
     (a warm start: the sub-maps only grow). A **redundant** call -- no sub-map fused since the
     optimum applied last with the same settings, or none fused at all -- changes nothing (no
     book-keeping either) and returns at once with ``redundant=True``.
+
+    ``blas_threads``: the BLAS threads the optimisation runs with (:mod:`filters.blas`; default
+    one, restored afterwards; None: the process's own setting). ``band``: the compiled solver
+    factorises in a bandwidth-reducing order (:mod:`filters.submap_gauss_newton`; False: dense
+    as before issue 40, the same optimum but for rounding). Neither enters the settings.
     """
+    require(band in (True, False), "band", band, "True or False")
     require(method in METHODS, "method", method, f"one of {METHODS}")
+    return _optimise_submaps(submap_slam, method, initial_pose, initial_pose_cov, min_variance,
+                             solver, check_blas_threads(blas_threads), band, options)
+
+
+def _optimise_submaps(submap_slam, method, initial_pose, initial_pose_cov, min_variance, solver,
+                      threads, band, options) -> OptimiseResult:
     t0 = time.perf_counter()
     back = submap_slam.back_end
     submaps = list(submap_slam.submaps)
@@ -512,12 +529,21 @@ def optimise_submaps(
             np.asarray(P).copy(), np.asarray(ids).copy(), redundant=True, settings=settings,
         )
     require(solver in SOLVERS, "solver", solver, f"one of {SOLVERS}")
+    with limited_blas_threads(threads):  # not around a redundant call: it has no algebra
+        return _solve_submaps(submap_slam, method, min_variance, solver, band, options, t0,
+                              submaps, x0, P0, settings, previous)
+
+
+def _solve_submaps(submap_slam, method, min_variance, solver, band, options, t0, submaps, x0,
+                   P0, settings, previous) -> OptimiseResult:
+    back = submap_slam.back_end
     if (
         solver == "compiled" and method == "gauss-newton" and options.get("robust") is None
         and _is_zero(P0) and set(options) <= {"robust", "max_iterations", "xtol"}
     ):
         return _optimise_compiled(submap_slam, submaps, x0, previous, settings, min_variance,
-                                  t0, **{k: v for k, v in options.items() if k != "robust"})
+                                  t0, band=band,
+                                  **{k: v for k, v in options.items() if k != "robust"})
     sp_problem = build_submap_problem(submaps, x0, P0, min_variance=min_variance)
     problem = sp_problem.problem
     tau0 = problem.initial_guess(known=_warm_start(sp_problem, previous, settings))

@@ -145,6 +145,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from filters.blas import check_blas_threads, limited_blas_threads
 from filters.interface_features import INTERFACE_FEATURE_NAMES
 from filters.validation import check_range, require
 from slam_gym.compute_cost import ComputeModel, filter_ops, fusion_ops, optimise_ops
@@ -190,7 +191,9 @@ class HybridSLAMConfig:
     truncation (None: until the end of the path). ``n_steps``: cut the path to this many
     iterations (None: the whole path). ``features``: the observation's interface features, in
     order (None: all of :data:`FEATURE_NAMES`). Reward weights and cut-offs: see the module
-    docstring.
+    docstring. ``blas_threads``: the BLAS threads of the env's linear algebra (default 1, set
+    for each ``reset``/``step`` and restored after it; None: the process's own setting;
+    :mod:`filters.blas`).
     """
 
     scenario: str = "brooks-bailey"
@@ -215,6 +218,7 @@ class HybridSLAMConfig:
     map_cutoff_m: float = 5.0
     compute_clip_s: float = 2.0
     info_compute_time: bool = False
+    blas_threads: int | None = 1
 
     def __post_init__(self):
         require(
@@ -270,6 +274,7 @@ class HybridSLAMConfig:
             isinstance(self.info_compute_time, bool), "info_compute_time",
             self.info_compute_time, "True or False",
         )
+        check_blas_threads(self.blas_threads)
         # the scenario itself validates alpha/beta/overrides
         self.scenario_config()
 
@@ -361,6 +366,14 @@ class HybridSLAMEnv(gym.Env):
 
     # ------------------------------------------------------------------ gym API
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        with limited_blas_threads(self.config.blas_threads):
+            return self._reset(seed, options)
+
+    def step(self, action):
+        with limited_blas_threads(self.config.blas_threads):
+            return self._step(action)
+
+    def _reset(self, seed, options):
         super().reset(seed=seed)
         options = dict(options or {})
         unknown = sorted(set(options) - set(self.RESET_OPTIONS))
@@ -393,6 +406,7 @@ class HybridSLAMEnv(gym.Env):
             self.filter_rng,
             n_particles=self.config.n_particles,
             back_end=self.config.back_end,
+            back_blas_threads=self.config.blas_threads,
             **self._system_options(),
         )
         self.episode = Episode(self.system, self.stream)
@@ -409,7 +423,7 @@ class HybridSLAMEnv(gym.Env):
         info = self._info(features, dict.fromkeys(REWARD_COMPONENTS, 0.0), self._reset_nees)
         return self._observation(features), info
 
-    def step(self, action):
+    def _step(self, action):
         if self.episode is None:
             raise RuntimeError("call reset() before step()")
         if self.episode_ended is not None:

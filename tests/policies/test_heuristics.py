@@ -13,7 +13,9 @@ import policies
 from policies.base import INTERFACE_FEATURES
 from policies.heuristics import AGE_TOLERANCE_S
 
-HEURISTIC_NAMES = [n for n in policies.available() if n != "learned"]
+# the project's rules: not the learned policy, nor planners that plug in from slam_gym (lookahead)
+HEURISTIC_NAMES = [n for n in policies.available()
+                   if n != "learned" and policies.REGISTRY.source(n) == "built-in"]
 
 
 def features(**overrides: float) -> dict[str, float]:

@@ -139,7 +139,7 @@ def test_speed_tiny(tmp_path, capsys):
                             "--env-schedules", "fixed-10s-optimise,fuse-optimise-every-decision",
                             "--optimise-counts", "2,3", "--optimise-seeds", "0",
                             "--skip-paper-episode", "--skip-first-reset", "--skip-esdf",
-                            "--out", str(tmp_path)])
+                            "--full-path-episodes", "0", "--out", str(tmp_path)])
     rows = out["systems"]
     assert [r["n_particles"] for r in rows] == [10, 40]
     for r in rows:
@@ -149,7 +149,7 @@ def test_speed_tiny(tmp_path, capsys):
     assert out["env"] == out["env_runs"][-1] and out["env"]["decisions"] == 5
     assert all(e["resets"] >= 1 and e["decisions_per_s"] > 0 for e in out["env_runs"])
     assert "env_first_reset" not in out
-    assert "env_paper_episode" not in out
+    assert "env_paper_episode" not in out and "env_full_path" not in out
     schedules = out["env_schedules"]
     assert [e["schedule"] for e in schedules] == ["fixed-10s-optimise",
                                                   "fuse-optimise-every-decision"]
@@ -176,6 +176,29 @@ def test_speed_times_exactly_one_whole_env_episode():
     # the first interval, every decision one more (the last one possibly cut short)
     assert 10 < e["iterations"] <= 95 and e["decisions"] == -(-(e["iterations"] - 10) // 10)
     assert e["cpu_time_s"] > 0 and e["n_particles"] == 10
+
+
+def test_speed_full_path_figures_leave_failed_episodes_out():
+    from slam_gym.commands.speed import measure_full_path, record_figures
+    from slam_gym.commands.speed_record import figure
+
+    row = measure_full_path("fixed-10s-optimise", 1, n_particles=30, n_steps=420)
+    assert row["full_path_episodes"] == 1 and row["decisions"] == 41
+    assert row["decisions_per_s"] > 0 and row["cpu_time_s"] > 0
+    # fused and optimised every 100 iterations: the last optimisation over all 4 sub-maps
+    assert row["last_optimisation_submaps"] == 4 and row["last_optimisation_ms"] > 0
+    assert row["last_optimisation_variables"] > 3 * 4
+    # one particle fails at once: every seed tried is counted as failed, no figure
+    none = measure_full_path("fixed-10s", 1, n_particles=1, seeds=(0, 1), clutter_level=3,
+                             n_steps=420)
+    assert none["full_path_episodes"] == 0 and none["failed_episodes"] == 2
+    assert none["decisions_per_s"] is None and none["last_optimisation_ms"] is None
+    figures = record_figures({"env_full_path": [row, none]})
+    assert figures == {
+        "env_full_path_fixed_10s_optimise_decisions_per_s": figure(row["decisions_per_s"],
+                                                                   "decisions/s", True),
+        "optimise_last_full_path_ms": figure(row["last_optimisation_ms"], "ms", False),
+    }
 
 
 def test_benchmark_where_every_run_fails_still_writes_its_table(tmp_path, capsys):
@@ -244,7 +267,8 @@ def test_speed_compare_exits_1_against_a_much_faster_baseline(tmp_path, capsys):
     args = ["speed", "--systems", "hybrid", "--particles", "10", "--clutter-levels", "1",
             "--iterations", "40", "--env-decisions", "3", "--env-particles", "",
             "--env-schedules", "fixed-10s", "--optimise-counts", "", "--skip-paper-episode",
-            "--skip-first-reset", "--skip-esdf", "--out", str(tmp_path), "--json"]
+            "--skip-first-reset", "--skip-esdf", "--full-path-episodes", "0",
+            "--out", str(tmp_path), "--json"]
     assert main(args) == 0
     measured = json.loads(capsys.readouterr().out)
     assert "record" not in measured  # a record only with --quick or --compare

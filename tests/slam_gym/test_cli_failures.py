@@ -275,8 +275,7 @@ def test_distinct_long_policy_names_stay_distinct_in_the_console_table():
 
     from rich.console import Console
 
-    from slam_gym.evaluation import format_table
-    from slam_gym.evaluation.summary import summary_document
+    from slam_gym.evaluation.summary import format_table, summary_document
 
     def row(name, seed):
         return {"policy": name, "scenario": "brooks-bailey", "clutter_level": 2, "seed": seed,
