@@ -440,3 +440,101 @@ def test_the_ray_executor_stops_a_run_over_its_time_limit(tmp_path):
     assert time.monotonic() - t0 < 300
     assert [r["status"] for r in rows] == ["ok", "error"]
     assert "per-run limit of 5 s" in rows[1]["error"]
+
+
+# slam-gym front and slam-gym threshold-rule: the same exit codes as slam-gym benchmark.
+
+FRONT_TINY = ["--prices", "10", "--seeds", "1", "--clutter-levels", "2", "--particles", "10",
+              "--n-steps", "150", "--executor", "serial", "--quiet"]
+
+
+def front_cli(out, rules, *extra):
+    from policies.learned import DEFAULT_MODEL_PATH
+
+    return main(["front", "--model", str(DEFAULT_MODEL_PATH), "--rules", rules, *FRONT_TINY,
+                 "--out", str(out), *extra])
+
+
+def test_front_with_error_rows_prints_its_tables_and_exits_3_or_0_with_allow_errors(
+        user_dir, tmp_path, capsys):
+    """A raising rule beside the reference: its run is an error row, it is left out of the
+    comparison (the reference and the learned policy are still paired), the tables print, and
+    the command exits 3; the same command with --allow-errors exits 0."""
+    write_module(user_dir, "front_rule", RAISING.replace("BODY", "raise KeyError('speed')"))
+    out = tmp_path / "front"
+    rules = "fixed-10s-optimise,front_rule:Rule"
+    assert front_cli(out, rules) == EXIT_RUN_ERRORS
+    captured = capsys.readouterr()
+    assert "not compared" in captured.out and "front_rule:Rule" in captured.out
+    assert "wrote" in captured.out  # the summary printed
+    err = captured.err.strip().splitlines()[-1]
+    assert "1 of 3 runs failed" in err and "KeyError" in err and "--allow-errors" in err
+    doc = json.loads((out / "front.json").read_text())
+    assert doc["by_price"]["10"]["not_compared"] == ["front_rule:Rule"]
+    assert set(doc["by_price"]["10"]["policies"]) == {"fixed-10s-optimise", "learned @ 10/s"}
+    assert [r["status"] for r in read_results(out / "rules")] == ["ok", "error"]
+
+    assert front_cli(out, rules, "--allow-errors") == 0
+    assert "exit 0 (--allow-errors)" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("option, field", [
+    (["--particles", "-3"], "n_particles=-3"),
+    (["--seeds", "0"], "trials=0"),
+    (["--run-timeout-s", "0"], "run_timeout_s=0"),
+    (["--workers", "4"], "--workers 4 is invalid with --executor serial"),
+    (["--compare-model", "no-such-model.zip"], "compare_model="),
+])
+def test_front_rejects_invalid_options_with_exit_2_before_any_run(tmp_path, capsys, option,
+                                                                  field):
+    out = tmp_path / "front"
+    assert front_cli(out, "fixed-10s-optimise", *option) == 2
+    assert field in one_line(capsys.readouterr().err)
+    assert not list(out.rglob("results.jsonl"))
+
+
+THRESHOLD_TINY = ["--seeds", "0", "--clutter-levels", "2", "--particles", "10", "--n-steps",
+                  "150", "--executor", "serial", "--prices", "1,50", "--quiet"]
+
+
+def test_threshold_rule_with_error_rows_chooses_among_finished_rules_and_exits_3(
+        user_dir, tmp_path, capsys, monkeypatch):
+    """A candidate that raises (the grid cut to the family's two ends and that rule): it is
+    neither scored nor chosen, the table and choice print, and the command exits 3; with
+    --allow-errors, 0."""
+    import policies
+    from slam_gym.commands import threshold_rule
+
+    write_module(user_dir, "threshold_raising", RAISING.replace("BODY", "raise KeyError('x')"))
+    names = ("fixed-10s", "fixed-10s-optimise", "threshold_raising:Rule")
+    monkeypatch.setattr(threshold_rule, "candidates",
+                        lambda: {name: policies.make(name) for name in names})
+    out = tmp_path / "tr"
+    argv = ["threshold-rule", *THRESHOLD_TINY, "--out", str(out)]
+    assert main(argv) == EXIT_RUN_ERRORS
+    captured = capsys.readouterr()
+    assert "not scored (rules with error rows): threshold_raising:Rule (1)" in captured.out
+    assert "price 50:" in captured.out and "wrote" in captured.out
+    assert "1 of 3 runs failed" in captured.err.strip().splitlines()[-1]
+    doc = json.loads((out / "chosen.json").read_text())
+    assert doc["not_scored"] == {"threshold_raising:Rule": 1}
+    assert [c["rule"] for c in doc["candidates"]] == ["fixed-10s", "fixed-10s-optimise"]
+    assert {c["rule"] for c in doc["chosen"].values()} <= {"fixed-10s", "fixed-10s-optimise"}
+
+    assert main([*argv, "--allow-errors"]) == 0
+    assert "exit 0 (--allow-errors)" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("option, field", [
+    (["--particles", "-3"], "n_particles=-3"),
+    (["--n-steps", "0"], "n_steps=0"),
+    (["--run-timeout-s", "0"], "run_timeout_s=0"),
+    (["--workers", "4"], "--workers 4 is invalid with --executor serial"),
+    (["--ray-address", "auto"], "--ray-address auto is invalid with --executor serial"),
+])
+def test_threshold_rule_rejects_invalid_options_with_exit_2_before_any_run(tmp_path, capsys,
+                                                                           option, field):
+    out = tmp_path / "tr"
+    assert main(["threshold-rule", *THRESHOLD_TINY, "--out", str(out), *option]) == 2
+    assert field in one_line(capsys.readouterr().err)
+    assert not (out / "results.jsonl").exists()
