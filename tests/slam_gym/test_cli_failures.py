@@ -446,13 +446,19 @@ def test_the_ray_executor_stops_a_run_over_its_time_limit(tmp_path):
 
 FRONT_TINY = ["--prices", "10", "--seeds", "1", "--clutter-levels", "2", "--particles", "10",
               "--n-steps", "150", "--executor", "serial", "--quiet"]
+THRESHOLD_TINY = ["--seeds", "0", "--clutter-levels", "2", "--particles", "10", "--n-steps",
+                  "150", "--executor", "serial", "--prices", "1,50", "--quiet"]
 
 
-def front_cli(out, rules, *extra):
+def front_argv(out, rules="fixed-10s-optimise"):
     from policies.learned import DEFAULT_MODEL_PATH
 
-    return main(["front", "--model", str(DEFAULT_MODEL_PATH), "--rules", rules, *FRONT_TINY,
-                 "--out", str(out), *extra])
+    return ["front", "--model", str(DEFAULT_MODEL_PATH), "--rules", rules, *FRONT_TINY,
+            "--out", str(out)]
+
+
+def threshold_rule_argv(out):
+    return ["threshold-rule", *THRESHOLD_TINY, "--out", str(out)]
 
 
 def test_front_with_error_rows_prints_its_tables_and_exits_3_or_0_with_allow_errors(
@@ -462,8 +468,8 @@ def test_front_with_error_rows_prints_its_tables_and_exits_3_or_0_with_allow_err
     the command exits 3; the same command with --allow-errors exits 0."""
     write_module(user_dir, "front_rule", RAISING.replace("BODY", "raise KeyError('speed')"))
     out = tmp_path / "front"
-    rules = "fixed-10s-optimise,front_rule:Rule"
-    assert front_cli(out, rules) == EXIT_RUN_ERRORS
+    argv = front_argv(out, rules="fixed-10s-optimise,front_rule:Rule")
+    assert main(argv) == EXIT_RUN_ERRORS
     captured = capsys.readouterr()
     assert "not compared" in captured.out and "front_rule:Rule" in captured.out
     assert "wrote" in captured.out  # the summary printed
@@ -474,27 +480,8 @@ def test_front_with_error_rows_prints_its_tables_and_exits_3_or_0_with_allow_err
     assert set(doc["by_price"]["10"]["policies"]) == {"fixed-10s-optimise", "learned @ 10/s"}
     assert [r["status"] for r in read_results(out / "rules")] == ["ok", "error"]
 
-    assert front_cli(out, rules, "--allow-errors") == 0
+    assert main([*argv, "--allow-errors"]) == 0
     assert "exit 0 (--allow-errors)" in capsys.readouterr().err
-
-
-@pytest.mark.parametrize("option, field", [
-    (["--particles", "-3"], "n_particles=-3"),
-    (["--seeds", "0"], "trials=0"),
-    (["--run-timeout-s", "0"], "run_timeout_s=0"),
-    (["--workers", "4"], "--workers 4 is invalid with --executor serial"),
-    (["--compare-model", "no-such-model.zip"], "compare_model="),
-])
-def test_front_rejects_invalid_options_with_exit_2_before_any_run(tmp_path, capsys, option,
-                                                                  field):
-    out = tmp_path / "front"
-    assert front_cli(out, "fixed-10s-optimise", *option) == 2
-    assert field in one_line(capsys.readouterr().err)
-    assert not list(out.rglob("results.jsonl"))
-
-
-THRESHOLD_TINY = ["--seeds", "0", "--clutter-levels", "2", "--particles", "10", "--n-steps",
-                  "150", "--executor", "serial", "--prices", "1,50", "--quiet"]
 
 
 def test_threshold_rule_with_error_rows_chooses_among_finished_rules_and_exits_3(
@@ -510,8 +497,7 @@ def test_threshold_rule_with_error_rows_chooses_among_finished_rules_and_exits_3
     monkeypatch.setattr(threshold_rule, "candidates",
                         lambda: {name: policies.make(name) for name in names})
     out = tmp_path / "tr"
-    argv = ["threshold-rule", *THRESHOLD_TINY, "--out", str(out)]
-    assert main(argv) == EXIT_RUN_ERRORS
+    assert main(threshold_rule_argv(out)) == EXIT_RUN_ERRORS
     captured = capsys.readouterr()
     assert "not scored (rules with error rows): threshold_raising:Rule (1)" in captured.out
     assert "price 50:" in captured.out and "wrote" in captured.out
@@ -521,20 +507,26 @@ def test_threshold_rule_with_error_rows_chooses_among_finished_rules_and_exits_3
     assert [c["rule"] for c in doc["candidates"]] == ["fixed-10s", "fixed-10s-optimise"]
     assert {c["rule"] for c in doc["chosen"].values()} <= {"fixed-10s", "fixed-10s-optimise"}
 
-    assert main([*argv, "--allow-errors"]) == 0
+    assert main([*threshold_rule_argv(out), "--allow-errors"]) == 0
     assert "exit 0 (--allow-errors)" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("option, field", [
-    (["--particles", "-3"], "n_particles=-3"),
-    (["--n-steps", "0"], "n_steps=0"),
-    (["--run-timeout-s", "0"], "run_timeout_s=0"),
-    (["--workers", "4"], "--workers 4 is invalid with --executor serial"),
-    (["--ray-address", "auto"], "--ray-address auto is invalid with --executor serial"),
+@pytest.mark.parametrize("argv_of, option, field", [
+    (front_argv, ["--particles", "-3"], "n_particles=-3"),
+    (front_argv, ["--seeds", "0"], "trials=0"),
+    (front_argv, ["--run-timeout-s", "0"], "run_timeout_s=0"),
+    (front_argv, ["--workers", "4"], "--workers 4 is invalid with --executor serial"),
+    (front_argv, ["--compare-model", "no-such-model.zip"], "compare_model="),
+    (threshold_rule_argv, ["--particles", "-3"], "n_particles=-3"),
+    (threshold_rule_argv, ["--n-steps", "0"], "n_steps=0"),
+    (threshold_rule_argv, ["--run-timeout-s", "0"], "run_timeout_s=0"),
+    (threshold_rule_argv, ["--workers", "4"], "--workers 4 is invalid with --executor serial"),
+    (threshold_rule_argv, ["--ray-address", "auto"],
+     "--ray-address auto is invalid with --executor serial"),
 ])
-def test_threshold_rule_rejects_invalid_options_with_exit_2_before_any_run(tmp_path, capsys,
-                                                                           option, field):
-    out = tmp_path / "tr"
-    assert main(["threshold-rule", *THRESHOLD_TINY, "--out", str(out), *option]) == 2
+def test_front_and_threshold_rule_reject_invalid_options_with_exit_2_before_any_run(
+        tmp_path, capsys, argv_of, option, field):
+    out = tmp_path / "out"
+    assert main([*argv_of(out), *option]) == 2
     assert field in one_line(capsys.readouterr().err)
-    assert not (out / "results.jsonl").exists()
+    assert not list(out.rglob("results.jsonl"))
