@@ -30,6 +30,7 @@ import filters.submap as submap
 import policies
 import slam_gym.envs.hybrid_slam as hybrid_slam
 import slam_gym.episode as episode
+from slam_gym.evaluation.core import play_decisions
 
 PIECES = (
     (fastslam, "scan_update", "compiled scan (FastSLAM kernel)"),
@@ -78,19 +79,13 @@ def main(argv: list[str]) -> int:
             break
     seconds.clear()
     calls.clear()
-    seed = 0
-    obs, info = env.reset(seed=seed)
+    obs, info = env.reset(seed=0)
     policy.reset()
     start = time.perf_counter()
-    for _ in range(n_decisions):
-        obs, _, terminated, truncated, info = env.step(policy.act(obs, info))
-        if terminated or truncated:
-            seed += 1
-            policy.reset()
-            obs, info = env.reset(seed=seed)
+    n_worlds = play_decisions(env, policy, obs, info, n_decisions, seed=0)
     wall_s = time.perf_counter() - start
     print(f"{name}: {n_decisions} decisions in {wall_s:.2f} s wall "
-          f"({n_decisions / wall_s:.1f} decisions/s under the timers), {seed + 1} worlds")
+          f"({n_decisions / wall_s:.1f} decisions/s under the timers), {n_worlds} worlds")
     for label, s in sorted(seconds.items(), key=lambda kv: -kv[1]):
         print(f"  {label:36s} {s / n_decisions * 1e3:7.3f} ms a decision  "
               f"{s / wall_s * 100:5.1f} %  ({calls[label] / n_decisions:.2f} calls a decision)")

@@ -28,6 +28,7 @@ _START_CPU_S = time.process_time()
 
 import policies  # noqa: E402
 from slam_gym.envs.hybrid_slam import HybridSLAMEnv  # noqa: E402
+from slam_gym.evaluation.core import play_decisions  # noqa: E402
 
 
 def main(argv: list[str]) -> int:
@@ -39,19 +40,13 @@ def main(argv: list[str]) -> int:
     n_decisions, name = args.decisions, args.policy
     env = HybridSLAMEnv(n_particles=500, clutter_level=2)
     policy = policies.make(name)
-    seed = 0
     policy.reset()
-    obs, info = env.reset(seed=seed)
-    for _ in range(n_decisions):
-        obs, _, terminated, truncated, info = env.step(policy.act(obs, info))
-        if terminated or truncated:
-            seed += 1
-            policy.reset()
-            obs, info = env.reset(seed=seed)
+    obs, info = env.reset(seed=0)
+    n_worlds = play_decisions(env, policy, obs, info, n_decisions, seed=0)
     decisions_cpu_s = time.process_time() - imported_cpu_s
     print(
         f"import_cpu_s {imported_cpu_s - _START_CPU_S:.3f} decisions_cpu_s {decisions_cpu_s:.3f} "
-        f"decisions_per_cpu_s {n_decisions / decisions_cpu_s:.1f} ({name}, {seed + 1} worlds)"
+        f"decisions_per_cpu_s {n_decisions / decisions_cpu_s:.1f} ({name}, {n_worlds} worlds)"
     )
     return 0
 

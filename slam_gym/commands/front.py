@@ -16,6 +16,11 @@ interface CPU), with the benchmark's rows under ``OUT/rules`` and ``OUT/learned-
 ``OUT/compared-<price>``; e.g. a feed-forward PPO beside a recurrent one): it joins the tables
 and the figure, and per price the first model is paired with it world by world (success, map
 error, interface CPU, return: ``by_price[p]["against_compared"]`` and a table in ``front.md``).
+
+The run options are ``slam-gym benchmark``'s (``--workers``, ``--executor``, ``--retry-errors``,
+``--run-timeout-s``, ...), checked before any run (exit 2). A policy with error rows is left out of
+the comparisons (``by_price[p]["not_compared"]``; every policy when the reference has any), the
+tables still print, and the command exits 3 unless ``--allow-errors`` is given.
 """
 
 from __future__ import annotations
@@ -24,8 +29,15 @@ import json
 from pathlib import Path
 from typing import Any
 
-from slam_gym.commands.common import add_common_options, emit, out_dir
-from slam_gym.commands.runs import int_list, name_list
+from slam_gym.commands.common import emit, out_dir
+from slam_gym.commands.runs import (
+    add_run_options,
+    check_run_options,
+    errors_exit_code,
+    int_list,
+    name_list,
+    run_options,
+)
 
 REFERENCE = "fixed-10s-optimise"
 DEFAULT_RULES = "fixed-10s,fixed-10s-optimise,esdf-innovation"
@@ -49,12 +61,10 @@ def add_parser(subparsers) -> None:
     p.add_argument("--threshold-rules", default=None,
                    help="chosen.json of `slam-gym threshold-rule` (the best rule per price)")
     p.add_argument("--clutter-levels", default="0,1,2,3")
-    p.add_argument("--seeds", type=int, default=20, help="worlds per level")
-    p.add_argument("--seed-start", type=int, default=400)
     p.add_argument("--particles", type=int, default=500)
     p.add_argument("--n-steps", type=int, default=None, help="cut every path (quick looks)")
-    p.add_argument("--workers", type=int, default=2)
-    add_common_options(p, default_out="out/front")
+    add_run_options(p, default_out="out/front", trials_flag="--seeds")
+    p.set_defaults(seed_start=400)
     p.set_defaults(run=run)
 
 
@@ -70,6 +80,7 @@ def run(args) -> int:
     import policies
     from filters.validation import require
     from slam_gym.evaluation import benchmark
+    from slam_gym.evaluation.benchmarking import resolve_policies
     from slam_gym.evaluation.front import compare, goal, plot_front
     from slam_gym.evaluation.summary import group_provenance, provenance_footnote
 
@@ -77,6 +88,7 @@ def run(args) -> int:
     require(bool(prices), "prices", args.prices, "at least one price")
     rule_names = name_list(args.rules)
     require(REFERENCE in rule_names, "rules", args.rules, f"a list including {REFERENCE}")
+    check_run_options(args)
     chosen = _threshold_rules(args.threshold_rules)
     rules: dict[str, Any] = {name: policies.make(name) for name in rule_names}
     for c in chosen.values():
@@ -85,12 +97,20 @@ def run(args) -> int:
                                              threshold=float(c["threshold"]))
         elif c["rule"] not in rules:  # an end of the family: fixed-10s or fixed-10s-optimise
             rules[c["rule"]] = policies.make(c["rule"])
+    model = str(Path(args.model).expanduser().resolve())
+    other = (None if args.compare_model is None
+             else str(Path(args.compare_model).expanduser().resolve()))
+    for field, path in (("model", model), ("compare_model", other)):
+        if path is not None:  # a missing or broken model fails before the rules run
+            try:
+                resolve_policies(["learned"], path)
+            except FileNotFoundError as exc:
+                raise ValueError(f"{field}={path!r} is invalid: {exc}") from exc
     out = out_dir(args)
-    common = dict(clutter_levels=int_list(args.clutter_levels), seeds=args.seeds,
+    common = dict(clutter_levels=int_list(args.clutter_levels), seeds=args.trials,
                   seed_start=args.seed_start, n_particles=args.particles, n_steps=args.n_steps,
                   compute_clip_s=args.compute_clip_s, baselines=[], figures=False,
-                  workers=args.workers, executor="process" if args.workers > 1 else "serial",
-                  progress=not args.quiet and not args.json)
+                  **run_options(args))
     rule_rows = benchmark(rules, w_compute=args.run_price, out=out / "rules", **common).rows
     by_rule = {name: [r for r in rule_rows if r["policy"] == name] for name in rules}
 
@@ -99,10 +119,7 @@ def run(args) -> int:
                                  out=out / f"{prefix}-{price:g}", **common).rows
                 for price in prices}
 
-    model = str(Path(args.model).expanduser().resolve())
     learned_rows = rows_at_every_price(model, "learned")
-    other = (None if args.compare_model is None
-             else str(Path(args.compare_model).expanduser().resolve()))
     compared_rows = {} if other is None else rows_at_every_price(other, "compared")
 
     reference = by_rule[REFERENCE]
@@ -114,7 +131,7 @@ def run(args) -> int:
     stale = provenance.get("model_matches_code") is False
     compared_stale = compared_provenance.get("model_matches_code") is False
     doc: dict[str, Any] = {"model": model, "compared_model": other, "prices": prices,
-                           "seeds": args.seeds,
+                           "seeds": args.trials,
                            "seed_start": args.seed_start, "compute_clip_s": args.compute_clip_s,
                            **provenance, "by_price": {}}
     if other is not None:
@@ -124,24 +141,34 @@ def run(args) -> int:
     for price in prices:
         best = chosen.get(f"{price:g}", {}).get("rule")
         best_rows = by_rule.get(best) if best else None
+        if best_rows is not None and not _finished(best_rows):
+            best = best_rows = None  # no return differences against a rule with failed runs
         table = {}
         learned_name = f"{args.label} @ {price:g}/s"
         compared_name = f"{args.compare_label} @ {price:g}/s"
         runs = [*by_rule.items(), (learned_name, learned_rows[price])]
         if other is not None:
             runs.append((compared_name, compared_rows[price]))
+        not_compared = []  # every policy when the reference itself has failed runs
         for name, rows in runs:
-            table[name] = compare(rows, reference, price, return_reference=best_rows)
-        learned = table[learned_name]
-        verdict = goal(learned) if best_rows is not None else None
+            if _finished(rows) and _finished(reference):
+                table[name] = compare(rows, reference, price, return_reference=best_rows)
+            else:
+                not_compared.append(name)
+        learned = table.get(learned_name)
+        verdict = goal(learned) if best_rows is not None and learned is not None else None
         doc["by_price"][f"{price:g}"] = {"best_threshold_rule": best, "policies": table,
-                                         "goal": verdict}
+                                         "goal": verdict, "not_compared": not_compared}
         marked = {learned_name} if stale else set()
         marked |= {compared_name} if compared_stale else set()
         lines += [f"\n### Price {price:g} /s (return differences against {best or 'n/a'})\n",
                   _markdown(table, marked=marked), f"goal: {verdict}"]
-        points.append({"label": learned_name, "learned": True, **learned})
-        if other is not None:
+        if not_compared:
+            lines.append(f"not compared (some of their runs, or {REFERENCE}'s, are error rows): "
+                         f"{', '.join(not_compared)}")
+        if learned is not None:
+            points.append({"label": learned_name, "learned": True, **learned})
+        if learned is not None and compared_name in table:
             against = compare(learned_rows[price], compared_rows[price], price)
             doc["by_price"][f"{price:g}"]["against_compared"] = against
             lines += [f"\n{args.label} - {args.compare_label} @ {price:g}/s (paired, 95 %): "
@@ -156,15 +183,24 @@ def run(args) -> int:
     footnote = provenance_footnote([provenance, compared_provenance])
     lines += ["", footnote] if footnote else []
     ref_at = doc["by_price"][f"{prices[0]:g}"]["policies"]
-    points = [{"label": name, **ref_at[name]} for name in rules] + points
-    figure = plot_front(points, out / "front.png", title=(
-        f"Learned policy at prices {', '.join(f'{p:g}' for p in prices)} /s and the rules: "
-        f"{args.seeds} worlds per level from seed {args.seed_start} "
-        f"(bars: paired 95 % interval against {REFERENCE})"))
+    points = [{"label": name, **ref_at[name]} for name in rules if name in ref_at] + points
+    written = ["front.json", "front.md"]
+    if points:
+        written.append(plot_front(points, out / "front.png", title=(
+            f"Learned policy at prices {', '.join(f'{p:g}' for p in prices)} /s and the rules: "
+            f"{args.trials} worlds per level from seed {args.seed_start} "
+            f"(bars: paired 95 % interval against {REFERENCE})")).name)
     (out / "front.json").write_text(json.dumps(doc, indent=2, default=float) + "\n")
     (out / "front.md").write_text("\n".join(lines).lstrip() + "\n")
-    emit(args, doc, [*lines, f"wrote {out}/front.json, front.md, {figure.name}"])
-    return 0
+    emit(args, doc, [*lines, f"wrote {out}/{', '.join(written)}"])
+    every_row = [*rule_rows, *(r for rows in (*learned_rows.values(), *compared_rows.values())
+                               for r in rows)]
+    return errors_exit_code(args, every_row, where=f"{out}/*/results.jsonl")
+
+
+def _finished(rows) -> bool:
+    """Whether every run of a policy finished (no error row): only such runs are paired."""
+    return all(r.get("status") == "ok" for r in rows)
 
 
 def _fmt_ci(ci, digits=0) -> str:

@@ -1,4 +1,5 @@
-"""Options and steps shared by the commands that run many jobs (reproduce, benchmark)."""
+"""Options and steps shared by the commands that run many jobs (reproduce, benchmark, front,
+threshold-rule)."""
 
 from __future__ import annotations
 
@@ -49,10 +50,13 @@ def name_list(text: str) -> list[str]:
     return [v.strip() for v in text.split(",") if v.strip()]
 
 
-def add_run_options(parser, default_out: str, *, trials_flag: str = "--trials") -> None:
-    parser.add_argument(trials_flag, dest="trials", type=int, default=20, action=Given,
-                        help="runs per configuration (seeds)")
-    parser.add_argument("--seed-start", type=int, default=0, help="first seed")
+def add_run_options(parser, default_out: str, *, trials_flag: str | None = "--trials") -> None:
+    """The run options; ``trials_flag`` None leaves out the number of worlds and the first seed
+    (for a command that takes its own list of seeds)."""
+    if trials_flag is not None:
+        parser.add_argument(trials_flag, dest="trials", type=int, default=20, action=Given,
+                            help="runs per configuration (seeds)")
+        parser.add_argument("--seed-start", type=int, default=0, help="first seed")
     parser.add_argument("--workers", type=int, default=None, action=Given,
                         help="parallel worker processes (default: all cores; not with "
                         "--executor serial)")
@@ -81,7 +85,7 @@ def check_run_options(args) -> None:
     import math
     import os
 
-    if args.trials < 1:
+    if getattr(args, "trials", None) is not None and args.trials < 1:
         raise ValueError(f"trials={args.trials} is invalid: must be >= 1")
     if args.workers is not None and args.workers < 1:
         raise ValueError(f"workers={args.workers} is invalid: must be >= 1")
@@ -111,15 +115,17 @@ def run_options(args) -> dict:
     }
 
 
-def errors_exit_code(args, rows) -> int:
+def errors_exit_code(args, rows, where: str | None = None) -> int:
     """0, or :data:`EXIT_RUN_ERRORS` with a line on stderr when some rows are errors and
-    ``--allow-errors`` is not given (after the summary was printed)."""
+    ``--allow-errors`` is not given (after the summary was printed). ``where``: the results
+    files the line names (default ``--out``'s ``results.jsonl``)."""
     errors = [r for r in rows if r.get("status") == "error"]
     if not errors:
         return 0
     first = errors[0].get("error") or "?"
+    where = where or f"{args.out}/results.jsonl"
     line = (f"slam-gym {args.command}: {len(errors)} of {len(rows)} runs failed (error rows in "
-            f"{args.out}/results.jsonl; the first: {first[:160]})")
+            f"{where}; the first: {first[:160]})")
     if getattr(args, "allow_errors", False):
         print(f"{line}; exit 0 (--allow-errors)", file=sys.stderr)
         return 0

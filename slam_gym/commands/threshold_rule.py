@@ -13,6 +13,11 @@ price is chosen.
 Writes ``OUT/results.jsonl`` (the benchmark's rows, resumable), ``OUT/candidates.md`` (every rule's
 mean return per price, success, map error, optimisations, interface CPU) and ``OUT/chosen.json``
 (per price: the chosen rule's feature, threshold and mean return).
+
+The run options are ``slam-gym benchmark``'s (``--workers``, ``--executor``, ``--retry-errors``,
+``--run-timeout-s``, ...), checked before any run (exit 2). A rule with error rows is neither
+scored nor chosen (``chosen.json``'s ``not_scored``; no rule is chosen at a price when none
+finished all its runs), and the command exits 3 unless ``--allow-errors`` is given.
 """
 
 from __future__ import annotations
@@ -25,8 +30,14 @@ from typing import Any
 
 import numpy as np
 
-from slam_gym.commands.common import add_common_options, emit, out_dir
-from slam_gym.commands.runs import int_list
+from slam_gym.commands.common import emit, out_dir
+from slam_gym.commands.runs import (
+    add_run_options,
+    check_run_options,
+    errors_exit_code,
+    int_list,
+    run_options,
+)
 from slam_gym.evaluation.front import interface_cpu_s, return_at_price
 
 DEFAULT_GRID: Mapping[str, tuple[float, ...]] = {
@@ -56,8 +67,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--clutter-levels", default="0,1,2,3")
     p.add_argument("--particles", type=int, default=500)
     p.add_argument("--n-steps", type=int, default=None, help="cut every path (quick looks)")
-    p.add_argument("--workers", type=int, default=2)
-    add_common_options(p, default_out="out/threshold-rule")
+    add_run_options(p, default_out="out/threshold-rule", trials_flag=None)
     p.set_defaults(run=run)
 
 
@@ -79,14 +89,15 @@ def rule_name(feature: str, threshold: float) -> str:
 
 
 def score(rows: Sequence[Mapping[str, Any]], prices: Sequence[float]) -> list[dict[str, Any]]:
-    """Per rule: mean return at every price and the benchmark's other means."""
+    """Per rule whose runs all finished (a rule with error rows is left out, see
+    :func:`not_scored`): mean return at every price and the benchmark's other means."""
     by_rule: dict[str, list[Mapping[str, Any]]] = {}
     for row in rows:
-        if row.get("status") != "ok":
-            raise RuntimeError(f"run {row.get('key')} failed: {row.get('error')}")
         by_rule.setdefault(row["policy"], []).append(row)
     table = []
     for name, group in by_rule.items():
+        if any(r.get("status") != "ok" for r in group):
+            continue
         survived = [r["map_error_m"] for r in group
                     if r["success"] and r.get("map_error_m") is not None]
         table.append({
@@ -102,12 +113,22 @@ def score(rows: Sequence[Mapping[str, Any]], prices: Sequence[float]) -> list[di
     return table
 
 
+def not_scored(rows: Sequence[Mapping[str, Any]]) -> dict[str, int]:
+    """Rule -> its number of error rows, for the rules :func:`score` leaves out."""
+    failed: dict[str, int] = {}
+    for row in rows:
+        if row.get("status") != "ok":
+            failed[row["policy"]] = failed.get(row["policy"], 0) + 1
+    return failed
+
+
 def choose(table: Sequence[Mapping[str, Any]], prices: Sequence[float],
            rules: Mapping[str, Any]) -> dict[str, Any]:
-    """Per price, the rule with the highest mean return (ties: the first in grid order)."""
+    """Per price, the rule with the highest mean return (ties: the first in grid order); none
+    from an empty table."""
     order = list(rules)
-    chosen = {}
-    for p in prices:
+    chosen: dict[str, Any] = {}
+    for p in prices if table else ():
         key = f"mean_return_at_{p:g}"
         best = max(table, key=lambda r: (r[key], -order.index(r["rule"])))
         options = getattr(rules[best["rule"]], "options", {})
@@ -140,24 +161,27 @@ def run(args) -> int:
     seeds = int_list(args.seeds)
     require(bool(seeds) and all(0 <= s < TRAINING_WORLD_SEED_OFFSET for s in seeds), "seeds",
             args.seeds, f"seeds in [0, {TRAINING_WORLD_SEED_OFFSET})")
+    check_run_options(args)
     out = out_dir(args)
     rules = candidates()
     result = benchmark(rules, clutter_levels=int_list(args.clutter_levels), seeds=seeds,
                        n_particles=args.particles, n_steps=args.n_steps,
                        w_compute=args.run_price, compute_clip_s=args.compute_clip_s,
-                       baselines=[], figures=False, out=out, workers=args.workers,
-                       executor="process" if args.workers > 1 else "serial",
-                       progress=not args.quiet and not args.json)
+                       baselines=[], figures=False, out=out, **run_options(args))
     table = score(result.rows, prices)
+    failed = not_scored(result.rows)
     table.sort(key=lambda r: list(rules).index(r["rule"]))
     chosen = choose(table, prices, rules)
     (Path(out) / "candidates.md").write_text(markdown(table, prices))
     doc = {"prices": prices, "run_price": args.run_price, "compute_clip_s": args.compute_clip_s,
            "seeds": seeds, "clutter_levels": int_list(args.clutter_levels), "chosen": chosen,
-           "candidates": table}
+           "candidates": table, "not_scored": failed}
     (Path(out) / "chosen.json").write_text(json.dumps(doc, indent=2) + "\n")
     emit(args, doc, [markdown(table, prices).rstrip(),
                      *[f"price {p}: {c['rule']} (mean return {c['mean_return']:.0f})"
                        for p, c in chosen.items()],
+                     *([f"not scored (rules with error rows): "
+                        f"{', '.join(f'{r} ({n})' for r, n in failed.items())}"]
+                       if failed else []),
                      f"wrote {out}/candidates.md, chosen.json"])
-    return 0
+    return errors_exit_code(args, result.rows)

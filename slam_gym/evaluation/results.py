@@ -54,24 +54,8 @@ RESULT_KEYS = (
 
 #: Keys every row has besides exactly one of ``system`` / ``policy`` (docs/ARCHITECTURE.md, "The
 #: command line and its output files").
-REQUIRED_ROW_KEYS = (
-    "scenario",
-    "clutter_level",
-    "alpha",
-    "beta",
-    "seed",
-    "status",
-    "error",
-    "success",
-    "failure_iteration",
-    "anees",
-    "nees_in_band_fraction",
-    "map_error_m",
-    "final_pose_error_m",
-    "n_fusions",
-    "n_optimisations",
-    "wall_time_s",
-)
+REQUIRED_ROW_KEYS = ("scenario", "clutter_level", "seed", "status", "error", *RESULT_KEYS,
+                     "wall_time_s")
 
 #: Keys the runner owns; a run function's result may not set them.
 RESERVED_KEYS = frozenset(

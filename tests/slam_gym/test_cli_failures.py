@@ -440,3 +440,93 @@ def test_the_ray_executor_stops_a_run_over_its_time_limit(tmp_path):
     assert time.monotonic() - t0 < 300
     assert [r["status"] for r in rows] == ["ok", "error"]
     assert "per-run limit of 5 s" in rows[1]["error"]
+
+
+# slam-gym front and slam-gym threshold-rule: the same exit codes as slam-gym benchmark.
+
+FRONT_TINY = ["--prices", "10", "--seeds", "1", "--clutter-levels", "2", "--particles", "10",
+              "--n-steps", "150", "--executor", "serial", "--quiet"]
+THRESHOLD_TINY = ["--seeds", "0", "--clutter-levels", "2", "--particles", "10", "--n-steps",
+                  "150", "--executor", "serial", "--prices", "1,50", "--quiet"]
+
+
+def front_argv(out, rules="fixed-10s-optimise"):
+    from policies.learned import DEFAULT_MODEL_PATH
+
+    return ["front", "--model", str(DEFAULT_MODEL_PATH), "--rules", rules, *FRONT_TINY,
+            "--out", str(out)]
+
+
+def threshold_rule_argv(out):
+    return ["threshold-rule", *THRESHOLD_TINY, "--out", str(out)]
+
+
+def test_front_with_error_rows_prints_its_tables_and_exits_3_or_0_with_allow_errors(
+        user_dir, tmp_path, capsys):
+    """A raising rule beside the reference: its run is an error row, it is left out of the
+    comparison (the reference and the learned policy are still paired), the tables print, and
+    the command exits 3; the same command with --allow-errors exits 0."""
+    write_module(user_dir, "front_rule", RAISING.replace("BODY", "raise KeyError('speed')"))
+    out = tmp_path / "front"
+    argv = front_argv(out, rules="fixed-10s-optimise,front_rule:Rule")
+    assert main(argv) == EXIT_RUN_ERRORS
+    captured = capsys.readouterr()
+    assert "not compared" in captured.out and "front_rule:Rule" in captured.out
+    assert "wrote" in captured.out  # the summary printed
+    err = captured.err.strip().splitlines()[-1]
+    assert "1 of 3 runs failed" in err and "KeyError" in err and "--allow-errors" in err
+    doc = json.loads((out / "front.json").read_text())
+    assert doc["by_price"]["10"]["not_compared"] == ["front_rule:Rule"]
+    assert set(doc["by_price"]["10"]["policies"]) == {"fixed-10s-optimise", "learned @ 10/s"}
+    assert [r["status"] for r in read_results(out / "rules")] == ["ok", "error"]
+
+    assert main([*argv, "--allow-errors"]) == 0
+    assert "exit 0 (--allow-errors)" in capsys.readouterr().err
+
+
+def test_threshold_rule_with_error_rows_chooses_among_finished_rules_and_exits_3(
+        user_dir, tmp_path, capsys, monkeypatch):
+    """A candidate that raises (the grid cut to the family's two ends and that rule): it is
+    neither scored nor chosen, the table and choice print, and the command exits 3; with
+    --allow-errors, 0."""
+    import policies
+    from slam_gym.commands import threshold_rule
+
+    write_module(user_dir, "threshold_raising", RAISING.replace("BODY", "raise KeyError('x')"))
+    names = ("fixed-10s", "fixed-10s-optimise", "threshold_raising:Rule")
+    monkeypatch.setattr(threshold_rule, "candidates",
+                        lambda: {name: policies.make(name) for name in names})
+    out = tmp_path / "tr"
+    assert main(threshold_rule_argv(out)) == EXIT_RUN_ERRORS
+    captured = capsys.readouterr()
+    assert "not scored (rules with error rows): threshold_raising:Rule (1)" in captured.out
+    assert "price 50:" in captured.out and "wrote" in captured.out
+    assert "1 of 3 runs failed" in captured.err.strip().splitlines()[-1]
+    doc = json.loads((out / "chosen.json").read_text())
+    assert doc["not_scored"] == {"threshold_raising:Rule": 1}
+    assert [c["rule"] for c in doc["candidates"]] == ["fixed-10s", "fixed-10s-optimise"]
+    assert {c["rule"] for c in doc["chosen"].values()} <= {"fixed-10s", "fixed-10s-optimise"}
+
+    assert main([*threshold_rule_argv(out), "--allow-errors"]) == 0
+    assert "exit 0 (--allow-errors)" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv_of, option, field", [
+    (front_argv, ["--particles", "-3"], "n_particles=-3"),
+    (front_argv, ["--seeds", "0"], "trials=0"),
+    (front_argv, ["--run-timeout-s", "0"], "run_timeout_s=0"),
+    (front_argv, ["--workers", "4"], "--workers 4 is invalid with --executor serial"),
+    (front_argv, ["--compare-model", "no-such-model.zip"], "compare_model="),
+    (threshold_rule_argv, ["--particles", "-3"], "n_particles=-3"),
+    (threshold_rule_argv, ["--n-steps", "0"], "n_steps=0"),
+    (threshold_rule_argv, ["--run-timeout-s", "0"], "run_timeout_s=0"),
+    (threshold_rule_argv, ["--workers", "4"], "--workers 4 is invalid with --executor serial"),
+    (threshold_rule_argv, ["--ray-address", "auto"],
+     "--ray-address auto is invalid with --executor serial"),
+])
+def test_front_and_threshold_rule_reject_invalid_options_with_exit_2_before_any_run(
+        tmp_path, capsys, argv_of, option, field):
+    out = tmp_path / "out"
+    assert main([*argv_of(out), *option]) == 2
+    assert field in one_line(capsys.readouterr().err)
+    assert not list(out.rglob("results.jsonl"))

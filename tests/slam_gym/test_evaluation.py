@@ -621,3 +621,39 @@ def test_policy_runs_take_the_rewards_price_of_compute():
         assert pricier[key] == default[key]
     with pytest.raises(ValueError, match="w_compute"):
         run_job(Job("policy", "fixed-10s", "brooks-bailey", 1, 3, base | {"w_compute": -1.0}))
+
+
+def test_play_decisions_goes_on_to_the_next_world_at_each_episodes_end():
+    """On a 30-step path an episode lasts a few decisions (counted here first): twice that and
+    one more play worlds 0, 1 and 2 (reset in that order, the policy with each) and stop inside
+    world 2."""
+    import policies
+    from slam_gym.envs.hybrid_slam import HybridSLAMEnv
+    from slam_gym.evaluation.core import play_decisions
+
+    env = HybridSLAMEnv(n_particles=5, clutter_level=0, n_steps=30)
+    policy = policies.make("fixed-10s")
+    obs, info = env.reset(seed=0)
+    policy.reset()
+    per_episode, done = 0, False
+    while not done:
+        obs, _, terminated, truncated, info = env.step(policy.act(obs, info))
+        per_episode, done = per_episode + 1, terminated or truncated
+    assert per_episode >= 2
+
+    seeds, policy_resets = [], []
+    reset_env, reset_policy = env.reset, policy.reset
+
+    def spy_env_reset(*, seed=None, options=None):
+        seeds.append(seed)
+        return reset_env(seed=seed, options=options)
+
+    def spy_policy_reset():
+        policy_resets.append(len(seeds))
+        reset_policy()
+
+    env.reset, policy.reset = spy_env_reset, spy_policy_reset
+    obs, info = env.reset(seed=0)
+    policy.reset()
+    assert play_decisions(env, policy, obs, info, 2 * per_episode + 1, seed=0) == 3
+    assert seeds == [0, 1, 2] and policy_resets == [1, 1, 2]
