@@ -67,7 +67,7 @@ def one_line_error(exc: BaseException) -> tuple[str, int] | None:
     if isinstance(exc, KeyboardInterrupt):
         return (str(exc) or "interrupted; the runs finished so far are kept in --out's "
                 "results.jsonl: rerun the same command to resume"), EXIT_INTERRUPTED
-    if isinstance(exc, ValueError):
+    if isinstance(exc, (ValueError, FileNotFoundError)):  # a missing model names its path
         return str(exc), EXIT_USAGE
     if isinstance(exc, ResultsLockedError):
         return str(exc), EXIT_FAILED

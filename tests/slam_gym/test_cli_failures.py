@@ -530,3 +530,14 @@ def test_front_and_threshold_rule_reject_invalid_options_with_exit_2_before_any_
     assert main([*argv_of(out), *option]) == 2
     assert field in one_line(capsys.readouterr().err)
     assert not list(out.rglob("results.jsonl"))
+
+
+def test_a_missing_model_file_is_one_line_naming_it_and_exits_2(tmp_path, capsys):
+    from slam_gym.cli import main
+
+    code = main(["benchmark", "--policies", "learned", "--model", str(tmp_path / "nope.zip"),
+                 "--seeds", "1", "--n-steps", "30", "--particles", "5", "--clutter-levels", "0",
+                 "--baselines", "", "--quiet", "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "nope.zip" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
