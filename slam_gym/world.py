@@ -580,10 +580,8 @@ class RedrawnFuture:
                 if self.compass_std_rad is None:
                     z, ids, visible = next(scans)
                 else:
-                    z_true = (observe(step.truth.pose, self.landmarks) if len(self.landmarks)
-                              else np.zeros((0, 2)))
-                    z, ids, visible = _detect(z_true, np.flatnonzero(self.sensor.in_view(z_true)),
-                                              self.sensor, self.clutter, self.rng)
+                    z, ids, visible = scan(step.truth.pose, self.landmarks, self.sensor,
+                                           self.clutter, self.rng)
             if compass is not None and self.compass_std_rad is not None:
                 compass = float(wrap_angle(step.truth.pose[2]
                                            + self.compass_std_rad * self.rng.normal()))

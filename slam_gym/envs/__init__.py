@@ -32,12 +32,15 @@ RECORDED_ENV_VARIANTS: dict[str, tuple[str, dict]] = {
 
 #: the same system under another action space (a wrapper of the env): id -> (entry point, default
 #: keyword arguments); the time limit is the wrapped env's, which an action never exceeds
+INTERVAL_ENV_ID = "SlamGym/HybridSLAM-Interval-v0"
+"""One action per fusion (:mod:`slam_gym.envs.interval`)."""
+
 WRAPPED_ENV_VARIANTS: dict[str, tuple[str, dict]] = {
-    "SlamGym/HybridSLAM-Interval-v0": ("slam_gym.envs.interval:make_interval_env", {}),
+    INTERVAL_ENV_ID: ("slam_gym.envs.interval:make_interval_env", {}),
 }
 
 #: the id of the system each wrapped variant runs (its fingerprint and options are that id's)
-WRAPPED_SYSTEM_IDS: dict[str, str] = {"SlamGym/HybridSLAM-Interval-v0": "SlamGym/HybridSLAM-v0"}
+WRAPPED_SYSTEM_IDS: dict[str, str] = {INTERVAL_ENV_ID: "SlamGym/HybridSLAM-v0"}
 
 
 def system_env_id(env_id: str) -> str:

@@ -184,7 +184,9 @@ class RuleAction:
         self.rule = policies.make("fixed-10s-optimise")
 
     def __call__(self, info) -> np.ndarray:
-        if self.env_id == "SlamGym/HybridSLAM-Interval-v0":
+        from slam_gym.envs import INTERVAL_ENV_ID
+
+        if self.env_id == INTERVAL_ENV_ID:
             from slam_gym.envs.interval import RULE_ACTION
 
             return RULE_ACTION.copy()
@@ -251,7 +253,9 @@ def model_config(setup: TrainingSetup, vec, timesteps: int, **extra) -> dict[str
 def interval_config(env_id: str) -> dict[str, Any]:
     """For a model of the interval env: ``fusion_intervals_s``, which its first action indexes
     (:class:`policies.learned.LearnedPolicy` plays it in the per-decision env); else {}."""
-    if env_id != "SlamGym/HybridSLAM-Interval-v0":
+    from slam_gym.envs import INTERVAL_ENV_ID
+
+    if env_id != INTERVAL_ENV_ID:
         return {}
     from slam_gym.envs.interval import FUSION_INTERVALS_S
 

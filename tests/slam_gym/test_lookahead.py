@@ -89,10 +89,12 @@ def test_reseeded_futures_repeat_for_a_seed_and_differ_between_seeds():
                for p, q in zip(steps_a, env.stream.make_steps.steps, strict=False))
 
 
-def test_a_redrawn_future_from_the_worlds_own_generator_is_the_world_to_the_bit():
+@pytest.mark.parametrize("name", ["brooks-bailey", "brooks-bailey-compass"])
+def test_a_redrawn_future_from_the_worlds_own_generator_is_the_world_to_the_bit(name):
     """The redraw draws what the simulator draws, in its order: given the simulator's own sensor
-    generator it reproduces every scan of the world (across its lazy blocks)."""
-    scenario = get_scenario("brooks-bailey", clutter_level=2, n_steps=300)
+    generator it reproduces every scan (and compass reading) of the world, across its lazy
+    blocks."""
+    scenario = get_scenario(name, clutter_level=2, n_steps=300)
     world = simulate(scenario, 21)
     future = RedrawnFuture(world, 0, 99)
     future.rng = np.random.default_rng(np.random.SeedSequence(21).spawn(3)[2])
@@ -103,7 +105,7 @@ def test_a_redrawn_future_from_the_worlds_own_generator_is_the_world_to_the_bit(
         np.testing.assert_array_equal(r.z, o.z)
         np.testing.assert_array_equal(r.truth.landmark_ids, o.truth.landmark_ids)
         np.testing.assert_array_equal(r.odometry, o.odometry)
-        assert r.scanned == o.scanned and r.t_s == o.t_s
+        assert r.scanned == o.scanned and r.t_s == o.t_s and r.compass_rad == o.compass_rad
 
 
 def test_a_redrawn_future_keeps_the_path_and_redraws_the_scans():
