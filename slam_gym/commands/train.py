@@ -62,6 +62,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--eval-every", type=int, default=25_000, help="decisions between evaluations")
     p.add_argument("--eval-seeds", default=DEFAULT_EVAL_SEEDS,
                    help="evaluation worlds per level (seeds < 1e6, never trained on)")
+    p.add_argument("--baseline", default="fixed-10s-optimise",
+                   help="a policy evaluated once on the same worlds and options, drawn as a line "
+                        "beside the training curves and given in the summary ('none': skip)")
     p.add_argument("--eval-workers", type=int, default=None,
                    help="processes for evaluation (default: n_envs)")
     p.add_argument("--checkpoint-every", type=int, default=25_000)
@@ -117,6 +120,10 @@ def run(args) -> int:
                 "sweep (prices x seeds) go through executors; without --prices the seeds train "
                 "here, one after the other")
     out = out_dir(args)
+    if args.baseline != "none":
+        import policies
+
+        policies.make(args.baseline)  # an unknown name fails here, before any training
     runs = {}
     for seed in seeds:
         setup = TrainingSetup(
@@ -132,8 +139,12 @@ def run(args) -> int:
                        params["n_timesteps"], run_dir)
         train_run(setup, run_dir, resume=args.resume, progress=not args.quiet and not args.json)
         runs[seed] = run_dir
+    baseline = None if args.baseline == "none" else (args.baseline, evaluate_baseline(
+        args.baseline, setup, out / f"baseline-{args.baseline}",
+        progress=not args.quiet and not args.json))
     doc = summarise_runs(out, args.algo, runs,
-                         title=f"{args.algo.upper()} on {args.env}, seeds {seeds}")
+                         title=f"{args.algo.upper()} on {args.env}, seeds {seeds}",
+                         baseline=baseline)
     chosen, curves = out / "model.zip", out / "training_curves.png"
     spread = doc["spread"]
     emit(args, {"summary": doc, "model": str(chosen), "curves": str(curves)}, [
@@ -143,6 +154,18 @@ def run(args) -> int:
         f"wrote {chosen} (+ .json), {curves}, summary.json, summary.md",
     ])
     return 0
+
+
+def evaluate_baseline(policy: str, setup, out: Path, progress: bool) -> dict:
+    """``policy``'s evaluation record on the training's evaluation worlds with the env options
+    its snapshots are evaluated with (rows in ``out``, resumable)."""
+    from slam_gym.evaluation.core import POLICY_OPTIONS
+    from slam_gym.training.evaluation import evaluate_policy
+
+    env_options = {k: v for k, v in setup.env_options().items() if k in POLICY_OPTIONS}
+    return evaluate_policy(policy, clutter_levels=setup.clutter_levels, seeds=setup.eval_seeds,
+                           env_kwargs=env_options, out=out, workers=setup.eval_workers,
+                           progress=progress)
 
 
 def run_sweep_command(args, params: dict, seeds: list[int]) -> int:

@@ -83,9 +83,13 @@ def summarise_seeds(runs: dict[int, Path]) -> dict[str, Any]:
     }
 
 
-def write_summary(out: Path, algo: str, runs: dict[int, Path]) -> dict[str, Any]:
-    """``summary.json`` and ``summary.md`` in ``out``."""
+def write_summary(out: Path, algo: str, runs: dict[int, Path],
+                  baseline: tuple[str, dict[str, float]] | None = None) -> dict[str, Any]:
+    """``summary.json`` and ``summary.md`` in ``out`` (with ``baseline``'s record on the same
+    worlds, if given)."""
     doc = {"algo": algo, **summarise_seeds(runs)}
+    if baseline is not None:
+        doc["baseline"] = {"policy": baseline[0], **baseline[1]}
     (out / "summary.json").write_text(json.dumps(doc, indent=2) + "\n")
     lines = [f"# {algo.upper()}: final training-time evaluation per seed", "",
              "| seed | mode | decisions | success | mean return | map error (m) | ANEES | "
@@ -100,14 +104,22 @@ def write_summary(out: Path, algo: str, runs: dict[int, Path]) -> dict[str, Any]
         if s[key] is not None:
             lines.append(f"- {key}: {s[key]['mean']:.3g} ± {s[key]['std']:.2g} "
                          f"[{s[key]['min']:.3g}, {s[key]['max']:.3g}]")
+    if baseline is not None:
+        b = doc["baseline"]
+        lines += ["", f"on the same worlds, `{b['policy']}`: success {b['success_rate']:.2f}, "
+                  f"return {b['mean_return']:.0f}, map error {b['map_error_m']:.2f} m, "
+                  f"{b['n_optimisations']:.1f} optimisations/episode"]
     lines += ["", f"chosen seed: {doc['chosen_seed']} ({doc['chosen_by']})", ""]
     (out / "summary.md").write_text("\n".join(lines))
     return doc
 
 
-def plot_curves(out_png: Path, runs: dict[int, Path], title: str) -> Path:
+def plot_curves(out_png: Path, runs: dict[int, Path], title: str,
+                baseline: tuple[str, dict[str, float]] | None = None) -> Path:
     """Training return (rolling mean of 20 episodes), and evaluation success, return and
-    optimisations per episode, against decisions, one line per seed."""
+    optimisations per episode, against decisions, one line per seed; ``baseline`` (a policy's
+    name and its :func:`~slam_gym.training.evaluation.evaluate_policy` record on the same
+    evaluation worlds) is drawn as a horizontal line on the evaluation panels."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -135,6 +147,11 @@ def plot_curves(out_png: Path, runs: dict[int, Path], title: str) -> Path:
                                 (axes[1, 1], "n_optimisations")):
                     ax.plot(t, [r.get(prefix + key, np.nan) for r in log], style,
                             label=f"seed {seed}, {what}", **colour)
+    if baseline is not None:
+        name, record = baseline
+        for ax, key in ((axes[0, 1], "mean_return"), (axes[1, 0], "success_rate"),
+                        (axes[1, 1], "n_optimisations")):
+            ax.axhline(record[key], color="black", linestyle=":", label=f"{name} (same worlds)")
     axes[0, 0].set_title("training episodes: return (rolling mean of 20)")
     axes[0, 1].set_title("evaluation worlds: mean return")
     axes[1, 0].set_title("evaluation worlds: success rate")
@@ -153,16 +170,18 @@ def plot_curves(out_png: Path, runs: dict[int, Path], title: str) -> Path:
     return out_png
 
 
-def summarise_runs(out: Path, algo: str, runs: dict[int, Path], title: str) -> dict[str, Any]:
+def summarise_runs(out: Path, algo: str, runs: dict[int, Path], title: str,
+                   baseline: tuple[str, dict[str, float]] | None = None) -> dict[str, Any]:
     """What ``slam-gym train`` writes for its seeds, into ``out``: ``summary.{json,md}``,
-    ``training_curves.png`` and the chosen seed's model as ``model.zip`` / ``model.json`` (with
-    ``chosen_among_seeds`` and ``chosen_by``). Returns the summary document."""
+    ``training_curves.png`` (with ``baseline``'s line, see :func:`plot_curves`) and the chosen
+    seed's model as ``model.zip`` / ``model.json`` (with ``chosen_among_seeds`` and
+    ``chosen_by``). Returns the summary document (``baseline``: its name and record)."""
     from slam_gym.training.run import copy_model
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    doc = write_summary(out, algo, runs)
-    plot_curves(out / "training_curves.png", runs, title=title)
+    doc = write_summary(out, algo, runs, baseline)
+    plot_curves(out / "training_curves.png", runs, title=title, baseline=baseline)
     chosen = copy_model(runs[doc["chosen_seed"]], out / "model.zip")
     config = json.loads(chosen.with_suffix(".json").read_text())
     config["chosen_among_seeds"] = doc["seeds"]

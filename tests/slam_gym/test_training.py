@@ -11,6 +11,7 @@ from untrained import untrained_model
 from slam_gym.cli import main
 from slam_gym.envs import ENV_VARIANTS
 from slam_gym.envs.hybrid_slam import FEATURE_NAMES
+from slam_gym.training.evaluation import evaluate_policy
 from slam_gym.training.hyperparams import (
     ALGOS,
     load_hyperparams,
@@ -182,6 +183,18 @@ def test_train_command_trains_seeds_summarises_and_copies_the_chosen_model(tmp_p
     assert config["seed"] == summary["chosen_seed"] and config["chosen_among_seeds"] == [0, 1]
     assert (tmp_path / "training_curves.png").stat().st_size > 10_000
     assert policies.make("learned", path=str(tmp_path / "model.zip")).algo == "ppo"
+    # the rule's line beside the curves: its record on the same worlds, with the same options
+    baseline = summary["baseline"]
+    assert baseline["policy"] == "fixed-10s-optimise" and baseline["n_episodes"] == 1
+    rule = evaluate_policy("fixed-10s-optimise", clutter_levels=(1,), seeds=(3,),
+                           env_kwargs={"n_particles": 5, "n_steps": 120})
+    assert baseline["mean_return"] == rule["mean_return"]
+    assert "fixed-10s-optimise" in (tmp_path / "summary.md").read_text()
+
+
+def test_train_command_refuses_an_unknown_baseline_before_training(tmp_path):
+    assert main(["train", "--baseline", "no-such-rule", "--out", str(tmp_path)]) == 2
+    assert not any(tmp_path.iterdir())
 
 
 @pytest.mark.parametrize("algo", ["ppo", "a2c"])
