@@ -137,7 +137,8 @@ def vote_all(log_weights, votes):
     :func:`correspondence_vote`. Returns ``winners`` (K,), ``margins`` (K,) and the share of the
     clutter vote (K,), exactly as K calls of :func:`correspondence_vote` would.
     """
-    return _vote_all(np.asarray(log_weights, dtype=float), np.asarray(votes, dtype=np.int64))
+    return vote_all_unchecked(np.asarray(log_weights, dtype=float),
+                              np.asarray(votes, dtype=np.int64))
 
 
 @njit(cache=True)
@@ -188,7 +189,9 @@ def _winner(shares, n):
 
 
 @njit(cache=True)
-def _vote_all(log_weights, votes):
+def vote_all_unchecked(log_weights, votes):
+    """:func:`vote_all` without its conversions, for compiled callers: ``log_weights`` (K, P)
+    float64, ``votes`` (K, P) int64."""
     K, P = votes.shape
     winners = np.empty(K, dtype=np.int64)
     margins = np.empty(K)

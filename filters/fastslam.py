@@ -145,22 +145,21 @@ import numpy as np
 from numba import njit
 
 from filters.conversion import (
-    NEW_VOTE,
-    assign_correspondence_ids_unchecked,
     common_features,
     feature_means,
     feature_moments,
     moment_match,
     pose_moments,
     pose_moments_unchecked,
-    vote_all,
 )
 from filters.existence import CONFIRMED_PROBABILITY, validate_existence_model
 from filters.fastslam_kernel import (
     ScanModel,
-    compact_features,
+    clutter_shares,
     draw_poses,
+    finish_scan,
     propagate,
+    resample_and_pose,
     scan_update,
 )
 from filters.geometry import wrap_angle
@@ -212,23 +211,8 @@ def clutter_share(log_weights, clutter_prob) -> np.ndarray:
     """Per observation, the weighted probability that it is a false alarm: ``sum_p w_k^p c_k^p``
     with ``w_k`` the normalised weights after observation k and ``c_k^p`` (K, P) the particle's
     clutter probability (1 for clutter, ``1 - e_new`` for a new feature, 0 for an existing one)."""
-    return _clutter_share(np.asarray(log_weights, dtype=float),
+    return clutter_shares(np.asarray(log_weights, dtype=float),
                           np.asarray(clutter_prob, dtype=float))
-
-
-@njit(cache=True)
-def _clutter_share(log_weights, clutter_prob):
-    K, P = log_weights.shape
-    out = np.empty(K)
-    for k in range(K):
-        top = log_weights[k].max()
-        weighted, total = 0.0, 0.0
-        for p in range(P):
-            w = np.exp(log_weights[k, p] - top)
-            weighted += w * clutter_prob[k, p]
-            total += w
-        out[k] = weighted / total
-    return out
 
 
 class FastSLAM2:
@@ -578,31 +562,28 @@ class FastSLAM2:
         )
         self._pending = False
 
-        # --- correspondence votes (BB 3.1), one per observation, with the weights after it
-        if known_cids is None:
-            winners, margins, _ = vote_all(logw_after, votes)
-            new = np.flatnonzero(winners == NEW_VOTE)
-            if len(new):  # fresh ids in observation order, as one call per observation gave them
-                winners[new] = self.ids.new(len(new))
-            for share in clutter_share(logw_after, clutter_prob):
-                self._remember_clutter(share)
-        else:
-            winners, margins = known_cids, np.ones(K)
-        # every feature modified or created by an observation takes its winner's id, unless its
+        # --- one compiled pass for the rest (filters.fastslam_kernel.finish_scan): the
+        # correspondence votes (BB 3.1), one per observation with the weights after it, fresh
+        # ids in observation order for the observations *new feature* wins, the clutter rate,
+        # every feature modified or created by an observation taking its winner's id unless its
         # particle holds another feature with that id (clutter winning leaves modified features
-        # their id and created ones without one): filters.conversion.assign_correspondence_ids
-        assign_correspondence_ids_unchecked(
-            self._cid, self._active, slots, np.asarray(winners, dtype=np.int64))
-
-        self._outputs = {}
+        # their id and created ones without one: filters.conversion.assign_correspondence_ids),
+        # culling every cull_interval_steps, the log weights shifted to a maximum of 0
+        winners, margins, n_new, self._clutter_num, self._clutter_den = finish_scan(
+            self._logw, logw_after, votes, slots, clutter_prob, known_cids, self.ids.next_id,
+            self._cid, self._active, self._count, self._mx, self._my, self._sxx, self._sxy,
+            self._syy, self._ex, self._clutter_num, self._clutter_den,
+            1.0 - 1.0 / self.clutter_rate_memory,
+            (self._steps + 1) % self.cull_interval_steps == 0, self.cull_threshold,
+        )
+        if n_new:
+            self.ids.new(n_new)  # the ids finish_scan gave, now taken from the shared source
         self._steps += 1
-        if self._steps % self.cull_interval_steps == 0:
-            self._cull()
-        self._logw -= self._logw.max()
+        self._outputs = {}
         self.last_associations = winners
         self.last_votes = votes
         self._vote_margins = margins
-        self._maybe_resample()
+        self._maybe_resample(with_pose=True)  # the pose: the env asks for it at every step
 
     def _label_id(self, label):
         """The common id tied to a known landmark label (-1 for a known false alarm)."""
@@ -612,45 +593,28 @@ class FastSLAM2:
             self._label_cid[label] = int(self.ids.new(1)[0])
         return self._label_cid[label]
 
-    def _cull(self):
-        """Remove features with existence below ``cull_threshold`` and re-pack the slots."""
-        dead = self._active & (self._ex < self.cull_threshold)
-        if not dead.any():
-            return
-        self._active &= ~dead
-        # each particle's active features to its first slots, in slot order (compiled)
-        compact_features(self._active, self._mx, self._my, self._sxx, self._sxy, self._syy,
-                         self._ex, self._cid)
-        self._count = self._active.sum(axis=1)
-        self._ex[~self._active] = 0.0
-        self._cid[~self._active] = -1
-
-    def _remember_clutter(self, share):
-        decay = 1.0 - 1.0 / self.clutter_rate_memory
-        self._clutter_num = decay * self._clutter_num + share
-        self._clutter_den = decay * self._clutter_den + 1.0
-
-    def _maybe_resample(self):
-        """Systematic resampling when N_eff < resample_threshold * P."""
-        w = self._weights()  # of the current state; a resampling below clears the cache
-        n_eff = 1.0 / np.sum(w * w)
-        self._ess_ratio = float(n_eff / self.n_particles)
-        if n_eff >= self.resample_threshold * self.n_particles:
-            return
-        P = self.n_particles
-        positions = (self.rng.random() + np.arange(P)) / P
-        cdf = np.cumsum(w)
-        cdf[-1] = 1.0
-        idx = np.minimum(np.searchsorted(cdf, positions, side="right"), P - 1)
-        # np.take copies the same rows as fancy indexing (a[idx]), at about half its cost
-        self._poses = np.take(self._poses, idx, axis=0)
-        self._prop_cov = np.take(self._prop_cov, idx, axis=0)
-        for name in _FEATURE_FIELDS:
-            setattr(self, name, np.take(getattr(self, name), idx, axis=0))
-        self._count = np.take(self._count, idx)
-        self._lineage = np.take(self._lineage, idx)
-        self._logw = np.zeros(P)
-        self._outputs = {}
+    def _maybe_resample(self, with_pose=False):
+        """Systematic resampling when N_eff < resample_threshold * P; with ``with_pose`` the
+        pose of the resulting state is formed in the same compiled pass and kept for
+        :meth:`pose` (:func:`filters.fastslam_kernel.resample_and_pose`: the numpy code it
+        replaced, to the bit, but for the weights' ``np.exp``, which stays numpy's)."""
+        weights = np.exp(self._logw - self._logw.max())  # normalised in the compiled pass
+        state = (self._poses, self._prop_cov, self._mx, self._my, self._sxx, self._sxy,
+                 self._syy, self._ex, self._active, self._cid, self._count, self._lineage)
+        spare = tuple(np.empty_like(a) for a in state)  # written only if it resamples
+        resampled, ess_ratio, mean, cov = resample_and_pose(
+            weights, self.rng, self.resample_threshold, self._logw, state, spare, with_pose,
+            self.lineage_correction, self.small_sample_correction,
+        )
+        self._ess_ratio = float(ess_ratio)
+        if resampled:
+            (self._poses, self._prop_cov, self._mx, self._my, self._sxx, self._sxy, self._syy,
+             self._ex, self._active, self._cid, self._count, self._lineage) = spare
+            self._outputs = {}
+        self._outputs["weights"] = weights
+        if with_pose:
+            key = ("pose", self.lineage_correction, self.small_sample_correction)
+            self._outputs[key] = (mean, cov)
 
     # ------------------------------------------------------------------ outputs
     def _pose_covs(self):
