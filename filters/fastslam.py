@@ -158,9 +158,10 @@ from filters.fastslam_kernel import (
     clutter_shares,
     draw_poses,
     finish_scan,
+    normalise_weights,
     propagate,
-    resample_and_pose,
     scan_update,
+    systematic_resample,
 )
 from filters.geometry import wrap_angle
 from filters.models import ClutterModel, RangeBearingSensor
@@ -583,7 +584,7 @@ class FastSLAM2:
         self.last_associations = winners
         self.last_votes = votes
         self._vote_margins = margins
-        self._maybe_resample(with_pose=True)  # the pose: the env asks for it at every step
+        self._maybe_resample()
 
     def _label_id(self, label):
         """The common id tied to a known landmark label (-1 for a known false alarm)."""
@@ -593,28 +594,25 @@ class FastSLAM2:
             self._label_cid[label] = int(self.ids.new(1)[0])
         return self._label_cid[label]
 
-    def _maybe_resample(self, with_pose=False):
-        """Systematic resampling when N_eff < resample_threshold * P; with ``with_pose`` the
-        pose of the resulting state is formed in the same compiled pass and kept for
-        :meth:`pose` (:func:`filters.fastslam_kernel.resample_and_pose`: the numpy code it
-        replaced, to the bit, but for the weights' ``np.exp``, which stays numpy's)."""
-        weights = np.exp(self._logw - self._logw.max())  # normalised in the compiled pass
-        state = (self._poses, self._prop_cov, self._mx, self._my, self._sxx, self._sxy,
-                 self._syy, self._ex, self._active, self._cid, self._count, self._lineage)
-        spare = tuple(np.empty_like(a) for a in state)  # written only if it resamples
-        resampled, ess_ratio, mean, cov = resample_and_pose(
-            weights, self.rng, self.resample_threshold, self._logw, state, spare, with_pose,
-            self.lineage_correction, self.small_sample_correction,
-        )
+    def _maybe_resample(self):
+        """Systematic resampling when N_eff < resample_threshold * P (compiled:
+        :func:`filters.fastslam_kernel.normalise_weights` and
+        :func:`~filters.fastslam_kernel.systematic_resample`, the numpy code they replaced to
+        the bit, but for the weights' ``np.exp``, which stays numpy's). The uniform is drawn
+        here, not in compiled code: handing the generator to a compiled function costs
+        ~7 us a call, whether or not it draws."""
+        weights = np.exp(self._logw - self._logw.max())  # normalised in place below
+        resample, ess_ratio = normalise_weights(weights, self.resample_threshold)
         self._ess_ratio = float(ess_ratio)
-        if resampled:
+        if resample:
+            state = (self._poses, self._prop_cov, self._mx, self._my, self._sxx, self._sxy,
+                     self._syy, self._ex, self._active, self._cid, self._count, self._lineage)
+            spare = tuple(np.empty_like(a) for a in state)
+            systematic_resample(weights, self.rng.random(), self._logw, state, spare)
             (self._poses, self._prop_cov, self._mx, self._my, self._sxx, self._sxy, self._syy,
              self._ex, self._active, self._cid, self._count, self._lineage) = spare
             self._outputs = {}
         self._outputs["weights"] = weights
-        if with_pose:
-            key = ("pose", self.lineage_correction, self.small_sample_correction)
-            self._outputs[key] = (mean, cov)
 
     # ------------------------------------------------------------------ outputs
     def _pose_covs(self):

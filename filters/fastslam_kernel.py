@@ -32,7 +32,6 @@ from filters.conversion import CLUTTER_VOTE as CLUTTER
 from filters.conversion import NEW_VOTE as NEW
 from filters.conversion import (
     assign_correspondence_ids_unchecked,
-    pose_moments_unchecked,
     vote_all_unchecked,
 )
 from filters.existence import (
@@ -720,22 +719,12 @@ def _searchsorted_right(a, keys):
 
 
 @njit(cache=True)
-def resample_and_pose(exp_w, rng, threshold, logw, state, spare, with_pose, with_lineage,
-                      small_sample):
-    """The resampling decision of :meth:`filters.fastslam.FastSLAM2._maybe_resample` and the
-    pose of :meth:`~filters.fastslam.FastSLAM2.pose`, as numpy computed them, to the bit.
-
-    ``exp_w`` (P,): ``np.exp(logw - logw.max())`` (numpy's exp: module note above), normalised
-    here in place into the weights of the current state. ``state``: the filter's arrays
-    ``(poses, prop_cov, mx, my, sxx, sxy, syy, ex, active, cid, count, lineage)``; ``spare``:
-    arrays of the same shapes and types, written only when resampling. Systematic resampling
-    (one uniform from ``rng``) when ``N_eff < threshold * P`` gathers the particles into
-    ``spare`` (the caller then takes ``spare`` as its state), zeroes ``logw`` in place and makes
-    ``exp_w`` the uniform weights. With ``with_pose`` the pose moments of the resulting state
-    (lineage term if ``with_lineage``; ``small_sample`` factor), else empty arrays. Returns
-    ``(resampled, ess_ratio, mean, cov)``. The caller allocates ``spare`` (numpy's allocator:
-    arrays allocated here and returned cost twice the copy)."""
-    poses, prop_cov, mx, my, sxx, sxy, syy, ex, active, cid, count, lineage = state
+def normalise_weights(exp_w, threshold):
+    """The weights and the resampling decision of
+    :meth:`filters.fastslam.FastSLAM2._maybe_resample`, as numpy computed them, to the bit:
+    ``exp_w`` (P,), ``np.exp(logw - logw.max())`` (numpy's exp: module note above), normalised
+    in place; returns ``(resample, ess_ratio)``: whether ``N_eff < threshold * P``, and
+    ``N_eff / P``."""
     P = exp_w.shape[0]
     total = numpy_sum(exp_w)
     squares = np.empty(P)
@@ -743,50 +732,52 @@ def resample_and_pose(exp_w, rng, threshold, logw, state, spare, with_pose, with
         exp_w[p] = exp_w[p] / total
         squares[p] = exp_w[p] * exp_w[p]
     n_eff = 1.0 / numpy_sum(squares)
-    ess_ratio = n_eff / P
-    resampled = not n_eff >= threshold * P
-    if resampled:
-        start = rng.random()
-        cdf = np.empty(P)
-        cdf[0] = exp_w[0]
-        for p in range(1, P):  # np.cumsum's order
-            cdf[p] = cdf[p - 1] + exp_w[p]
-        cdf[P - 1] = 1.0
-        positions = np.empty(P)
-        for p in range(P):
-            positions[p] = (start + p) / P
-        idx = _searchsorted_right(cdf, positions)
-        for p in range(P):
-            idx[p] = min(idx[p], P - 1)
-        (s_poses, s_prop_cov, s_mx, s_my, s_sxx, s_sxy, s_syy, s_ex, s_active, s_cid, s_count,
-         s_lineage) = spare
-        _gather_rows(poses, idx, s_poses)
-        for p in range(P):
-            q = idx[p]
-            for i in range(3):
-                for k in range(3):
-                    s_prop_cov[p, i, k] = prop_cov[q, i, k]
-            s_count[p] = count[q]
-            s_lineage[p] = lineage[q]
-        _gather_rows(mx, idx, s_mx)
-        _gather_rows(my, idx, s_my)
-        _gather_rows(sxx, idx, s_sxx)
-        _gather_rows(sxy, idx, s_sxy)
-        _gather_rows(syy, idx, s_syy)
-        _gather_rows(ex, idx, s_ex)
-        _gather_rows(active, idx, s_active)
-        _gather_rows(cid, idx, s_cid)
-        poses, lineage = s_poses, s_lineage
-        for p in range(P):  # the weights of logw = 0: exp(0) = 1, normalised
-            logw[p] = 0.0
-            exp_w[p] = 1.0
-        total = numpy_sum(exp_w)
-        for p in range(P):
-            exp_w[p] = exp_w[p] / total
-    if with_pose:
-        group = lineage if with_lineage else np.zeros(0, dtype=lineage.dtype)
-        mean, cov = pose_moments_unchecked(
-            poses, exp_w, np.zeros((0, 3, 3)), group, group.shape[0], small_sample)
-    else:
-        mean, cov = np.zeros(0), np.zeros((0, 0))
-    return resampled, ess_ratio, mean, cov
+    return not n_eff >= threshold * P, n_eff / P
+
+
+@njit(cache=True)
+def systematic_resample(w, start, logw, state, spare):
+    """Systematic resampling with the uniform ``start`` (drawn by the caller), as
+    :meth:`filters.fastslam.FastSLAM2._maybe_resample` did it in numpy, to the bit: the
+    particles ``np.searchsorted(cumsum(w), (start + arange(P)) / P, side="right")`` (the cdf's
+    last entry set to 1, the index capped at P - 1) of ``state`` ``(poses, prop_cov, mx, my,
+    sxx, sxy, syy, ex, active, cid, count, lineage)`` gathered into ``spare`` (arrays of the same
+    shapes that the caller allocates and then takes as its state: arrays allocated here cost
+    twice the copy), ``logw`` zeroed and ``w`` made the uniform weights, in place."""
+    poses, prop_cov, mx, my, sxx, sxy, syy, ex, active, cid, count, lineage = state
+    (s_poses, s_prop_cov, s_mx, s_my, s_sxx, s_sxy, s_syy, s_ex, s_active, s_cid, s_count,
+     s_lineage) = spare
+    P = w.shape[0]
+    cdf = np.empty(P)
+    cdf[0] = w[0]
+    for p in range(1, P):  # np.cumsum's order
+        cdf[p] = cdf[p - 1] + w[p]
+    cdf[P - 1] = 1.0
+    positions = np.empty(P)
+    for p in range(P):
+        positions[p] = (start + p) / P
+    idx = _searchsorted_right(cdf, positions)
+    for p in range(P):
+        idx[p] = min(idx[p], P - 1)
+    _gather_rows(poses, idx, s_poses)
+    for p in range(P):
+        q = idx[p]
+        for i in range(3):
+            for k in range(3):
+                s_prop_cov[p, i, k] = prop_cov[q, i, k]
+        s_count[p] = count[q]
+        s_lineage[p] = lineage[q]
+    _gather_rows(mx, idx, s_mx)
+    _gather_rows(my, idx, s_my)
+    _gather_rows(sxx, idx, s_sxx)
+    _gather_rows(sxy, idx, s_sxy)
+    _gather_rows(syy, idx, s_syy)
+    _gather_rows(ex, idx, s_ex)
+    _gather_rows(active, idx, s_active)
+    _gather_rows(cid, idx, s_cid)
+    for p in range(P):  # the weights of logw = 0: exp(0) = 1, normalised
+        logw[p] = 0.0
+        w[p] = 1.0
+    total = numpy_sum(w)
+    for p in range(P):
+        w[p] = w[p] / total

@@ -5,7 +5,7 @@ e.g.   python scripts/performance/env_breakdown.py fixed-10s 400
 
 Wraps the pieces of a ``HybridSLAMEnv(n_particles=500, clutter_level=2)`` step in
 ``perf_counter`` timers (the compiled scan, FastSLAM's update around it, the compiled
-bookkeeping after the scan (votes, ids, culling), the weights, resampling and pose after it,
+bookkeeping after the scan (votes, ids, culling), the weights and resampling,
 its prediction, the innovation ratio's prior pose, the posterior pose and NEES, the map
 score, the interface features, fusions, optimisations, resets), plays ``POLICY`` (default
 ``fixed-10s``) for ``DECISIONS`` decisions (default 400) from ``reset(seed=0)`` after a warm-up,
@@ -38,7 +38,7 @@ PIECES = (
     (fastslam, "finish_scan", "votes, ids, clutter rate, culling"),
     (fastslam.FastSLAM2, "update", "FastSLAM update (scan included)"),
     (fastslam.FastSLAM2, "predict", "FastSLAM prediction"),
-    (fastslam.FastSLAM2, "_maybe_resample", "weights, resampling, pose after a scan"),
+    (fastslam.FastSLAM2, "_maybe_resample", "weights, resampling test, resampling"),
     (submap.SubmapSLAM, "observation_innovation_ratio", "innovation ratio (prior pose)"),
     (episode.Episode, "_measure", "posterior pose, NEES, errors"),
     (episode.Episode, "map_score", "map score (reward)"),
