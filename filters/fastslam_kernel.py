@@ -32,7 +32,8 @@ from filters.conversion import CLUTTER_VOTE as CLUTTER
 from filters.conversion import NEW_VOTE as NEW
 from filters.conversion import (
     assign_correspondence_ids_unchecked,
-    vote_all_unchecked,
+    heaviest_option,
+    tally_votes,
 )
 from filters.existence import (
     detection_update_one,
@@ -613,6 +614,33 @@ def clutter_shares(log_weights, clutter_prob):
 
 
 @njit(cache=True)
+def _votes_and_clutter_shares(log_weights, votes, clutter_prob):
+    """:func:`filters.conversion.vote_all_unchecked`'s winners and margins and
+    :func:`clutter_shares` from one pass: each observation's weights ``exp(logw - max)`` are
+    formed once for both (the same values each formed on its own, so the same results)."""
+    K, P = votes.shape
+    winners = np.empty(K, dtype=np.int64)
+    margins = np.empty(K)
+    shares = np.empty(K)
+    options = np.empty(P, dtype=np.int64)
+    option_shares = np.empty(P)
+    weights = np.empty(P)
+    for k in range(K):
+        top = log_weights[k].max()
+        for p in range(P):
+            weights[p] = np.exp(log_weights[k, p] - top)
+        n = tally_votes(weights, votes[k], options, option_shares)
+        best, margins[k] = heaviest_option(option_shares, n)
+        winners[k] = options[best]
+        weighted, total = 0.0, 0.0
+        for p in range(P):
+            weighted += weights[p] * clutter_prob[k, p]
+            total += weights[p]
+        shares[k] = weighted / total
+    return winners, margins, shares
+
+
+@njit(cache=True)
 def cull_features(active, mx, my, sxx, sxy, syy, ex, cid, count, threshold):
     """Remove the features whose existence is below ``threshold`` and re-pack each particle's
     slots (:meth:`filters.fastslam.FastSLAM2._cull`), in place; ``count`` (P,) is rewritten.
@@ -653,13 +681,12 @@ def finish_scan(logw, logw_after, votes, slots, clutter_prob, known_cids, next_i
     clutter_den)``."""
     K = votes.shape[0]
     if known_cids is None:
-        winners, margins, _ = vote_all_unchecked(logw_after, votes)
+        winners, margins, shares = _votes_and_clutter_shares(logw_after, votes, clutter_prob)
         n_new = 0
         for k in range(K):
             if winners[k] == NEW:
                 winners[k] = next_id + n_new
                 n_new += 1
-        shares = clutter_shares(logw_after, clutter_prob)
         for k in range(K):
             clutter_num = clutter_decay * clutter_num + shares[k]
             clutter_den = clutter_decay * clutter_den + 1.0
