@@ -8,10 +8,13 @@ State (padded arrays over P particles and a feature capacity C that doubles when
 ``poses`` (P, 3), ``weights`` (P,), feature ``means`` (P, C, 2), ``covs`` (P, C, 2, 2),
 ``existence`` (P, C), ``active`` (P, C) and ``correspondence_ids`` (P, C) (BB (8); -1 = not yet a
 common feature). Each particle's active features are packed in slots ``0 .. count_p - 1``. No
-Python loop runs over particles: what concerns all particles at once (votes, ids, culling,
-resampling) is numpy; the per-particle sequence of a scan (each observation refines the proposal
-the next one is associated with) and the motion prediction run compiled, in
-:mod:`filters.fastslam_kernel` (the reason and the measured gain are given there).
+Python loop runs over particles: the per-particle sequence of a scan (each observation refines the
+proposal the next one is associated with), the motion prediction and, since issue 40, the
+bookkeeping that concerns all particles at once (votes, ids, clutter rate, culling, the weights,
+the resampling decision and the resampling) run compiled, in :mod:`filters.fastslam_kernel` (the
+reasons and the measured gains are given there and in docs/PERFORMANCE.md); what stays numpy is
+the weights' ``np.exp`` (numpy's rounding, which the compiled ``exp`` does not share) and the
+random draws from ``rng``.
 
 One filter iteration
 --------------------

@@ -1,12 +1,14 @@
-"""Compiled per-particle work of one FastSLAM 2.0 scan update (numba).
+"""Compiled work of one FastSLAM 2.0 iteration (numba).
 
-:class:`filters.fastslam.FastSLAM2` keeps its state in (P, C) arrays and does the bookkeeping
-that concerns all particles at once (voting, ids, culling, resampling) in numpy. What is
-sequential within one particle (the observations of a scan refine the particle's proposal one
+:class:`filters.fastslam.FastSLAM2` keeps its state in (P, C) arrays. What is sequential within
+one particle (the observations of a scan refine the particle's proposal one
 after the other) runs here, in one compiled pass over the particles: visibility and the
 missed-detection terms, Data Association Sampling, the FS2 proposal refinement, the pose draw,
 and the existence and map updates at the drawn pose. The equations are those of the
-:mod:`filters.fastslam` module docstring, which this module follows line by line.
+:mod:`filters.fastslam` module docstring, which this module follows line by line. Since issue 40
+the bookkeeping after the scan that concerns all particles at once is compiled too
+(:func:`finish_scan`, :func:`normalise_weights`, :func:`systematic_resample`: below, with why
+each stops where it does).
 
 Why compiled: with numpy vectorised over the particles every observation costs some hundred
 array operations of a few microseconds each whatever the particle count, which capped the
@@ -512,12 +514,16 @@ def compact_features(active, mx, my, sxx, sxy, syy, ex, cid):
 
 # --------------------------------------------------------------------------- after the scan
 # What FastSLAM2.update did in numpy after scan_update (votes, ids, clutter rate, culling, the
-# weights' shift, the resampling decision and the pose), compiled (issue 40 item 3). Every value
-# is formed by the same operations in the same order as the numpy code it replaces, so the
-# results are equal to the bit; where numpy's order is not the plain one (``np.sum``'s pairwise
-# summation) it is written out (:func:`numpy_sum`). One step stays in numpy: the weights'
-# ``np.exp``, whose SIMD implementation rounds differently from the C library's ``exp`` that
-# compiled code calls (in about 5 % of arguments on this machine kind).
+# weights' shift and normalisation, the resampling decision and the resampling), compiled
+# (issue 40 item 3). Every value is formed by the same operations in the same order as the numpy
+# code it replaces, so the results are equal to the bit; where numpy's order is not the plain one
+# (``np.sum``'s pairwise summation, ``np.searchsorted``'s binary search) it is written out
+# (:func:`numpy_sum`, :func:`_searchsorted_right`). Three things stay in Python, measured
+# (docs/PERFORMANCE.md): the weights' ``np.exp``, whose SIMD implementation rounds differently
+# from the C library's ``exp`` that compiled code calls (in about 5 % of arguments on this
+# machine kind); the resampling's uniform, since handing the ``Generator`` to a compiled function
+# costs ~7 us a call whether or not it draws; and the allocation of the resampled arrays (numpy's
+# allocator: arrays allocated here and returned made the gather twice as slow).
 
 
 @njit(cache=True)
