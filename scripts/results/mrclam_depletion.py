@@ -48,7 +48,7 @@ class AncestorTracker:
         original = filt._maybe_resample
         original_restart = filt.restart
 
-        def maybe_resample(with_pose=False):
+        def maybe_resample():
             w = filt.weights
             n_eff = 1.0 / np.sum(w * w)
             if n_eff < filt.resample_threshold * filt.n_particles:
@@ -59,7 +59,7 @@ class AncestorTracker:
                 cdf[-1] = 1.0
                 idx = np.minimum(np.searchsorted(cdf, positions, side="right"), P - 1)
                 self.ancestors = self.ancestors[idx]
-            original(with_pose=with_pose)
+            original()
             self.samples.append((self.t, filt._ess_ratio, len(np.unique(self.ancestors))))
 
         def restart():
