@@ -52,7 +52,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.special import gammaincinv
 
 from filters.models import innovation, observe, observe_jacobians
 from filters.validation import check_range, require
@@ -74,6 +74,14 @@ def validate_node_budget(value, field="node_budget"):
     )
 
 
+def chi_square_quantile(probability, dof):
+    """``scipy.stats.chi2.ppf(probability, dof)`` for ``dof > 0`` and ``probability`` in [0, 1],
+    to the bit: the same ``2 gammaincinv(dof / 2, probability)`` without scipy.stats, whose
+    import costs a process 0.3-0.9 s of CPU (docs/PERFORMANCE.md; the env imports this module and
+    :mod:`slam_gym.metrics`, the only two that needed it)."""
+    return 2 * gammaincinv(np.asarray(dof) / 2, probability)
+
+
 class ChiSquareTable:
     """Chi-square gate thresholds ``chi2.ppf(p, m k)`` for k = 1, 2, ... (extended on demand)."""
 
@@ -81,13 +89,14 @@ class ChiSquareTable:
         validate_gate_probability(probability)
         self.probability = float(probability)
         self.dim = int(dim)
-        self._table = chi2.ppf(self.probability, self.dim * np.arange(1, 17))
+        self._table = chi_square_quantile(self.probability, self.dim * np.arange(1, 17))
 
     def __call__(self, k: int) -> float:
         """Threshold for a hypothesis of ``k`` pairings (k >= 1)."""
         if k > len(self._table):
             size = max(k, 2 * len(self._table))
-            self._table = chi2.ppf(self.probability, self.dim * np.arange(1, size + 1))
+            self._table = chi_square_quantile(self.probability,
+                                              self.dim * np.arange(1, size + 1))
         return float(self._table[k - 1])
 
     def table(self, k_max: int) -> np.ndarray:
@@ -148,7 +157,7 @@ def _gate_threshold(gate, dim):
         require(gate.dim == dim, "gate.dim", gate.dim, f"equal to {dim}")
         return gate(1)
     validate_gate_probability(gate)
-    return float(chi2.ppf(gate, dim))
+    return float(chi_square_quantile(gate, dim))
 
 
 def individual_compatibility(nu, S, gate):

@@ -125,8 +125,8 @@ def correspondence_vote(weights, votes) -> VoteResult:
     require(bool(np.isfinite(total) and total > 0.0), "weights", total, "a positive finite sum")
     options = np.empty(len(votes), dtype=np.int64)
     shares = np.empty(len(votes))
-    n = _tally(weights, votes, options, shares)
-    top, margin = _winner(shares, n)
+    n = tally_votes(weights, votes, options, shares)
+    top, margin = heaviest_option(shares, n)
     return VoteResult(int(options[top]), float(margin), options[:n].copy(), shares[:n].copy())
 
 
@@ -141,7 +141,7 @@ def vote_all(log_weights, votes):
 
 
 @njit(cache=True)
-def _tally(weights, votes, options, shares):
+def tally_votes(weights, votes, options, shares):
     """Distinct options in ascending order and their weight shares; returns their number."""
     total = weights.sum()
     first, last = votes.min(), votes.max()
@@ -174,7 +174,7 @@ def _tally(weights, votes, options, shares):
 
 
 @njit(cache=True)
-def _winner(shares, n):
+def heaviest_option(shares, n):
     """The heaviest option (the first on ties) and its margin over the runner-up."""
     top = 0
     for i in range(1, n):
@@ -200,8 +200,8 @@ def _vote_all(log_weights, votes):
         top_log = log_weights[k].max()
         for p in range(P):
             weights[p] = np.exp(log_weights[k, p] - top_log)
-        n = _tally(weights, votes[k], options, shares)
-        top, margins[k] = _winner(shares, n)
+        n = tally_votes(weights, votes[k], options, shares)
+        top, margins[k] = heaviest_option(shares, n)
         winners[k] = options[top]
         for i in range(n):
             if options[i] == CLUTTER_VOTE:

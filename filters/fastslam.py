@@ -8,10 +8,13 @@ State (padded arrays over P particles and a feature capacity C that doubles when
 ``poses`` (P, 3), ``weights`` (P,), feature ``means`` (P, C, 2), ``covs`` (P, C, 2, 2),
 ``existence`` (P, C), ``active`` (P, C) and ``correspondence_ids`` (P, C) (BB (8); -1 = not yet a
 common feature). Each particle's active features are packed in slots ``0 .. count_p - 1``. No
-Python loop runs over particles: what concerns all particles at once (votes, ids, culling,
-resampling) is numpy; the per-particle sequence of a scan (each observation refines the proposal
-the next one is associated with) and the motion prediction run compiled, in
-:mod:`filters.fastslam_kernel` (the reason and the measured gain are given there).
+Python loop runs over particles: the per-particle sequence of a scan (each observation refines the
+proposal the next one is associated with), the motion prediction and, since issue 40, the
+bookkeeping that concerns all particles at once (votes, ids, clutter rate, culling, the weights,
+the resampling decision and the resampling) run compiled, in :mod:`filters.fastslam_kernel` (the
+reasons and the measured gains are given there and in docs/PERFORMANCE.md); what stays numpy is
+the weights' ``np.exp`` (numpy's rounding, which the compiled ``exp`` does not share) and the
+random draws from ``rng``.
 
 One filter iteration
 --------------------
@@ -145,23 +148,23 @@ import numpy as np
 from numba import njit
 
 from filters.conversion import (
-    NEW_VOTE,
-    assign_correspondence_ids_unchecked,
     common_features,
     feature_means,
     feature_moments,
     moment_match,
     pose_moments,
     pose_moments_unchecked,
-    vote_all,
 )
 from filters.existence import CONFIRMED_PROBABILITY, validate_existence_model
 from filters.fastslam_kernel import (
     ScanModel,
-    compact_features,
+    clutter_shares,
     draw_poses,
+    finish_scan,
+    normalise_weights,
     propagate,
     scan_update,
+    systematic_resample,
 )
 from filters.geometry import wrap_angle
 from filters.models import ClutterModel, RangeBearingSensor
@@ -212,23 +215,8 @@ def clutter_share(log_weights, clutter_prob) -> np.ndarray:
     """Per observation, the weighted probability that it is a false alarm: ``sum_p w_k^p c_k^p``
     with ``w_k`` the normalised weights after observation k and ``c_k^p`` (K, P) the particle's
     clutter probability (1 for clutter, ``1 - e_new`` for a new feature, 0 for an existing one)."""
-    return _clutter_share(np.asarray(log_weights, dtype=float),
+    return clutter_shares(np.asarray(log_weights, dtype=float),
                           np.asarray(clutter_prob, dtype=float))
-
-
-@njit(cache=True)
-def _clutter_share(log_weights, clutter_prob):
-    K, P = log_weights.shape
-    out = np.empty(K)
-    for k in range(K):
-        top = log_weights[k].max()
-        weighted, total = 0.0, 0.0
-        for p in range(P):
-            w = np.exp(log_weights[k, p] - top)
-            weighted += w * clutter_prob[k, p]
-            total += w
-        out[k] = weighted / total
-    return out
 
 
 class FastSLAM2:
@@ -578,27 +566,24 @@ class FastSLAM2:
         )
         self._pending = False
 
-        # --- correspondence votes (BB 3.1), one per observation, with the weights after it
-        if known_cids is None:
-            winners, margins, _ = vote_all(logw_after, votes)
-            new = np.flatnonzero(winners == NEW_VOTE)
-            if len(new):  # fresh ids in observation order, as one call per observation gave them
-                winners[new] = self.ids.new(len(new))
-            for share in clutter_share(logw_after, clutter_prob):
-                self._remember_clutter(share)
-        else:
-            winners, margins = known_cids, np.ones(K)
-        # every feature modified or created by an observation takes its winner's id, unless its
+        # --- one compiled pass for the rest (filters.fastslam_kernel.finish_scan): the
+        # correspondence votes (BB 3.1), one per observation with the weights after it, fresh
+        # ids in observation order for the observations *new feature* wins, the clutter rate,
+        # every feature modified or created by an observation taking its winner's id unless its
         # particle holds another feature with that id (clutter winning leaves modified features
-        # their id and created ones without one): filters.conversion.assign_correspondence_ids
-        assign_correspondence_ids_unchecked(
-            self._cid, self._active, slots, np.asarray(winners, dtype=np.int64))
-
-        self._outputs = {}
+        # their id and created ones without one: filters.conversion.assign_correspondence_ids),
+        # culling every cull_interval_steps, the log weights shifted to a maximum of 0
+        winners, margins, n_new, self._clutter_num, self._clutter_den = finish_scan(
+            self._logw, logw_after, votes, slots, clutter_prob, known_cids, self.ids.next_id,
+            self._cid, self._active, self._count, self._mx, self._my, self._sxx, self._sxy,
+            self._syy, self._ex, self._clutter_num, self._clutter_den,
+            1.0 - 1.0 / self.clutter_rate_memory,
+            (self._steps + 1) % self.cull_interval_steps == 0, self.cull_threshold,
+        )
+        if n_new:
+            self.ids.new(n_new)  # the ids finish_scan gave, now taken from the shared source
         self._steps += 1
-        if self._steps % self.cull_interval_steps == 0:
-            self._cull()
-        self._logw -= self._logw.max()
+        self._outputs = {}
         self.last_associations = winners
         self.last_votes = votes
         self._vote_margins = margins
@@ -612,45 +597,25 @@ class FastSLAM2:
             self._label_cid[label] = int(self.ids.new(1)[0])
         return self._label_cid[label]
 
-    def _cull(self):
-        """Remove features with existence below ``cull_threshold`` and re-pack the slots."""
-        dead = self._active & (self._ex < self.cull_threshold)
-        if not dead.any():
-            return
-        self._active &= ~dead
-        # each particle's active features to its first slots, in slot order (compiled)
-        compact_features(self._active, self._mx, self._my, self._sxx, self._sxy, self._syy,
-                         self._ex, self._cid)
-        self._count = self._active.sum(axis=1)
-        self._ex[~self._active] = 0.0
-        self._cid[~self._active] = -1
-
-    def _remember_clutter(self, share):
-        decay = 1.0 - 1.0 / self.clutter_rate_memory
-        self._clutter_num = decay * self._clutter_num + share
-        self._clutter_den = decay * self._clutter_den + 1.0
-
     def _maybe_resample(self):
-        """Systematic resampling when N_eff < resample_threshold * P."""
-        w = self._weights()  # of the current state; a resampling below clears the cache
-        n_eff = 1.0 / np.sum(w * w)
-        self._ess_ratio = float(n_eff / self.n_particles)
-        if n_eff >= self.resample_threshold * self.n_particles:
-            return
-        P = self.n_particles
-        positions = (self.rng.random() + np.arange(P)) / P
-        cdf = np.cumsum(w)
-        cdf[-1] = 1.0
-        idx = np.minimum(np.searchsorted(cdf, positions, side="right"), P - 1)
-        # np.take copies the same rows as fancy indexing (a[idx]), at about half its cost
-        self._poses = np.take(self._poses, idx, axis=0)
-        self._prop_cov = np.take(self._prop_cov, idx, axis=0)
-        for name in _FEATURE_FIELDS:
-            setattr(self, name, np.take(getattr(self, name), idx, axis=0))
-        self._count = np.take(self._count, idx)
-        self._lineage = np.take(self._lineage, idx)
-        self._logw = np.zeros(P)
-        self._outputs = {}
+        """Systematic resampling when N_eff < resample_threshold * P (compiled:
+        :func:`filters.fastslam_kernel.normalise_weights` and
+        :func:`~filters.fastslam_kernel.systematic_resample`, the numpy code they replaced to
+        the bit, but for the weights' ``np.exp``, which stays numpy's). The uniform is drawn
+        here, not in compiled code: handing the generator to a compiled function costs
+        ~7 us a call, whether or not it draws."""
+        weights = np.exp(self._logw - self._logw.max())  # normalised in place below
+        resample, ess_ratio = normalise_weights(weights, self.resample_threshold)
+        self._ess_ratio = float(ess_ratio)
+        if resample:
+            state = (self._poses, self._prop_cov, self._mx, self._my, self._sxx, self._sxy,
+                     self._syy, self._ex, self._active, self._cid, self._count, self._lineage)
+            spare = tuple(np.empty_like(a) for a in state)
+            systematic_resample(weights, self.rng.random(), self._logw, state, spare)
+            (self._poses, self._prop_cov, self._mx, self._my, self._sxx, self._sxy, self._syy,
+             self._ex, self._active, self._cid, self._count, self._lineage) = spare
+            self._outputs = {}
+        self._outputs["weights"] = weights
 
     # ------------------------------------------------------------------ outputs
     def _pose_covs(self):

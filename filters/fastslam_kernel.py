@@ -1,12 +1,14 @@
-"""Compiled per-particle work of one FastSLAM 2.0 scan update (numba).
+"""Compiled work of one FastSLAM 2.0 iteration (numba).
 
-:class:`filters.fastslam.FastSLAM2` keeps its state in (P, C) arrays and does the bookkeeping
-that concerns all particles at once (voting, ids, culling, resampling) in numpy. What is
-sequential within one particle (the observations of a scan refine the particle's proposal one
+:class:`filters.fastslam.FastSLAM2` keeps its state in (P, C) arrays. What is sequential within
+one particle (the observations of a scan refine the particle's proposal one
 after the other) runs here, in one compiled pass over the particles: visibility and the
 missed-detection terms, Data Association Sampling, the FS2 proposal refinement, the pose draw,
 and the existence and map updates at the drawn pose. The equations are those of the
-:mod:`filters.fastslam` module docstring, which this module follows line by line.
+:mod:`filters.fastslam` module docstring, which this module follows line by line. Since issue 40
+the bookkeeping after the scan that concerns all particles at once is compiled too
+(:func:`finish_scan`, :func:`normalise_weights`, :func:`systematic_resample`: below, with why
+each stops where it does).
 
 Why compiled: with numpy vectorised over the particles every observation costs some hundred
 array operations of a few microseconds each whatever the particle count, which capped the
@@ -30,6 +32,11 @@ from numba import njit
 
 from filters.conversion import CLUTTER_VOTE as CLUTTER
 from filters.conversion import NEW_VOTE as NEW
+from filters.conversion import (
+    assign_correspondence_ids_unchecked,
+    heaviest_option,
+    tally_votes,
+)
 from filters.existence import (
     detection_update_one,
     existence_false_alarm_one,
@@ -503,3 +510,307 @@ def compact_features(active, mx, my, sxx, sxy, syy, ex, cid):
         _permute_row(ex, p, order, floats)
         _permute_row(cid, p, order, ints)
         _permute_row(active, p, order, flags)
+
+
+# --------------------------------------------------------------------------- after the scan
+# What FastSLAM2.update did in numpy after scan_update (votes, ids, clutter rate, culling, the
+# weights' shift and normalisation, the resampling decision and the resampling), compiled
+# (issue 40 item 3). Every value is formed by the same operations in the same order as the numpy
+# code it replaces, so the results are equal to the bit; where numpy's order is not the plain one
+# (``np.sum``'s pairwise summation, ``np.searchsorted``'s binary search) it is written out
+# (:func:`numpy_sum`, :func:`_searchsorted_right`). Three things stay in Python, measured
+# (docs/PERFORMANCE.md): the weights' ``np.exp``, whose SIMD implementation rounds differently
+# from the C library's ``exp`` that compiled code calls (in about 5 % of arguments on this
+# machine kind); the resampling's uniform, since handing the ``Generator`` to a compiled function
+# costs ~7 us a call whether or not it draws; and the allocation of the resampled arrays (numpy's
+# allocator: arrays allocated here and returned made the gather twice as slow).
+
+
+@njit(cache=True)
+def _block_sum(a, start, n):
+    """numpy's sum of one block of at most 128 elements: plain below 8, else eight
+    accumulators combined pairwise, then the remainder."""
+    if n < 8:
+        res = 0.0
+        for i in range(start, start + n):
+            res += a[i]
+        return res
+    r0, r1, r2, r3 = a[start], a[start + 1], a[start + 2], a[start + 3]
+    r4, r5, r6, r7 = a[start + 4], a[start + 5], a[start + 6], a[start + 7]
+    i = 8
+    stop = n - n % 8
+    while i < stop:
+        b = start + i
+        r0 += a[b]
+        r1 += a[b + 1]
+        r2 += a[b + 2]
+        r3 += a[b + 3]
+        r4 += a[b + 4]
+        r5 += a[b + 5]
+        r6 += a[b + 6]
+        r7 += a[b + 7]
+        i += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        res += a[start + i]
+        i += 1
+    return res
+
+
+@njit(cache=True)
+def _pairwise_sum(a, start, n):
+    """numpy's pairwise summation of ``a[start:start + n]`` (``pairwise_sum`` of its ``add``
+    reduction for a contiguous float64 array): blocks of at most 128 (:func:`_block_sum`), a
+    longer range split in two halves (the first a multiple of 8) and their sums added, so the
+    sum is numpy's to the bit. numpy recurses; this walks the same tree with a stack (numba's
+    cache does not reload a recursive function safely)."""
+    if n <= 128:
+        return _block_sum(a, start, n)
+    starts = np.empty(64, dtype=np.int64)  # the tree's depth is log2(n / 128) < 64
+    sizes = np.empty(64, dtype=np.int64)
+    stage = np.zeros(64, dtype=np.int64)  # 0: left half next, 1: right half next, 2: add
+    values = np.empty(64)
+    starts[0], sizes[0] = start, n
+    top, n_values = 0, 0
+    while top >= 0:
+        m = sizes[top]
+        if m <= 128:
+            values[n_values] = _block_sum(a, starts[top], m)
+            n_values += 1
+            top -= 1
+            continue
+        half = m // 2
+        half -= half % 8
+        if stage[top] == 2:
+            values[n_values - 2] = values[n_values - 2] + values[n_values - 1]
+            n_values -= 1
+            top -= 1
+            continue
+        first = stage[top] == 0
+        stage[top] += 1
+        top += 1
+        starts[top] = starts[top - 1] if first else starts[top - 1] + half
+        sizes[top] = half if first else m - half
+        stage[top] = 0
+    return values[0]
+
+
+@njit(cache=True)
+def numpy_sum(a):
+    """``np.sum(a)`` of a contiguous float64 vector, to the bit (:func:`_pairwise_sum`; numpy
+    starts its ``add`` reduction from the identity 0.0, which changes no sum)."""
+    return 0.0 + _pairwise_sum(a, 0, a.shape[0])
+
+
+@njit(cache=True)
+def clutter_shares(log_weights, clutter_prob):
+    """Per observation, the weighted probability that it is a false alarm (the loop of
+    :func:`filters.fastslam.clutter_share`)."""
+    K, P = log_weights.shape
+    out = np.empty(K)
+    for k in range(K):
+        top = log_weights[k].max()
+        weighted, total = 0.0, 0.0
+        for p in range(P):
+            w = np.exp(log_weights[k, p] - top)
+            weighted += w * clutter_prob[k, p]
+            total += w
+        out[k] = weighted / total
+    return out
+
+
+@njit(cache=True)
+def _votes_and_clutter_shares(log_weights, votes, clutter_prob):
+    """:func:`filters.conversion.vote_all_unchecked`'s winners and margins and
+    :func:`clutter_shares` from one pass: each observation's weights ``exp(logw - max)`` are
+    formed once for both (the same values each formed on its own, so the same results)."""
+    K, P = votes.shape
+    winners = np.empty(K, dtype=np.int64)
+    margins = np.empty(K)
+    shares = np.empty(K)
+    options = np.empty(P, dtype=np.int64)
+    option_shares = np.empty(P)
+    weights = np.empty(P)
+    for k in range(K):
+        top = log_weights[k].max()
+        for p in range(P):
+            weights[p] = np.exp(log_weights[k, p] - top)
+        n = tally_votes(weights, votes[k], options, option_shares)
+        best, margins[k] = heaviest_option(option_shares, n)
+        winners[k] = options[best]
+        weighted, total = 0.0, 0.0
+        for p in range(P):
+            weighted += weights[p] * clutter_prob[k, p]
+            total += weights[p]
+        shares[k] = weighted / total
+    return winners, margins, shares
+
+
+@njit(cache=True)
+def cull_features(active, mx, my, sxx, sxy, syy, ex, cid, count, threshold):
+    """Remove the features whose existence is below ``threshold`` and re-pack each particle's
+    slots (:meth:`filters.fastslam.FastSLAM2._cull`), in place; ``count`` (P,) is rewritten.
+    Returns whether any feature was removed (else nothing changes)."""
+    P, C = active.shape
+    any_dead = False
+    for p in range(P):
+        for c in range(C):
+            if active[p, c] and ex[p, c] < threshold:
+                any_dead = True
+                active[p, c] = False
+    if not any_dead:
+        return False
+    compact_features(active, mx, my, sxx, sxy, syy, ex, cid)
+    for p in range(P):
+        n = 0
+        for c in range(C):
+            if active[p, c]:
+                n += 1
+            else:
+                ex[p, c] = 0.0
+                cid[p, c] = -1
+        count[p] = n
+    return True
+
+
+@njit(cache=True)
+def finish_scan(logw, logw_after, votes, slots, clutter_prob, known_cids, next_id, cid, active,
+                count, mx, my, sxx, sxy, syy, ex, clutter_num, clutter_den, clutter_decay, cull,
+                cull_threshold):
+    """The bookkeeping of one scan after :func:`scan_update`, in place (module doc of
+    :mod:`filters.fastslam`, "Correspondences"): the vote of each observation (BB 3.1) with the
+    weights after it (fresh ids ``next_id, next_id + 1, ...`` for the observations *new feature*
+    wins, in observation order), the clutter rate's running sums, the winners' ids written into
+    ``cid``, culling when ``cull`` (every ``cull_interval_steps``), and the log weights shifted
+    to a maximum of 0. With ``known_cids`` (K,) the winners are those ids, no vote is taken and
+    the clutter rate is left alone. Returns ``(winners, margins, n_new_ids, clutter_num,
+    clutter_den)``."""
+    K = votes.shape[0]
+    if known_cids is None:
+        winners, margins, shares = _votes_and_clutter_shares(logw_after, votes, clutter_prob)
+        n_new = 0
+        for k in range(K):
+            if winners[k] == NEW:
+                winners[k] = next_id + n_new
+                n_new += 1
+        for k in range(K):
+            clutter_num = clutter_decay * clutter_num + shares[k]
+            clutter_den = clutter_decay * clutter_den + 1.0
+    else:
+        winners = known_cids.copy()
+        margins = np.ones(K)
+        n_new = 0
+    assign_correspondence_ids_unchecked(cid, active, slots, winners)
+    if cull:
+        cull_features(active, mx, my, sxx, sxy, syy, ex, cid, count, cull_threshold)
+    top = logw.max()
+    for p in range(logw.shape[0]):
+        logw[p] -= top
+    return winners, margins, n_new, clutter_num, clutter_den
+
+
+@njit(cache=True)
+def _gather_rows(a, idx, out):
+    """``out[:] = np.take(a, idx, axis=0)`` for (P, C) arrays."""
+    for p in range(idx.shape[0]):
+        q = idx[p]
+        for c in range(a.shape[1]):
+            out[p, c] = a[q, c]
+
+
+@njit(cache=True, inline="always")
+def _less(a, b):
+    """numpy's sort order of floats (NaN last)."""
+    return a < b or (b != b and a == a)
+
+
+@njit(cache=True)
+def _searchsorted_right(a, keys):
+    """``np.searchsorted(a, keys, side="right")``: numpy's binary search, step for step (each
+    search narrowed by the previous key's result, as numpy does), so even an ``a`` that is not
+    sorted (a cdf whose last entry is set to 1 below a rounded sum) gives numpy's indices."""
+    n = a.shape[0]
+    out = np.empty(keys.shape[0], dtype=np.int64)
+    lo, hi = 0, n
+    last = keys[0] if keys.shape[0] else 0.0
+    for i in range(keys.shape[0]):
+        key = keys[i]
+        if not _less(key, last):  # last <= key in numpy's order
+            hi = n
+        else:
+            lo = 0
+            hi = hi + 1 if hi < n else n
+        last = key
+        while lo < hi:
+            mid = lo + ((hi - lo) >> 1)
+            if not _less(key, a[mid]):
+                lo = mid + 1
+            else:
+                hi = mid
+        out[i] = lo
+    return out
+
+
+@njit(cache=True)
+def normalise_weights(exp_w, threshold):
+    """The weights and the resampling decision of
+    :meth:`filters.fastslam.FastSLAM2._maybe_resample`, as numpy computed them, to the bit:
+    ``exp_w`` (P,), ``np.exp(logw - logw.max())`` (numpy's exp: module note above), normalised
+    in place; returns ``(resample, ess_ratio)``: whether ``N_eff < threshold * P``, and
+    ``N_eff / P``."""
+    P = exp_w.shape[0]
+    total = numpy_sum(exp_w)
+    squares = np.empty(P)
+    for p in range(P):
+        exp_w[p] = exp_w[p] / total
+        squares[p] = exp_w[p] * exp_w[p]
+    n_eff = 1.0 / numpy_sum(squares)
+    return not n_eff >= threshold * P, n_eff / P
+
+
+@njit(cache=True)
+def systematic_resample(w, start, logw, state, spare):
+    """Systematic resampling with the uniform ``start`` (drawn by the caller), as
+    :meth:`filters.fastslam.FastSLAM2._maybe_resample` did it in numpy, to the bit: the
+    particles ``np.searchsorted(cumsum(w), (start + arange(P)) / P, side="right")`` (the cdf's
+    last entry set to 1, the index capped at P - 1) of ``state`` ``(poses, prop_cov, mx, my,
+    sxx, sxy, syy, ex, active, cid, count, lineage)`` gathered into ``spare`` (arrays of the same
+    shapes that the caller allocates and then takes as its state: arrays allocated here cost
+    twice the copy), ``logw`` zeroed and ``w`` made the uniform weights, in place."""
+    poses, prop_cov, mx, my, sxx, sxy, syy, ex, active, cid, count, lineage = state
+    (s_poses, s_prop_cov, s_mx, s_my, s_sxx, s_sxy, s_syy, s_ex, s_active, s_cid, s_count,
+     s_lineage) = spare
+    P = w.shape[0]
+    cdf = np.empty(P)
+    cdf[0] = w[0]
+    for p in range(1, P):  # np.cumsum's order
+        cdf[p] = cdf[p - 1] + w[p]
+    cdf[P - 1] = 1.0
+    positions = np.empty(P)
+    for p in range(P):
+        positions[p] = (start + p) / P
+    idx = _searchsorted_right(cdf, positions)
+    for p in range(P):
+        idx[p] = min(idx[p], P - 1)
+    _gather_rows(poses, idx, s_poses)
+    for p in range(P):
+        q = idx[p]
+        for i in range(3):
+            for k in range(3):
+                s_prop_cov[p, i, k] = prop_cov[q, i, k]
+        s_count[p] = count[q]
+        s_lineage[p] = lineage[q]
+    _gather_rows(mx, idx, s_mx)
+    _gather_rows(my, idx, s_my)
+    _gather_rows(sxx, idx, s_sxx)
+    _gather_rows(sxy, idx, s_sxy)
+    _gather_rows(syy, idx, s_syy)
+    _gather_rows(ex, idx, s_ex)
+    _gather_rows(active, idx, s_active)
+    _gather_rows(cid, idx, s_cid)
+    for p in range(P):  # the weights of logw = 0: exp(0) = 1, normalised
+        logw[p] = 0.0
+        w[p] = 1.0
+    total = numpy_sum(w)
+    for p in range(P):
+        w[p] = w[p] / total

@@ -83,7 +83,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.optimize import minimize
 
 from filters.geometry import compose, transform_point, wrap_angle
 from filters.information import sparse_spd_factor
@@ -724,6 +723,8 @@ class RelativeProblem:
         options = {"maxiter": max_iterations, "gtol": gtol}
         if quasi_newton == "L-BFGS-B":
             options |= {"ftol": 1e-15, "maxcor": 30}
+        from scipy.optimize import minimize  # here: scipy.optimize costs every process ~0.3 s
+
         res = minimize(fun, theta0, jac=True, method=quasi_newton, options=options)
         theta = res.x
         # a line-search stop at the precision limit counts as converged if the gradient vanished

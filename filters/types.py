@@ -11,7 +11,6 @@ filters never see truth. Sub-map fusion reports which local ids became which glo
 
 from __future__ import annotations
 
-import itertools
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -22,10 +21,18 @@ class FeatureIds:
     """A source of fresh, never repeated feature ids (owned by one system, shared by its maps)."""
 
     def __init__(self, start: int = 0):
-        self._counter = itertools.count(start)
+        self._next = int(start)
+
+    @property
+    def next_id(self) -> int:
+        """The id the next call of :meth:`new` returns first (a compiled caller may hand out
+        ``next_id, next_id + 1, ...`` and then take them with ``new``)."""
+        return self._next
 
     def new(self, n: int = 1) -> np.ndarray:
-        return np.fromiter((next(self._counter) for _ in range(n)), dtype=np.int64, count=n)
+        ids = np.arange(self._next, self._next + n, dtype=np.int64)
+        self._next += n
+        return ids
 
 
 @dataclass

@@ -19,8 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
-from scipy.stats import chi2
 
+from filters.association import chi_square_quantile
 from filters.geometry import wrap_angle
 
 POSE_DOF = 3
@@ -86,8 +86,8 @@ def nees_band(
     """Two-sided ``confidence`` band for the average NEES of ``n_runs`` independent runs."""
     lo_q, hi_q = (1.0 - confidence) / 2.0, 1.0 - (1.0 - confidence) / 2.0
     return (
-        float(chi2.ppf(lo_q, dof * n_runs) / n_runs),
-        float(chi2.ppf(hi_q, dof * n_runs) / n_runs),
+        float(chi_square_quantile(lo_q, dof * n_runs) / n_runs),
+        float(chi_square_quantile(hi_q, dof * n_runs) / n_runs),
     )
 
 

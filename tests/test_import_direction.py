@@ -205,3 +205,29 @@ def test_the_checks_catch_what_they_are_meant_to():
         "policies.b:4 imports slam_gym.c",
     ]
     assert circles(fake) == [["filters.a", "policies.b", "slam_gym.c", "slam_gym.d"]]
+
+
+def test_the_env_runs_without_importing_scipy_stats_or_optimize():
+    """A plain ``gym.make`` episode imports neither scipy.stats nor scipy.optimize: the two cost a
+    process 0.5-1 s of CPU at import (docs/PERFORMANCE.md), and the env needs neither (its
+    chi-square quantiles come from ``filters.association.chi_square_quantile``; the optimisers
+    that use scipy.optimize import it when they run)."""
+    import os
+    import subprocess
+    import sys
+    import textwrap
+
+    code = textwrap.dedent("""
+        import sys
+        import gymnasium as gym
+        import slam_gym
+        env = gym.make("slam_gym:SlamGym/HybridSLAM-Light-v0")
+        env.reset(seed=0)
+        for _ in range(12):
+            env.step([1, 1])
+        print(sorted(m for m in ("scipy.stats", "scipy.optimize") if m in sys.modules))
+    """)
+    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                          timeout=600, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip().splitlines()[-1] == "[]"

@@ -4,8 +4,9 @@ Usage: python scripts/performance/env_breakdown.py [POLICY] [DECISIONS]
 e.g.   python scripts/performance/env_breakdown.py fixed-10s 400
 
 Wraps the pieces of a ``HybridSLAMEnv(n_particles=500, clutter_level=2)`` step in
-``perf_counter`` timers (the compiled scan, FastSLAM's update around it, its resampling and
-prediction, the vote, the innovation ratio's prior pose, the posterior pose and NEES, the map
+``perf_counter`` timers (the compiled scan, FastSLAM's update around it, the compiled
+bookkeeping after the scan (votes, ids, culling), the weights and resampling,
+its prediction, the innovation ratio's prior pose, the posterior pose and NEES, the map
 score, the interface features, fusions, optimisations, resets), plays ``POLICY`` (default
 ``fixed-10s``) for ``DECISIONS`` decisions (default 400) from ``reset(seed=0)`` after a warm-up,
 and prints each piece's milliseconds per decision and share of the wall time. Nested pieces
@@ -34,10 +35,10 @@ from slam_gym.evaluation.core import play_decisions
 
 PIECES = (
     (fastslam, "scan_update", "compiled scan (FastSLAM kernel)"),
-    (fastslam, "vote_all", "correspondence vote"),
+    (fastslam, "finish_scan", "votes, ids, clutter rate, culling"),
     (fastslam.FastSLAM2, "update", "FastSLAM update (scan included)"),
     (fastslam.FastSLAM2, "predict", "FastSLAM prediction"),
-    (fastslam.FastSLAM2, "_maybe_resample", "resampling test and resampling"),
+    (fastslam.FastSLAM2, "_maybe_resample", "weights, resampling test, resampling"),
     (submap.SubmapSLAM, "observation_innovation_ratio", "innovation ratio (prior pose)"),
     (episode.Episode, "_measure", "posterior pose, NEES, errors"),
     (episode.Episode, "map_score", "map score (reward)"),

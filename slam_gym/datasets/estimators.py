@@ -12,7 +12,6 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import nnls
 
 from filters.geometry import wrap_angle
 from filters.models import (
@@ -294,6 +293,8 @@ def estimate_odometry_noise(
             f"covering at least {MIN_ODOMETRY_WINDOWS} windows")
     u, err = measured[ok], measured[ok] - truth[ok]
     steps_per_window = window_s / dt_s
+    from scipy.optimize import nnls  # here: scipy.optimize costs every process ~0.3 s
+
     fractions, floors = [], []
     for c in range(2):
         A = np.column_stack([u[:, c] ** 2, np.ones(u.shape[0])])

@@ -257,3 +257,19 @@ def test_bad_node_budget_names_the_field(bad):
     cands, _, _ = point_difference_candidates(x, P, cols_a, cols_b, GATE)
     with pytest.raises(ValueError, match="node_budget"):
         jcbb(cands, ChiSquareTable(GATE, 2), node_budget=bad)
+
+
+def test_chi_square_quantile_is_scipy_stats_chi2_ppf_to_the_bit():
+    """The gates and the NEES band take their chi-square quantiles without scipy.stats (a third
+    of a second or more of every process's imports): the same numbers, to the bit."""
+    from filters.association import chi_square_quantile
+
+    rng = np.random.default_rng(0)
+    probabilities = np.concatenate([[0.0, 0.001, 0.025, 0.5, 0.95, 0.975, 0.999, 0.99999, 1.0],
+                                    rng.random(40)])
+    for dof in [*range(1, 200), 0.5, 2.5, 1000]:
+        np.testing.assert_array_equal(chi_square_quantile(probabilities, dof),
+                                      chi2.ppf(probabilities, dof))
+        assert chi_square_quantile(0.999, dof) == chi2.ppf(0.999, dof)
+    dofs = 2 * np.arange(1, 40)
+    np.testing.assert_array_equal(chi_square_quantile(0.999, dofs), chi2.ppf(0.999, dofs))

@@ -398,7 +398,7 @@ def test_vote_tally_sums_each_share_in_particle_order(n_options):
     votes = rng.choice(np.arange(-2, n_options - 2) * 7, size=P)
     options = np.empty(P, dtype=np.int64)
     shares = np.empty(P)
-    n = conversion._tally(weights, votes, options, shares)
+    n = conversion.tally_votes(weights, votes, options, shares)
     expected_options = np.unique(votes)
     sums = {int(o): 0.0 for o in expected_options}
     for p in range(P):
