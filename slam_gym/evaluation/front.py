@@ -150,7 +150,8 @@ def plot_front(points: Sequence[Mapping[str, Any]], path: str | os.PathLike, *,
     """Two panels, success and map error of the runs that did not fail, against mean interface
     CPU (log scale); each point is a policy (``label``; learned ones as stars) with the 95 %
     interval of its paired difference to the reference rule drawn around it (none for the
-    reference itself)."""
+    reference itself). A panel's CPU axis is linear when some policy spent no interface CPU or
+    the panel has no point to draw."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     from matplotlib.ticker import NullFormatter
@@ -178,11 +179,17 @@ def plot_front(points: Sequence[Mapping[str, Any]], path: str | os.PathLike, *,
                             alpha=0.6, capsize=3)
             ax.scatter([x], [y], s=60 if learned else 40, marker="*" if learned else "o",
                        color=color, label=p["label"], zorder=3)
-        ax.set_xscale("log")
-        # plain labels at 1-2-5 steps: matplotlib's minor-tick labels overlap on a short log axis
-        ax.set_xticks(ticks, labels=[f"{v:g}" for v in ticks])
-        ax.xaxis.set_minor_formatter(NullFormatter())
-        ax.set_xlabel("interface CPU per episode (s, fusions + optimisations)")
+        # a log axis needs a point to draw and every point above 0 s (a short path can end
+        # before any fusion; every run failing leaves the map-error panel without a point)
+        log_axis = len(cpu) == len(points) and any(np.isfinite(scale * p[key]) for p in points)
+        if log_axis:
+            ax.set_xscale("log")
+            # plain labels at 1-2-5 steps: matplotlib's minor-tick labels overlap on a short
+            # log axis
+            ax.set_xticks(ticks, labels=[f"{v:g}" for v in ticks])
+            ax.xaxis.set_minor_formatter(NullFormatter())
+        ax.set_xlabel("interface CPU per episode (s, fusions + optimisations"
+                      + ("" if log_axis else "; linear: no point or one at 0 s") + ")")
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
     axes[1].legend(fontsize=7, loc="best")

@@ -125,3 +125,21 @@ def test_front_command_runs_rules_once_and_the_model_at_every_price(tmp_path):
     # the model was trained on this code: its rows match, nothing is marked
     assert doc["model_matches_code"] is True and doc["model_differences"] == []
     assert "†" not in (out / "front.md").read_text()
+
+
+def test_the_front_figure_takes_a_policy_that_spent_no_interface_cpu(tmp_path):
+    """A short path can end before any fusion: 0 s of interface CPU has no place on a log axis,
+    so the axis turns linear instead of the figure failing (it did, on `--n-steps 300`)."""
+    from slam_gym.evaluation.front import plot_front
+
+    # as `slam-gym front --particles 20 --n-steps 300` gave: every run failed before a fusion
+    point = {"success_rate": 0.0, "map_error_m": float("nan"), "success_diff_pp": 0.0,
+             "success_diff_ci_pp": None, "map_error_diff_m": float("nan"),
+             "map_error_diff_ci_m": None}
+    points = [{**point, "label": "fixed-10s-optimise", "interface_cpu_s": 0.0},
+              {**point, "label": "learned", "interface_cpu_s": 0.0, "learned": True}]
+    path = plot_front(points, tmp_path / "front.png", title="no CPU")
+    assert path.stat().st_size > 10_000
+    log_path = plot_front([{**p, "interface_cpu_s": 0.2} for p in points], tmp_path / "log.png",
+                          title="some CPU")
+    assert log_path.stat().st_size > 10_000
