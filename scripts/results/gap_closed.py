@@ -1,0 +1,113 @@
+"""How much of the gap between ``fixed-10s-optimise`` and the lookahead a learned policy closes
+(issue 39's goal: "what fraction of the gap between the rule and the lookahead the learner
+closes; the stretch aim is half").
+
+Supports docs/RESULTS.md, "Learned interface policies, round three". The declared use::
+
+    python scripts/results/gap_closed.py --front out/front39 --ceiling out/ceiling39 --price 10
+
+reads the learned policy's rows at ``--price`` and the rule's rows of a ``slam-gym front`` output
+(``FRONT/learned-<price>``, ``FRONT/rules``) and the rows of ``lookahead_ceiling.py``
+(``CEILING/results.jsonl``), keeps the worlds both ran (the ceiling's declared subset), and
+pairs each policy with the rule *of its own run* (the ceiling's rule rows were run beside the
+lookahead, the front's beside the learner). Per measure: the gap (lookahead minus rule, paired
+mean), the learner's paired difference to the rule, and the fraction ``learner / gap`` (reported
+only where the gap's interval excludes 0: dividing by a gap indistinguishable from none measures
+noise). Map error counts the worlds where both policies of a pair succeeded, lower is better, and
+the fraction is taken in the same direction. Writes ``FRONT/gap_closed.{json,md}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+from slam_gym.evaluation.front import compare
+
+REFERENCE = "fixed-10s-optimise"
+MEASURES = (("success_diff_pp", "success_diff_ci_pp", "success (pp)"),
+            ("map_error_diff_m", "map_error_diff_ci_m", "map error (m)"),
+            ("return_diff", "return_diff_ci", "return"))
+
+
+def _rows(path: Path) -> list[dict]:
+    if not path.is_file():
+        raise ValueError(f"rows={str(path)!r} is invalid: no such file")
+    rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    return [r for r in rows if r.get("status") == "ok"]
+
+
+def _world(row) -> tuple[int, int]:
+    return int(row["clutter_level"]), int(row["seed"])
+
+
+def gap_closed(front: Path, ceiling: Path, price: float, lookahead: str = "lookahead") -> dict:
+    learner = _rows(front / f"learned-{price:g}" / "results.jsonl")
+    front_rule = [r for r in _rows(front / "rules" / "results.jsonl") if r["policy"] == REFERENCE]
+    ceiling_rows = _rows(ceiling / "results.jsonl")
+    planner = [r for r in ceiling_rows if r["policy"] == lookahead]
+    ceiling_rule = [r for r in ceiling_rows if r["policy"] == REFERENCE]
+    worlds = ({_world(r) for r in learner} & {_world(r) for r in front_rule}
+              & {_world(r) for r in planner} & {_world(r) for r in ceiling_rule})
+    if not worlds:
+        raise ValueError(f"front={str(front)!r} is invalid: no world in common with the ceiling")
+
+    def keep(rows):
+        return [r for r in rows if _world(r) in worlds]
+
+    learned = compare(keep(learner), keep(front_rule), price)
+    planned = compare(keep(planner), keep(ceiling_rule), price)
+    measures = {}
+    for key, ci_key, label in MEASURES:
+        gap, gap_ci, mine = planned[key], planned[ci_key], learned[key]
+        clear = gap_ci is not None and (gap_ci[0] > 0 or gap_ci[1] < 0)
+        measures[label] = {
+            "gap": gap, "gap_ci": gap_ci, "learner_diff": mine, "learner_ci": learned[ci_key],
+            "fraction_closed": mine / gap if clear and gap != 0 and math.isfinite(mine) else None,
+        }
+    return {"price": price, "n_worlds": len(worlds), "lookahead": lookahead,
+            "worlds": sorted(worlds), "measures": measures}
+
+
+def _fmt(value, ci, digits) -> str:
+    if value is None or not math.isfinite(value):
+        return "-"
+    text = f"{value:+.{digits}f}"
+    return text + (f" [{ci[0]:+.{digits}f}, {ci[1]:+.{digits}f}]" if ci else "")
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--front", required=True, help="a `slam-gym front` output directory")
+    parser.add_argument("--ceiling", required=True, help="a lookahead_ceiling.py output directory")
+    parser.add_argument("--price", type=float, default=10.0)
+    parser.add_argument("--lookahead", default="lookahead",
+                        help="the planner to measure the gap to (or lookahead-privileged)")
+    args = parser.parse_args(argv)
+    try:
+        doc = gap_closed(Path(args.front), Path(args.ceiling), args.price, args.lookahead)
+    except ValueError as exc:
+        parser.error(str(exc))
+    lines = [f"On the {doc['n_worlds']} worlds both ran, price {args.price:g} /s; each policy "
+             f"paired with `{REFERENCE}` of its own run (mean [t 95 %]).", "",
+             f"| measure | gap: `{args.lookahead}` - rule | learner - rule | fraction closed |",
+             "|---|---:|---:|---:|"]
+    for label, m in doc["measures"].items():
+        digits = 2 if "map" in label else 0
+        fraction = ("-" if m["fraction_closed"] is None
+                    else f"{100 * m['fraction_closed']:.0f} %")
+        lines.append(f"| {label} | {_fmt(m['gap'], m['gap_ci'], digits)} | "
+                     f"{_fmt(m['learner_diff'], m['learner_ci'], digits)} | {fraction} |")
+    lines += ["", "A fraction is given only where the gap's interval excludes 0."]
+    front = Path(args.front)
+    (front / "gap_closed.json").write_text(json.dumps(doc, indent=2) + "\n")
+    (front / "gap_closed.md").write_text("\n".join(lines) + "\n")
+    sys.stdout.write("\n".join(lines) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,66 @@
+"""scripts/results/gap_closed.py: the fraction of the rule-to-lookahead gap a learner closes."""
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "results" / "gap_closed.py"
+
+
+def load_script():
+    spec = importlib.util.spec_from_file_location("gap_closed", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def row(policy, seed, success, map_error, ret):
+    return {"status": "ok", "policy": policy, "scenario": "brooks-bailey", "clutter_level": 0,
+            "seed": seed, "success": success, "map_error_m": map_error, "fusion_cpu_s": 0.1,
+            "optimise_cpu_s": 0.1, "return": ret, "compute_term_s": 1.0, "w_compute": 10.0,
+            "n_fusions": 40, "n_optimisations": 40}
+
+
+def write(path: Path, rows):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+
+
+def test_the_fraction_is_the_learners_paired_gain_over_the_lookaheads(tmp_path):
+    seeds = range(4)
+    rule_ret, rule_map = [-900.0, -1000.0, -1100.0, -1200.0], [2.0, 3.0, 1.0, 4.0]
+    # the lookahead: +100 return and -1 m on every world (a gap whose interval excludes 0), the
+    # same successes; the learner: +50 and -0.25 m against its own run's rule, one world fewer
+    write(tmp_path / "ceiling" / "results.jsonl",
+          [row("fixed-10s-optimise", s, True, rule_map[s], rule_ret[s]) for s in seeds]
+          + [row("lookahead", s, True, rule_map[s] - 1.0, rule_ret[s] + 100.0) for s in seeds]
+          + [row("fixed-10s-optimise", 9, True, 1.0, -1.0)])  # a world the front did not run
+    write(tmp_path / "front" / "rules" / "results.jsonl",
+          [row("fixed-10s-optimise", s, True, rule_map[s] + 0.5, rule_ret[s] - 7.0)
+           for s in seeds])
+    write(tmp_path / "front" / "learned-10" / "results.jsonl",
+          [row("learned", s, s != 3, rule_map[s] + 0.25, rule_ret[s] + 43.0) for s in seeds])
+    module = load_script()
+    doc = module.gap_closed(tmp_path / "front", tmp_path / "ceiling", 10.0)
+    assert doc["n_worlds"] == 4
+    ret, map_error, success = (doc["measures"][k] for k in ("return", "map error (m)",
+                                                            "success (pp)"))
+    assert ret["gap"] == pytest.approx(100.0) and ret["fraction_closed"] == pytest.approx(0.5)
+    # map error over the worlds where the learner and its rule both succeeded: -0.25 m each
+    assert map_error["learner_diff"] == pytest.approx(-0.25)
+    assert map_error["fraction_closed"] == pytest.approx(0.25)
+    # no success gap: no fraction, however the learner did
+    assert success["gap"] == 0.0 and success["fraction_closed"] is None
+    assert success["learner_diff"] == pytest.approx(-25.0)
+
+
+def test_a_front_without_the_ceilings_worlds_is_refused(tmp_path):
+    write(tmp_path / "ceiling" / "results.jsonl",
+          [row("fixed-10s-optimise", 1, True, 1.0, -1.0), row("lookahead", 1, True, 1.0, -1.0)])
+    write(tmp_path / "front" / "rules" / "results.jsonl",
+          [row("fixed-10s-optimise", 2, True, 1.0, -1.0)])
+    write(tmp_path / "front" / "learned-10" / "results.jsonl", [row("learned", 2, True, 1, -1)])
+    with pytest.raises(ValueError, match="front"):
+        load_script().gap_closed(tmp_path / "front", tmp_path / "ceiling", 10.0)
