@@ -40,6 +40,9 @@ DEFAULT_EVAL_SEEDS = "900000,900001,900002,900003,900004"
 """Training-time evaluation worlds (5 per level): below the training worlds and far from the
 benchmark's reported worlds (0-199)."""
 
+DEFAULT_BASELINE = "fixed-10s-optimise"
+"""The rule whose line a plain ``slam-gym train`` draws beside its curves (``--baseline``)."""
+
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser("train", help="train learned interface policies (SB3), resumable")
@@ -62,9 +65,10 @@ def add_parser(subparsers) -> None:
     p.add_argument("--eval-every", type=int, default=25_000, help="decisions between evaluations")
     p.add_argument("--eval-seeds", default=DEFAULT_EVAL_SEEDS,
                    help="evaluation worlds per level (seeds < 1e6, never trained on)")
-    p.add_argument("--baseline", default="fixed-10s-optimise",
+    p.add_argument("--baseline", default=None,
                    help="a policy evaluated once on the same worlds and options, drawn as a line "
-                        "beside the training curves and given in the summary ('none': skip)")
+                        f"beside the training curves and given in the summary (default "
+                        f"{DEFAULT_BASELINE}; 'none': skip; not with --prices)")
     p.add_argument("--eval-workers", type=int, default=None,
                    help="processes for evaluation (default: n_envs)")
     p.add_argument("--checkpoint-every", type=int, default=25_000)
@@ -112,7 +116,11 @@ def run(args) -> int:
     if not seeds or len(set(seeds)) != len(seeds):
         raise ValueError(f"seeds={args.seeds!r} is invalid: must be distinct integers")
     if args.prices is not None:
+        if args.baseline is not None:
+            raise ValueError(f"baseline={args.baseline!r} is invalid with --prices: a sweep's "
+                             "summaries have no baseline line")
         return run_sweep_command(args, params, seeds)
+    baseline_name = DEFAULT_BASELINE if args.baseline is None else args.baseline
     for field in ("executor", "workers", "ray_address"):
         if getattr(args, field) is not None:
             raise ValueError(
@@ -120,10 +128,10 @@ def run(args) -> int:
                 "sweep (prices x seeds) go through executors; without --prices the seeds train "
                 "here, one after the other")
     out = out_dir(args)
-    if args.baseline != "none":
+    if baseline_name != "none":
         import policies
 
-        policies.make(args.baseline)  # an unknown name fails here, before any training
+        policies.make(baseline_name)  # an unknown name fails here, before any training
     runs = {}
     for seed in seeds:
         setup = TrainingSetup(
@@ -139,8 +147,8 @@ def run(args) -> int:
                        params["n_timesteps"], run_dir)
         train_run(setup, run_dir, resume=args.resume, progress=not args.quiet and not args.json)
         runs[seed] = run_dir
-    baseline = None if args.baseline == "none" else (args.baseline, evaluate_baseline(
-        args.baseline, setup, out / f"baseline-{args.baseline}",
+    baseline = None if baseline_name == "none" else (baseline_name, evaluate_baseline(
+        baseline_name, setup, out / f"baseline-{baseline_name}",
         progress=not args.quiet and not args.json))
     doc = summarise_runs(out, args.algo, runs,
                          title=f"{args.algo.upper()} on {args.env}, seeds {seeds}",

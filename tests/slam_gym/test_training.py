@@ -194,6 +194,9 @@ def test_train_command_trains_seeds_summarises_and_copies_the_chosen_model(tmp_p
 
 def test_train_command_refuses_an_unknown_baseline_before_training(tmp_path):
     assert main(["train", "--baseline", "no-such-rule", "--out", str(tmp_path)]) == 2
+    # a sweep's summaries draw no baseline: asking for one is refused, not ignored
+    assert main(["train", "--baseline", "fixed-10s", "--prices", "1,10", "--out",
+                 str(tmp_path)]) == 2
     assert not any(tmp_path.iterdir())
 
 
