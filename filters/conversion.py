@@ -188,6 +188,20 @@ def heaviest_option(shares, n):
 
 
 @njit(cache=True)
+def vote_one_observation(log_weights, votes, weights, options, shares):
+    """BB 3.1 for one observation from its (P,) log weights: fills ``weights`` with
+    ``exp(log_weights - max)`` and ``options``/``shares`` as :func:`tally_votes` does; returns the
+    winner, its margin and the number of options (scratch arrays of length P, reused by the
+    caller across the observations of a scan)."""
+    top_log = log_weights.max()
+    for p in range(len(weights)):
+        weights[p] = np.exp(log_weights[p] - top_log)
+    n = tally_votes(weights, votes, options, shares)
+    top, margin = heaviest_option(shares, n)
+    return options[top], margin, n
+
+
+@njit(cache=True)
 def _vote_all(log_weights, votes):
     K, P = votes.shape
     winners = np.empty(K, dtype=np.int64)
@@ -197,12 +211,8 @@ def _vote_all(log_weights, votes):
     shares = np.empty(P)
     weights = np.empty(P)
     for k in range(K):
-        top_log = log_weights[k].max()
-        for p in range(P):
-            weights[p] = np.exp(log_weights[k, p] - top_log)
-        n = tally_votes(weights, votes[k], options, shares)
-        top, margins[k] = heaviest_option(shares, n)
-        winners[k] = options[top]
+        winners[k], margins[k], n = vote_one_observation(log_weights[k], votes[k], weights,
+                                                         options, shares)
         for i in range(n):
             if options[i] == CLUTTER_VOTE:
                 clutter_shares[k] = shares[i]

@@ -34,8 +34,7 @@ from filters.conversion import CLUTTER_VOTE as CLUTTER
 from filters.conversion import NEW_VOTE as NEW
 from filters.conversion import (
     assign_correspondence_ids_unchecked,
-    heaviest_option,
-    tally_votes,
+    vote_one_observation,
 )
 from filters.existence import (
     detection_update_one,
@@ -621,7 +620,8 @@ def clutter_shares(log_weights, clutter_prob):
 
 @njit(cache=True)
 def _votes_and_clutter_shares(log_weights, votes, clutter_prob):
-    """:func:`filters.conversion.vote_all_unchecked`'s winners and margins and
+    """:func:`filters.conversion.vote_all`'s winners and margins (the same
+    :func:`~filters.conversion.vote_one_observation` per observation) and
     :func:`clutter_shares` from one pass: each observation's weights ``exp(logw - max)`` are
     formed once for both (the same values each formed on its own, so the same results)."""
     K, P = votes.shape
@@ -632,12 +632,8 @@ def _votes_and_clutter_shares(log_weights, votes, clutter_prob):
     option_shares = np.empty(P)
     weights = np.empty(P)
     for k in range(K):
-        top = log_weights[k].max()
-        for p in range(P):
-            weights[p] = np.exp(log_weights[k, p] - top)
-        n = tally_votes(weights, votes[k], options, option_shares)
-        best, margins[k] = heaviest_option(option_shares, n)
-        winners[k] = options[best]
+        winners[k], margins[k], _ = vote_one_observation(log_weights[k], votes[k], weights,
+                                                         options, option_shares)
         weighted, total = 0.0, 0.0
         for p in range(P):
             weighted += weights[p] * clutter_prob[k, p]
