@@ -26,6 +26,7 @@ import sys
 from pathlib import Path
 
 from slam_gym.evaluation.front import compare
+from slam_gym.evaluation.results import read_results
 
 REFERENCE = "fixed-10s-optimise"
 MEASURES = (("success_diff_pp", "success_diff_ci_pp", "success (pp)"),
@@ -36,8 +37,7 @@ MEASURES = (("success_diff_pp", "success_diff_ci_pp", "success (pp)"),
 def _rows(path: Path) -> list[dict]:
     if not path.is_file():
         raise ValueError(f"rows={str(path)!r} is invalid: no such file")
-    rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-    return [r for r in rows if r.get("status") == "ok"]
+    return [r for r in read_results(path) if r.get("status") == "ok"]
 
 
 def _world(row) -> tuple[int, int]:
