@@ -64,3 +64,26 @@ def test_a_front_without_the_ceilings_worlds_is_refused(tmp_path):
     write(tmp_path / "front" / "learned-10" / "results.jsonl", [row("learned", 2, True, 1, -1)])
     with pytest.raises(ValueError, match="front"):
         load_script().gap_closed(tmp_path / "front", tmp_path / "ceiling", 10.0)
+
+
+def test_the_command_reports_both_planners_in_one_output(tmp_path):
+    seeds = range(3)
+    write(tmp_path / "ceiling" / "results.jsonl",
+          [row("fixed-10s-optimise", s, True, 2.0, -1000.0) for s in seeds]
+          + [row("lookahead", s, True, 1.0, -900.0) for s in seeds]
+          + [row("lookahead-privileged", s, True, 1.5, -800.0) for s in seeds])
+    write(tmp_path / "front" / "rules" / "results.jsonl",
+          [row("fixed-10s-optimise", s, True, 2.0, -1000.0) for s in seeds])
+    write(tmp_path / "front" / "learned-10" / "results.jsonl",
+          [row("learned", s, True, 1.5, -950.0) for s in seeds])
+    module = load_script()
+    assert module.main(["--front", str(tmp_path / "front"), "--ceiling",
+                        str(tmp_path / "ceiling")]) == 0
+    doc = json.loads((tmp_path / "front" / "gap_closed.json").read_text())
+    assert set(doc) == {"lookahead", "lookahead-privileged"}
+    assert doc["lookahead"]["measures"]["return"]["gap"] == pytest.approx(100.0)
+    assert doc["lookahead-privileged"]["measures"]["return"]["gap"] == pytest.approx(200.0)
+    assert doc["lookahead-privileged"]["measures"]["return"]["fraction_closed"] == pytest.approx(
+        0.25)
+    text = (tmp_path / "front" / "gap_closed.md").read_text()
+    assert "`lookahead` - rule" in text and "`lookahead-privileged` - rule" in text

@@ -14,7 +14,9 @@ lookahead, the front's beside the learner). Per measure: the gap (lookahead minu
 mean), the learner's paired difference to the rule, and the fraction ``learner / gap`` (reported
 only where the gap's interval excludes 0: dividing by a gap indistinguishable from none measures
 noise). Map error counts the worlds where both policies of a pair succeeded, lower is better, and
-the fraction is taken in the same direction. Writes ``FRONT/gap_closed.{json,md}``.
+the fraction is taken in the same direction. The lookahead and its privileged bound each get a
+table, both in one output (``--lookahead`` chooses), so no run overwrites the other's figures.
+Writes ``FRONT/gap_closed.{json,md}``.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from slam_gym.evaluation.front import compare
 from slam_gym.evaluation.results import read_results
 
 REFERENCE = "fixed-10s-optimise"
+PLANNERS = ("lookahead", "lookahead-privileged")
 MEASURES = (("success_diff_pp", "success_diff_ci_pp", "success (pp)"),
             ("map_error_diff_m", "map_error_diff_ci_m", "map error (m)"),
             ("return_diff", "return_diff_ci", "return"))
@@ -84,26 +87,35 @@ def main(argv=None) -> int:
     parser.add_argument("--front", required=True, help="a `slam-gym front` output directory")
     parser.add_argument("--ceiling", required=True, help="a lookahead_ceiling.py output directory")
     parser.add_argument("--price", type=float, default=10.0)
-    parser.add_argument("--lookahead", default="lookahead",
-                        help="the planner to measure the gap to (or lookahead-privileged)")
+    parser.add_argument("--lookahead", default=",".join(PLANNERS),
+                        help="the planners to measure the gap to, comma-separated (default: "
+                             "%(default)s); one table each, all in one output")
     args = parser.parse_args(argv)
+    planners = [name.strip() for name in args.lookahead.split(",") if name.strip()]
+    if not planners:
+        parser.error("lookahead='' is invalid: name at least one planner")
     try:
-        doc = gap_closed(Path(args.front), Path(args.ceiling), args.price, args.lookahead)
+        docs = [gap_closed(Path(args.front), Path(args.ceiling), args.price, name)
+                for name in planners]
     except ValueError as exc:
         parser.error(str(exc))
-    lines = [f"On the {doc['n_worlds']} worlds both ran, price {args.price:g} /s; each policy "
-             f"paired with `{REFERENCE}` of its own run (mean [t 95 %]).", "",
-             f"| measure | gap: `{args.lookahead}` - rule | learner - rule | fraction closed |",
-             "|---|---:|---:|---:|"]
-    for label, m in doc["measures"].items():
-        digits = 2 if "map" in label else 0
-        fraction = ("-" if m["fraction_closed"] is None
-                    else f"{100 * m['fraction_closed']:.0f} %")
-        lines.append(f"| {label} | {_fmt(m['gap'], m['gap_ci'], digits)} | "
-                     f"{_fmt(m['learner_diff'], m['learner_ci'], digits)} | {fraction} |")
-    lines += ["", "A fraction is given only where the gap's interval excludes 0."]
+    lines = []
+    for doc in docs:
+        lines += [f"On the {doc['n_worlds']} worlds both ran, price {args.price:g} /s; each "
+                  f"policy paired with `{REFERENCE}` of its own run (mean [t 95 %]).", "",
+                  f"| measure | gap: `{doc['lookahead']}` - rule | learner - rule | "
+                  "fraction closed |", "|---|---:|---:|---:|"]
+        for label, m in doc["measures"].items():
+            digits = 2 if "map" in label else 0
+            fraction = ("-" if m["fraction_closed"] is None
+                        else f"{100 * m['fraction_closed']:.0f} %")
+            lines.append(f"| {label} | {_fmt(m['gap'], m['gap_ci'], digits)} | "
+                         f"{_fmt(m['learner_diff'], m['learner_ci'], digits)} | {fraction} |")
+        lines.append("")
+    lines.append("A fraction is given only where the gap's interval excludes 0.")
     front = Path(args.front)
-    (front / "gap_closed.json").write_text(json.dumps(doc, indent=2) + "\n")
+    (front / "gap_closed.json").write_text(json.dumps({d["lookahead"]: d for d in docs},
+                                                      indent=2) + "\n")
     (front / "gap_closed.md").write_text("\n".join(lines) + "\n")
     sys.stdout.write("\n".join(lines) + "\n")
     return 0
