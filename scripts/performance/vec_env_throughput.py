@@ -1,0 +1,109 @@
+"""Decisions and episodes per wall second of a training's vectorised env, by number of workers.
+
+Usage: python scripts/performance/vec_env_throughput.py [--n-envs 2,4] [--seconds 120]
+e.g.   python scripts/performance/vec_env_throughput.py --env SlamGym/HybridSLAM-Interval-v0
+
+SB3's ``SubprocVecEnv`` steps its workers in lock step: every ``step`` waits for the slowest
+worker. An interval action of ``SlamGym/HybridSLAM-Interval-v0`` covers 2-20 s of the world, so
+workers given different intervals finish at different times and the faster one idles. This
+steps the training's own env constructor (``slam_gym.training.run.make_env_fn``: random clutter
+level and price, the env options of a ``slam-gym train`` run) in a ``SubprocVecEnv`` of each
+``--n-envs`` for ``--seconds`` of wall time, with actions drawn uniformly from a seeded
+generator (a learner that varies its intervals; ``--actions rule`` plays the constant rule
+action instead), and prints decisions/s, episodes/s and the workers' CPU use (their
+``/proc/<pid>/stat`` user + system time over the wall time, in cores). No policy update runs,
+so this is the env side of a training run only.
+
+Supports docs/PERFORMANCE.md, "What a user meets" (a training run's wall time).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+
+import numpy as np
+
+from slam_gym.training.hyperparams import load_hyperparams
+from slam_gym.training.run import TrainingSetup, make_env_fn
+
+CLOCK_TICKS_PER_S = os.sysconf("SC_CLK_TCK")
+
+
+def cpu_s(pids: list[int]) -> float:
+    """User + system CPU seconds of the processes ``pids`` so far."""
+    total = 0
+    for pid in pids:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        total += int(fields[11]) + int(fields[12])  # utime, stime (fields 14, 15 of stat)
+    return total / CLOCK_TICKS_PER_S
+
+
+def measure(setup: TrainingSetup, n_envs: int, seconds: float, actions: str, seed: int) -> dict:
+    from stable_baselines3.common.vec_env import SubprocVecEnv
+
+    vec = SubprocVecEnv([make_env_fn(setup, rank) for rank in range(n_envs)],
+                        start_method="spawn")
+    try:
+        vec.seed(seed)
+        vec.reset()
+        pids = [p.pid for p in vec.processes]
+        space = vec.action_space
+        rng = np.random.default_rng(seed)
+        rule = np.array([4, 1], dtype=np.int64)  # (10 s, optimise) in the interval env
+        decisions = episodes = 0
+        cpu0, t0 = cpu_s(pids), time.perf_counter()
+        while time.perf_counter() - t0 < seconds:
+            if actions == "rule":
+                batch = np.tile(rule, (n_envs, 1))
+            else:
+                batch = np.stack([rng.integers(0, space.nvec) for _ in range(n_envs)])
+            _, _, dones, _ = vec.step(batch)
+            decisions += n_envs
+            episodes += int(np.sum(dones))
+        wall = time.perf_counter() - t0
+        cpu = cpu_s(pids) - cpu0
+    finally:
+        vec.close()
+    return {"n_envs": n_envs, "wall_s": wall, "decisions": decisions, "episodes": episodes,
+            "decisions_per_s": decisions / wall, "episodes_per_s": episodes / wall,
+            "worker_cores": cpu / wall}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--env", default="SlamGym/HybridSLAM-Interval-v0")
+    parser.add_argument("--n-envs", default="2,4", help="worker counts to measure, in turn")
+    parser.add_argument("--seconds", type=float, default=120.0, help="wall time of each")
+    parser.add_argument("--particles", type=int, default=500)
+    parser.add_argument("--actions", choices=("random", "rule"), default="random")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    counts = [int(v) for v in args.n_envs.split(",")]
+    if any(n < 2 for n in counts):
+        parser.error(f"n_envs={args.n_envs!r} is invalid: SubprocVecEnv needs >= 2 workers")
+    if args.seconds <= 0:
+        parser.error(f"seconds={args.seconds} is invalid: must be > 0")
+    params = load_hyperparams("ppo", args.env)
+    params["env_kwargs"] = {**params.get("env_kwargs", {}), "n_particles": args.particles,
+                            "w_compute": 10.0, "compute_clip_s": 0.2}
+    params["compute_price_range"] = [1, 100]
+    params.pop("rule_anchor_weight", None)  # no anchor: the training reward's extra term only
+    setup = TrainingSetup(algo="ppo", env_id=args.env, seed=args.seed, hyperparams=params)
+    sys.stdout.write(f"{args.env}, {args.particles} particles, {args.actions} actions, "
+                     f"{args.seconds:g} s each, {os.cpu_count()} cores\n")
+    for n in counts:
+        r = measure(setup, n, args.seconds, args.actions, args.seed)
+        sys.stdout.write(f"n_envs {n}: {r['decisions_per_s']:.1f} decisions/s, "
+                         f"{r['episodes_per_s']:.3f} episodes/s ({r['decisions']} decisions, "
+                         f"{r['episodes']} episodes in {r['wall_s']:.0f} s), workers "
+                         f"{r['worker_cores']:.2f} cores busy\n")
+        sys.stdout.flush()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
