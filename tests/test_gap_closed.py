@@ -87,3 +87,47 @@ def test_the_command_reports_both_planners_in_one_output(tmp_path):
         0.25)
     text = (tmp_path / "front" / "gap_closed.md").read_text()
     assert "`lookahead` - rule" in text and "`lookahead-privileged` - rule" in text
+
+
+def recorded(path: Path, worlds, price=10.0):
+    path.write_text(json.dumps({"price": price, "worlds": worlds, "planners": {"lookahead": {
+        "success (pp)": {"gap": 0.0, "gap_ci": [0.0, 0.0]},
+        "map error (m)": {"gap": -1.0, "gap_ci": [-1.5, -0.5]},
+        "return": {"gap": 100.0, "gap_ci": [50.0, 150.0]}}}}))
+    return path
+
+
+def test_a_recorded_gap_divides_the_learners_difference_on_its_worlds(tmp_path):
+    seeds = range(3)
+    write(tmp_path / "front" / "rules" / "results.jsonl",
+          [row("fixed-10s-optimise", s, True, 2.0, -1000.0) for s in [*seeds, 7]])
+    # +20 return and -0.5 m on the recorded worlds; world 7 (not recorded) would change both
+    write(tmp_path / "front" / "learned-10" / "results.jsonl",
+          [row("learned", s, True, 1.5, -980.0) for s in seeds]
+          + [row("learned", 7, True, 9.0, -5000.0)])
+    gap = recorded(tmp_path / "gap.json", [[0, s] for s in seeds])
+    module = load_script()
+    doc = module.gap_closed(tmp_path / "front", gap, 10.0)
+    assert doc["n_worlds"] == 3 and doc["gap_from"] == "recorded"
+    assert doc["measures"]["return"]["learner_diff"] == pytest.approx(20.0)
+    assert doc["measures"]["return"]["fraction_closed"] == pytest.approx(0.2)
+    assert doc["measures"]["map error (m)"]["fraction_closed"] == pytest.approx(0.5)
+    assert doc["measures"]["success (pp)"]["fraction_closed"] is None
+    # a front missing one of the recorded worlds, another price, an unrecorded planner: refused
+    with pytest.raises(ValueError, match="front"):
+        module.gap_closed(tmp_path / "front", recorded(tmp_path / "more.json",
+                                                       [[0, s] for s in range(4)]), 10.0)
+    with pytest.raises(ValueError, match="price"):
+        module.gap_closed(tmp_path / "front", gap, 1.0)
+    with pytest.raises(ValueError, match="lookahead"):
+        module.gap_closed(tmp_path / "front", gap, 10.0, "lookahead-privileged")
+
+
+def test_the_recorded_round_three_ceiling_is_well_formed():
+    path = SCRIPT.parents[2] / "docs" / "ceiling39_gap.json"
+    module = load_script()
+    for planner in module.PLANNERS:
+        worlds, gaps = module.recorded_gap(path, planner, 10.0)
+        assert len(worlds) == 40 and {level for level, _ in worlds} == {0, 1, 2, 3}
+        for key, ci_key, _ in module.MEASURES:
+            assert gaps[ci_key][0] <= gaps[key] <= gaps[ci_key][1]

@@ -17,6 +17,14 @@ noise). Map error counts the worlds where both policies of a pair succeeded, low
 the fraction is taken in the same direction. The lookahead and its privileged bound each get a
 table, both in one output (``--lookahead`` chooses), so no run overwrites the other's figures.
 Writes ``FRONT/gap_closed.{json,md}``.
+
+``--ceiling`` may instead name a *recorded gap* (a ``.json`` file: the worlds the ceiling ran and,
+per planner and measure, its paired gap and interval as reported), for when the ceiling's rows
+are no longer there: the learner is then paired with its own run's rule on those worlds and
+divided by the recorded gap. ``docs/ceiling39_gap.json`` records RESULTS' round-three ceiling
+(its rows were lost with the machine of 2026-11-27)::
+
+    python scripts/results/gap_closed.py --front out/front39 --ceiling docs/ceiling39_gap.json
 """
 
 from __future__ import annotations
@@ -47,22 +55,51 @@ def _world(row) -> tuple[int, int]:
     return int(row["clutter_level"]), int(row["seed"])
 
 
+def recorded_gap(path: Path, lookahead: str, price: float) -> tuple[set, dict]:
+    """The worlds and the per-measure gaps (``compare``'s keys) of a recorded ceiling."""
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ValueError(f"ceiling={str(path)!r} is invalid: {exc}") from None
+    if float(doc.get("price", float("nan"))) != price:
+        raise ValueError(f"price={price:g} is invalid: {path} records the gap at "
+                         f"{doc.get('price')} /s")
+    planners = doc.get("planners", {})
+    if lookahead not in planners:
+        raise ValueError(f"lookahead={lookahead!r} is invalid: {path} records {sorted(planners)}")
+    worlds = {(int(level), int(seed)) for level, seed in doc["worlds"]}
+    gaps = {}
+    for key, ci_key, label in MEASURES:
+        entry = planners[lookahead][label]
+        gaps[key], gaps[ci_key] = float(entry["gap"]), [float(v) for v in entry["gap_ci"]]
+    return worlds, gaps
+
+
 def gap_closed(front: Path, ceiling: Path, price: float, lookahead: str = "lookahead") -> dict:
+    if ceiling.suffix == ".json":
+        ceiling_worlds, planned = recorded_gap(ceiling, lookahead, price)
+        planner = ceiling_rule = None
+    else:
+        ceiling_rows = _rows(ceiling / "results.jsonl")
+        planner = [r for r in ceiling_rows if r["policy"] == lookahead]
+        ceiling_rule = [r for r in ceiling_rows if r["policy"] == REFERENCE]
+        ceiling_worlds = {_world(r) for r in planner} & {_world(r) for r in ceiling_rule}
     learner = _rows(front / f"learned-{price:g}" / "results.jsonl")
     front_rule = [r for r in _rows(front / "rules" / "results.jsonl") if r["policy"] == REFERENCE]
-    ceiling_rows = _rows(ceiling / "results.jsonl")
-    planner = [r for r in ceiling_rows if r["policy"] == lookahead]
-    ceiling_rule = [r for r in ceiling_rows if r["policy"] == REFERENCE]
-    worlds = ({_world(r) for r in learner} & {_world(r) for r in front_rule}
-              & {_world(r) for r in planner} & {_world(r) for r in ceiling_rule})
+    worlds = {_world(r) for r in learner} & {_world(r) for r in front_rule} & ceiling_worlds
     if not worlds:
         raise ValueError(f"front={str(front)!r} is invalid: no world in common with the ceiling")
+    if planner is None and worlds != ceiling_worlds:
+        # a recorded gap holds for its own worlds only
+        raise ValueError(f"front={str(front)!r} is invalid: it ran {len(worlds)} of the "
+                         f"{len(ceiling_worlds)} worlds of the recorded gap")
 
     def keep(rows):
         return [r for r in rows if _world(r) in worlds]
 
     learned = compare(keep(learner), keep(front_rule), price)
-    planned = compare(keep(planner), keep(ceiling_rule), price)
+    if planner is not None:
+        planned = compare(keep(planner), keep(ceiling_rule), price)
     measures = {}
     for key, ci_key, label in MEASURES:
         gap, gap_ci, mine = planned[key], planned[ci_key], learned[key]
@@ -72,6 +109,7 @@ def gap_closed(front: Path, ceiling: Path, price: float, lookahead: str = "looka
             "fraction_closed": mine / gap if clear and gap != 0 and math.isfinite(mine) else None,
         }
     return {"price": price, "n_worlds": len(worlds), "lookahead": lookahead,
+            "gap_from": "recorded" if planner is None else "rows", "ceiling": str(ceiling),
             "worlds": sorted(worlds), "measures": measures}
 
 
@@ -85,7 +123,8 @@ def _fmt(value, ci, digits) -> str:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--front", required=True, help="a `slam-gym front` output directory")
-    parser.add_argument("--ceiling", required=True, help="a lookahead_ceiling.py output directory")
+    parser.add_argument("--ceiling", required=True,
+                        help="a lookahead_ceiling.py output directory, or a recorded gap (.json)")
     parser.add_argument("--price", type=float, default=10.0)
     parser.add_argument("--lookahead", default=",".join(PLANNERS),
                         help="the planners to measure the gap to, comma-separated (default: "
@@ -101,8 +140,11 @@ def main(argv=None) -> int:
         parser.error(str(exc))
     lines = []
     for doc in docs:
+        source = (f" (the gap as recorded in `{doc['ceiling']}`)"
+                  if doc["gap_from"] == "recorded" else "")
         lines += [f"On the {doc['n_worlds']} worlds both ran, price {args.price:g} /s; each "
-                  f"policy paired with `{REFERENCE}` of its own run (mean [t 95 %]).", "",
+                  f"policy paired with `{REFERENCE}` of its own run (mean [t 95 %]){source}.",
+                  "",
                   f"| measure | gap: `{doc['lookahead']}` - rule | learner - rule | "
                   "fraction closed |", "|---|---:|---:|---:|"]
         for label, m in doc["measures"].items():
