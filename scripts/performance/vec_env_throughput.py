@@ -26,6 +26,7 @@ import time
 
 import numpy as np
 
+from slam_gym.envs.interval import RULE_ACTION
 from slam_gym.training.hyperparams import load_hyperparams
 from slam_gym.training.run import TrainingSetup, make_env_fn
 
@@ -53,12 +54,11 @@ def measure(setup: TrainingSetup, n_envs: int, seconds: float, actions: str, see
         pids = [p.pid for p in vec.processes]
         space = vec.action_space
         rng = np.random.default_rng(seed)
-        rule = np.array([4, 1], dtype=np.int64)  # (10 s, optimise) in the interval env
         decisions = episodes = 0
         cpu0, t0 = cpu_s(pids), time.perf_counter()
         while time.perf_counter() - t0 < seconds:
             if actions == "rule":
-                batch = np.tile(rule, (n_envs, 1))
+                batch = np.tile(RULE_ACTION, (n_envs, 1))
             else:
                 batch = np.stack([rng.integers(0, space.nvec) for _ in range(n_envs)])
             _, _, dones, _ = vec.step(batch)

@@ -76,9 +76,9 @@ def recorded_gap(path: Path, lookahead: str, price: float) -> tuple[set, dict]:
 
 
 def gap_closed(front: Path, ceiling: Path, price: float, lookahead: str = "lookahead") -> dict:
-    if ceiling.suffix == ".json":
+    recorded = ceiling.suffix == ".json"
+    if recorded:
         ceiling_worlds, planned = recorded_gap(ceiling, lookahead, price)
-        planner = ceiling_rule = None
     else:
         ceiling_rows = _rows(ceiling / "results.jsonl")
         planner = [r for r in ceiling_rows if r["policy"] == lookahead]
@@ -89,7 +89,7 @@ def gap_closed(front: Path, ceiling: Path, price: float, lookahead: str = "looka
     worlds = {_world(r) for r in learner} & {_world(r) for r in front_rule} & ceiling_worlds
     if not worlds:
         raise ValueError(f"front={str(front)!r} is invalid: no world in common with the ceiling")
-    if planner is None and worlds != ceiling_worlds:
+    if recorded and worlds != ceiling_worlds:
         # a recorded gap holds for its own worlds only
         raise ValueError(f"front={str(front)!r} is invalid: it ran {len(worlds)} of the "
                          f"{len(ceiling_worlds)} worlds of the recorded gap")
@@ -98,7 +98,7 @@ def gap_closed(front: Path, ceiling: Path, price: float, lookahead: str = "looka
         return [r for r in rows if _world(r) in worlds]
 
     learned = compare(keep(learner), keep(front_rule), price)
-    if planner is not None:
+    if not recorded:
         planned = compare(keep(planner), keep(ceiling_rule), price)
     measures = {}
     for key, ci_key, label in MEASURES:
@@ -109,7 +109,7 @@ def gap_closed(front: Path, ceiling: Path, price: float, lookahead: str = "looka
             "fraction_closed": mine / gap if clear and gap != 0 and math.isfinite(mine) else None,
         }
     return {"price": price, "n_worlds": len(worlds), "lookahead": lookahead,
-            "gap_from": "recorded" if planner is None else "rows", "ceiling": str(ceiling),
+            "gap_from": "recorded" if recorded else "rows", "ceiling": str(ceiling),
             "worlds": sorted(worlds), "measures": measures}
 
 
