@@ -497,8 +497,8 @@ class LearnedPolicy(Policy):
         if self._pending is None:
             index, optimise = (int(v) for v in self._model_action(obs, info))
             self._pending = (self.fusion_intervals_s[index], optimise)
-        require(info is not None and "features" in info, "info", info,
-                "a dict with 'features' (an interval model reads local_map_age_s)")
+        require(info is not None and "local_map_age_s" in info.get("features", {}), "info", info,
+                "a dict with 'features' holding local_map_age_s (an interval model reads it)")
         interval_s, optimise = self._pending
         if float(info["features"]["local_map_age_s"]) + AGE_TOLERANCE_S < interval_s:
             return np.zeros(2, dtype=np.int64)
