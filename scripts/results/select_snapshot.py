@@ -19,7 +19,7 @@ worlds enter the choice. The chosen snapshot is copied to ``DIR/model.zip`` with
 the rule, the rule's figures and every candidate's. Prints the candidates as a table; exits 1 if
 none is eligible.
 
-Supports docs/RESULTS.md, "Round three, addendum: a learner chosen under the CPU limit".
+Supports docs/RESULTS.md, round three, "Addendum: a learner chosen under the CPU limit".
 """
 
 from __future__ import annotations
