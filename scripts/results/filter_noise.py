@@ -45,26 +45,18 @@ def filter_reset_seed(world_seed: int, draw: int) -> int:
 def run_one(policy_name: str, clutter_level: int, world_seed: int, draw: int, n_particles: int,
             w_compute: float, compute_clip_s: float, n_steps: int | None) -> dict:
     import policies
-    from slam_gym.envs.hybrid_slam import HybridSLAMEnv
+    from slam_gym.evaluation.core import run_policy_object
 
-    env = HybridSLAMEnv(scenario="brooks-bailey", clutter_level=clutter_level,
-                        n_particles=n_particles, w_compute=w_compute,
-                        compute_clip_s=compute_clip_s, n_steps=n_steps)
-    policy = policies.make(policy_name)
-    policy.reset()
-    obs, info = env.reset(seed=filter_reset_seed(world_seed, draw),
-                          options={"world_seed": int(world_seed)})
-    episode_return = 0.0
-    while True:
-        obs, reward, terminated, truncated, info = env.step(policy.act(obs, info))
-        episode_return += float(reward)
-        if terminated or truncated:
-            break
-    metrics = env.episode.metrics()
+    episode, env = run_policy_object(
+        policies.make(policy_name), "brooks-bailey", clutter_level, world_seed,
+        n_particles=n_particles, w_compute=w_compute, compute_clip_s=compute_clip_s,
+        n_steps=n_steps, filter_reset_seed=filter_reset_seed(world_seed, draw))
+    metrics = episode.metrics()
     return {"policy": policy_name, "clutter_level": clutter_level, "seed": world_seed,
             "draw": draw, "success": bool(metrics["success"]),
             "map_error_m": metrics.get("map_error_m"), "n_fusions": metrics.get("n_fusions"),
-            "n_optimisations": metrics.get("n_optimisations"), "return": episode_return}
+            "n_optimisations": metrics.get("n_optimisations"),
+            "return": float(env.episode_return)}
 
 
 def discordance(rows: list[dict], draws: int) -> list[dict]:

@@ -248,11 +248,14 @@ def run_policy_object(
     w_compute=None,
     compute_clip_s=None,
     policy_name=None,
+    filter_reset_seed=None,
 ):
     """Run a policy object (``act(obs, info)``, ``reset()``) for one episode; (episode, env).
 
     The world is the scenario's world for ``seed`` (the same as a system run with that seed);
-    the episode ends at the end of the path or at BB's failure. ``on_step(action, info)``, if
+    the episode ends at the end of the path or at BB's failure. ``filter_reset_seed``, if given,
+    seeds the env's ``reset`` instead of ``seed``: the same world, other draws of the filter's
+    random numbers (``scripts/results/filter_noise.py``). ``on_step(action, info)``, if
     given, sees every decision and the info that followed it. Every action is checked
     (:func:`policies.base.check_action`): a wrong shape, dtype or value raises ``ValueError``
     naming the policy (``policy_name``, else the object's name) and what it returned.
@@ -278,7 +281,8 @@ def run_policy_object(
     if callable(getattr(policy, "bind_env", None)):  # a planning policy acts on copies of env
         policy.bind_env(env)
     policy.reset()
-    obs, info = env.reset(seed=int(seed), options={"world_seed": int(seed)})
+    reset_seed = int(seed) if filter_reset_seed is None else int(filter_reset_seed)
+    obs, info = env.reset(seed=reset_seed, options={"world_seed": int(seed)})
     while True:
         action = check_action(policy.act(obs, info), label)
         obs, _, terminated, truncated, info = env.step(action)
