@@ -1,19 +1,12 @@
 """scripts/results/gap_closed.py: the fraction of the rule-to-lookahead gap a learner closes."""
 
-import importlib.util
 import json
 from pathlib import Path
 
 import pytest
+from script_loader import load_script
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "results" / "gap_closed.py"
-
-
-def load_script():
-    spec = importlib.util.spec_from_file_location("gap_closed", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+SCRIPT = "results/gap_closed.py"
 
 
 def row(policy, seed, success, map_error, ret):
@@ -42,7 +35,7 @@ def test_the_fraction_is_the_learners_paired_gain_over_the_lookaheads(tmp_path):
            for s in seeds])
     write(tmp_path / "front" / "learned-10" / "results.jsonl",
           [row("learned", s, s != 3, rule_map[s] + 0.25, rule_ret[s] + 43.0) for s in seeds])
-    module = load_script()
+    module = load_script(SCRIPT)
     doc = module.gap_closed(tmp_path / "front", tmp_path / "ceiling", 10.0)
     assert doc["n_worlds"] == 4
     ret, map_error, success = (doc["measures"][k] for k in ("return", "map error (m)",
@@ -63,7 +56,7 @@ def test_a_front_without_the_ceilings_worlds_is_refused(tmp_path):
           [row("fixed-10s-optimise", 2, True, 1.0, -1.0)])
     write(tmp_path / "front" / "learned-10" / "results.jsonl", [row("learned", 2, True, 1, -1)])
     with pytest.raises(ValueError, match="front"):
-        load_script().gap_closed(tmp_path / "front", tmp_path / "ceiling", 10.0)
+        load_script(SCRIPT).gap_closed(tmp_path / "front", tmp_path / "ceiling", 10.0)
 
 
 def test_the_command_reports_both_planners_in_one_output(tmp_path):
@@ -76,7 +69,7 @@ def test_the_command_reports_both_planners_in_one_output(tmp_path):
           [row("fixed-10s-optimise", s, True, 2.0, -1000.0) for s in seeds])
     write(tmp_path / "front" / "learned-10" / "results.jsonl",
           [row("learned", s, True, 1.5, -950.0) for s in seeds])
-    module = load_script()
+    module = load_script(SCRIPT)
     assert module.main(["--front", str(tmp_path / "front"), "--ceiling",
                         str(tmp_path / "ceiling")]) == 0
     doc = json.loads((tmp_path / "front" / "gap_closed.json").read_text())
@@ -106,7 +99,7 @@ def test_a_recorded_gap_divides_the_learners_difference_on_its_worlds(tmp_path):
           [row("learned", s, True, 1.5, -980.0) for s in seeds]
           + [row("learned", 7, True, 9.0, -5000.0)])
     gap = recorded(tmp_path / "gap.json", [[0, s] for s in seeds])
-    module = load_script()
+    module = load_script(SCRIPT)
     doc = module.gap_closed(tmp_path / "front", gap, 10.0)
     assert doc["n_worlds"] == 3 and doc["gap_from"] == "recorded"
     assert doc["measures"]["return"]["learner_diff"] == pytest.approx(20.0)
@@ -124,8 +117,8 @@ def test_a_recorded_gap_divides_the_learners_difference_on_its_worlds(tmp_path):
 
 
 def test_the_recorded_round_three_ceiling_is_well_formed():
-    path = SCRIPT.parents[2] / "docs" / "ceiling39_gap.json"
-    module = load_script()
+    path = Path(__file__).resolve().parents[1] / "docs" / "ceiling39_gap.json"
+    module = load_script(SCRIPT)
     for planner in module.PLANNERS:
         worlds, gaps = module.recorded_gap(path, planner, 10.0)
         assert len(worlds) == 40 and {level for level, _ in worlds} == {0, 1, 2, 3}

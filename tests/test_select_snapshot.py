@@ -2,21 +2,14 @@
 interface CPU, on the training-time worlds only."""
 
 import csv
-import importlib.util
 import json
 from pathlib import Path
 
 import pytest
+from script_loader import load_script
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "results" / "select_snapshot.py"
+SCRIPT = "results/select_snapshot.py"
 FIELDS = ("success_rate", "mean_return", "n_fusions", "n_optimisations", "interface_cpu_s")
-
-
-def load_script():
-    spec = importlib.util.spec_from_file_location("select_snapshot", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def make_run(tmp_path: Path, evaluations: dict[int, tuple[tuple, tuple]]) -> Path:
@@ -48,7 +41,7 @@ def make_baseline(tmp_path: Path, cpu_s: float = 0.3, successes=(True, True, Tru
 
 
 def test_the_best_return_within_the_cpu_limit_is_chosen_with_its_mode(tmp_path, capsys):
-    script = load_script()
+    script = load_script(SCRIPT)
     run = make_run(tmp_path, {
         # the best return of all, but 3 times the rule's CPU; sampled: within 2x, but success
         # below the rule's: neither eligible
@@ -74,7 +67,7 @@ def test_the_best_return_within_the_cpu_limit_is_chosen_with_its_mode(tmp_path, 
 
 
 def test_the_limit_is_an_option_and_none_eligible_exits_1(tmp_path):
-    script = load_script()
+    script = load_script(SCRIPT)
     run = make_run(tmp_path, {100: ((1.0, -1400.0, 80, 80, 0.9), (1.0, -1500.0, 80, 80, 0.9))})
     baseline = make_baseline(tmp_path)
     out = tmp_path / "chosen"
@@ -85,7 +78,7 @@ def test_the_limit_is_an_option_and_none_eligible_exits_1(tmp_path):
 
 
 def test_bad_input_names_the_field(tmp_path):
-    script = load_script()
+    script = load_script(SCRIPT)
     run = make_run(tmp_path, {100: ((1.0, -1400.0, 80, 80, 0.9), (1.0, -1500.0, 80, 80, 0.9))})
     with pytest.raises(SystemExit):
         script.parse_args([str(tmp_path / "nowhere"), "--baseline", str(tmp_path)])

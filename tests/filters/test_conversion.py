@@ -638,17 +638,6 @@ def test_moment_match_small_sample_scales_the_pose_block_only():
     assert_spd(g1.P)
 
 
-def _load_script(name):
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[2] / "scripts" / "tools" / f"{name}.py"
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def _f658fba_pose_moments(poses, w, pose_covs, lineages):
     """The front-end's pose as the numpy code of commit f658fba computed it (before issue 27
     compiled it), for the same-machine comparison below: BB (7), the lineage term of
@@ -710,7 +699,9 @@ def pose_replay():
         expected[when][0].append(mean)
         expected[when][1].append(cov)
 
-    replay = _load_script("make_pose_reference").reference_run(observe)
+    from script_loader import load_script
+
+    replay = load_script("tools/make_pose_reference.py").reference_run(observe)
     return replay, {k: (np.array(m), np.array(c)) for k, (m, c) in expected.items()}
 
 

@@ -11,24 +11,11 @@ import copy
 import gtsam
 import numpy as np
 import pytest
+from script_loader import load_script
 
 from filters.geometry import wrap_angle
 
-
-def _load_script(name):
-    import importlib.util
-    import sys
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[2] / "scripts" / "performance" / f"{name}.py"
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module  # its dataclass looks its module up there
-    spec.loader.exec_module(module)
-    return module
-
-
-reference = _load_script("gtsam_reference")
+reference = load_script("performance/gtsam_reference.py")
 
 
 @pytest.fixture(scope="module")

@@ -323,13 +323,9 @@ def test_the_front_table_marks_a_model_that_does_not_match():
 
 
 def test_ship_model_refuses_a_model_of_another_system(stale_zip, tmp_path, monkeypatch):
-    import importlib.util
-    from pathlib import Path
+    from script_loader import load_script
 
-    script = Path(__file__).resolve().parents[2] / "scripts" / "tools" / "ship_model.py"
-    spec = importlib.util.spec_from_file_location("ship_model", script)
-    ship = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(ship)
+    ship = load_script("tools/ship_model.py")
     monkeypatch.setattr(ship, "TARGET", tmp_path / "shipped" / "learned-default.zip")
     monkeypatch.setattr(ship, "FIGURES", tmp_path / "figures")
     (tmp_path / "shipped").mkdir()
