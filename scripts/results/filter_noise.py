@@ -8,16 +8,15 @@ On each world (BB's path, ``--clutter-levels`` x seeds ``--seed-start`` ..), the
 as the benchmark runs it (``env.reset(seed=s, options={"world_seed": s})``: draw 0, the row
 ``slam-gym benchmark`` and ``slam-gym front`` write) and ``--draws`` more times on the same world
 (path, landmarks, clutter and measurement noise) with other filter generators
-(``env.reset(seed=<derived from s and k>, options={"world_seed": s})``). A policy whose decisions
-differ from the rule's at some point draws the filter's random numbers differently from then on,
-which is what another filter generator does to the rule itself; so the rule's own discordance
-between draws bounds how closely any other policy's successes can track the rule's world by
-world. Per draw k >= 1 against draw 0: the worlds where only one succeeded, and the paired
-success difference with its Student-t 95 % interval, as ``slam-gym front`` computes it.
+(``env.reset(seed=<derived from s and k>, options={"world_seed": s})``). The rule's discordance
+between draws is the scatter a paired success comparison against it meets by chance alone.
+Per draw k >= 1 against draw 0: the worlds where only one succeeded, and the paired success
+difference with its Student-t 95 % interval, as ``slam-gym front`` computes it.
 
-Rows go to ``DIR/results.jsonl`` (one per world and draw; a rerun skips the rows there), the
-table to ``DIR/filter_noise.md``. Supports docs/RESULTS.md, round three, "The noise floor of the
-success test".
+Rows go to ``DIR/results.jsonl`` (one per world and draw, with the run's options; a rerun skips
+the rows there with the same policy and options, and cuts off a partial last line a killed run
+left), the table to ``DIR/filter_noise.md``. Supports docs/RESULTS.md, round three, "The noise
+floor of the success test".
 """
 
 from __future__ import annotations
@@ -31,6 +30,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from slam_gym.evaluation.results import read_results
 from slam_gym.evaluation.summary import mean_interval
 
 
@@ -40,6 +40,13 @@ def filter_reset_seed(world_seed: int, draw: int) -> int:
     if draw == 0:
         return int(world_seed)
     return int(np.random.SeedSequence([int(world_seed), int(draw), 104729]).generate_state(1)[0])
+
+
+def run_options(n_particles: int, w_compute: float, compute_clip_s: float,
+                n_steps: int | None) -> dict:
+    """The options a row was run with (a rerun reuses only rows with the same)."""
+    return {"n_particles": n_particles, "w_compute": w_compute, "compute_clip_s": compute_clip_s,
+            "n_steps": n_steps}
 
 
 def run_one(policy_name: str, clutter_level: int, world_seed: int, draw: int, n_particles: int,
@@ -52,7 +59,8 @@ def run_one(policy_name: str, clutter_level: int, world_seed: int, draw: int, n_
         n_particles=n_particles, w_compute=w_compute, compute_clip_s=compute_clip_s,
         n_steps=n_steps, filter_reset_seed=filter_reset_seed(world_seed, draw))
     metrics = episode.metrics()
-    return {"policy": policy_name, "clutter_level": clutter_level, "seed": world_seed,
+    return {"policy": policy_name, **run_options(n_particles, w_compute, compute_clip_s, n_steps),
+            "clutter_level": clutter_level, "seed": world_seed,
             "draw": draw, "success": bool(metrics["success"]),
             "map_error_m": metrics.get("map_error_m"), "n_fusions": metrics.get("n_fusions"),
             "n_optimisations": metrics.get("n_optimisations"),
@@ -123,8 +131,11 @@ def main(argv: list[str]) -> int:
     args = parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / "results.jsonl"
-    rows = [json.loads(line) for line in path.read_text().splitlines()] if path.is_file() else []
-    rows = [r for r in rows if r["policy"] == args.policy]
+    kept = read_results(path)  # a partial last line, left by a kill, is dropped
+    path.write_text("".join(json.dumps(r) + "\n" for r in kept))
+    wanted = {"policy": args.policy,
+              **run_options(args.particles, args.w_compute, args.compute_clip_s, args.n_steps)}
+    rows = [r for r in kept if all(r.get(k, "missing") == v for k, v in wanted.items())]
     done = {(r["clutter_level"], r["seed"], r["draw"]) for r in rows}
     todo = [(lv, s, k) for lv in args.levels
             for s in range(args.seed_start, args.seed_start + args.seeds)
