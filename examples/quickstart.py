@@ -20,7 +20,7 @@ def main() -> None:
     args = parser.parse_args()
 
     env = gym.make(
-        "slam_gym:SlamGym/HybridSLAM-v0",
+        "slam_gym:SlamGym/HybridSLAM-v1",
         clutter_level=args.clutter_level,
         n_particles=args.particles,
         render_mode="rgb_array",

@@ -2,7 +2,7 @@
 
     .venv/bin/python examples/real_data.py [--data DIR] [--robots 1,2,3,4,5] [--seconds 300]
 
-``SlamGym/MRCLAM-v0`` plays one robot of MRCLAM Dataset 7 (Leung et al., IJRR 2011) through the
+``SlamGym/MRCLAM-v1`` plays one robot of MRCLAM Dataset 7 (Leung et al., IJRR 2011) through the
 same hybrid system, observation, action and reward as the simulated env, rewarded against motion
 capture. Here HYBRID (FastSLAM 2.0 local maps, EKF back-end) is driven once by ``fixed-10s``
 (BB's rule) and once by ``learned`` (the shipped PPO model, trained in simulation only), and the
@@ -39,7 +39,7 @@ EXCERPT = Path(__file__).resolve().parents[1] / "tests" / "data" / "mrclam" / "M
 
 def run_episode(policy, **env_kwargs) -> dict:
     """One episode of ``policy`` on a recording; the episode's metrics and the return."""
-    env = gym.make("slam_gym:SlamGym/MRCLAM-v0", **env_kwargs)
+    env = gym.make("slam_gym:SlamGym/MRCLAM-v1", **env_kwargs)
     policy.reset()
     obs, info = env.reset(seed=0)
     total, terminated, truncated = 0.0, False, False

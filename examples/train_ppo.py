@@ -3,7 +3,7 @@
     .venv/bin/python examples/train_ppo.py [--timesteps 3000] [--particles 100] [--out out/ppo]
 
 Plain stable-baselines3 on the registered env (no project training code but one helper): PPO on
-``SlamGym/HybridSLAM-Light-v0`` at clutter level 2, with
+``SlamGym/HybridSLAM-Light-v1`` at clutter level 2, with
 :class:`slam_gym.BenchmarkEvalCallback` evaluating snapshots on two held-out
 worlds during training (success, ANEES, map error, completeness, interface CPU, return on the
 model's logger under ``eval/``, and in ``OUT/eval/evaluations.csv``). The model is saved with the
@@ -35,7 +35,7 @@ from stable_baselines3 import PPO
 from slam_gym import BenchmarkEvalCallback, set_initial_action_probabilities
 from slam_gym.evaluation import benchmark, markdown_table
 
-ENV_ID = "SlamGym/HybridSLAM-Light-v0"
+ENV_ID = "SlamGym/HybridSLAM-Light-v1"
 
 
 def main() -> None:

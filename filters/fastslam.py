@@ -14,7 +14,7 @@ bookkeeping that concerns all particles at once (votes, ids, clutter rate, culli
 the resampling decision and the resampling) run compiled, in :mod:`filters.fastslam_kernel` (the
 reasons and the measured gains are given there and in docs/PERFORMANCE.md); what stays numpy is
 the weights' ``np.exp`` (numpy's rounding, which the compiled ``exp`` does not share) and the
-random draws from ``rng``.
+random draws, each from the generator of its purpose (:mod:`filters.draws`).
 
 One filter iteration
 --------------------
@@ -155,6 +155,7 @@ from filters.conversion import (
     pose_moments,
     pose_moments_unchecked,
 )
+from filters.draws import as_draws
 from filters.existence import CONFIRMED_PROBABILITY, validate_existence_model
 from filters.fastslam_kernel import (
     ScanModel,
@@ -224,8 +225,10 @@ class FastSLAM2:
 
     Parameters (keyword options are validated; a bad value raises ``ValueError``):
     sensor, clutter, odometry_noise: the models (docs/ARCHITECTURE.md, "Filter interface"). rng:
-    the owned
-    ``numpy.random.Generator`` (every draw). ids: shared :class:`FeatureIds` (new if None).
+    where every random number comes from: a ``numpy.random.Generator`` (one stream in order of
+    use) or a :class:`filters.draws.SynchronisedDraws` (numbers keyed by iteration and purpose:
+    common random numbers across policies), held as :attr:`draws`. ids: shared
+    :class:`FeatureIds` (new if None).
     n_particles: P. initial_pose: the pose of every particle at start (zero uncertainty).
     resample_threshold: resample when N_eff < threshold * P. gate_chi2: association gate.
     new_landmark_density_per_m2: rho of ``L_new``. max_detection_probability, max_existence,
@@ -283,7 +286,7 @@ class FastSLAM2:
             odometry_noise,
             "an object with .covariance(u, dt)",
         )
-        require(isinstance(rng, np.random.Generator), "rng", rng, "a numpy.random.Generator")
+        draws = as_draws(rng)  # ValueError naming rng for anything else
         require(ids is None or isinstance(ids, FeatureIds), "ids", ids, "a FeatureIds or None")
         require(
             isinstance(n_particles, (int, np.integer)) and 1 <= n_particles <= 1_000_000,
@@ -338,7 +341,7 @@ class FastSLAM2:
         self.sensor = sensor
         self.clutter = clutter
         self.odometry_noise = odometry_noise
-        self.rng = rng
+        self.draws = draws
         self.ids = ids if ids is not None else FeatureIds()
         self.n_particles = int(n_particles)
         self.resample_threshold = float(resample_threshold)
@@ -478,7 +481,7 @@ class FastSLAM2:
             return
         if self._pending:
             self._sample_pending()
-            self._maybe_resample()
+            self._maybe_resample("resample_after_pending")
         Q = np.ascontiguousarray(self.odometry_noise.covariance(u, dt), dtype=float)
         self._prop_cov = np.empty((self.n_particles, 3, 3))
         propagate(self._poses, self._prop_cov, float(u[0]), float(u[1]), dt, Q)
@@ -490,7 +493,7 @@ class FastSLAM2:
 
     def _sample_pending(self):
         """Draw every particle's pose from its proposal N(x, P) (FS2)."""
-        normals = self.rng.standard_normal((self.n_particles, 3))
+        normals = self.draws.generator("pending_pose").standard_normal((self.n_particles, 3))
         draw_poses(self._poses, self._prop_cov, normals)
         self._prop_cov = np.zeros((self.n_particles, 3, 3))
         self._pending = False
@@ -521,7 +524,7 @@ class FastSLAM2:
         self._logw += -0.5 * nu * nu / s - 0.5 * np.log(_TWO_PI * s)
         self._logw -= self._logw.max()
         if not self._pending:
-            self._maybe_resample()
+            self._maybe_resample("resample_after_heading")
 
     # ------------------------------------------------------------------ observation update
     def update(self, z, associations=None):
@@ -536,7 +539,7 @@ class FastSLAM2:
 
         The per-particle work runs in :func:`filters.fastslam_kernel.scan_update`; the random
         numbers (one uniform per observation and particle for DAS, three normals per particle
-        for the pose draw) come from ``rng`` in that order.
+        for the pose draw) come from :attr:`draws`, roles ``association`` and ``scan_pose``.
         """
         z = np.asarray(z, dtype=float).reshape(-1, 2) if np.size(z) else np.zeros((0, 2))
         problem = _scan_problem(z)
@@ -552,8 +555,11 @@ class FastSLAM2:
         if not self._pending:
             self._prop_cov = np.zeros((P, 3, 3))
         self._grow(int(self._count.max()) + K)
-        uniforms = self.rng.random((K, P)) if known_cids is None else np.zeros((K, P))
-        normals = self.rng.standard_normal((P, 3))
+        if known_cids is None:
+            uniforms = self.draws.generator("association").random((K, P))
+        else:
+            uniforms = np.zeros((K, P))
+        normals = self.draws.generator("scan_pose").standard_normal((P, 3))
         votes = np.empty((K, P), dtype=np.int64)
         slots = np.empty((K, P), dtype=np.int64)
         logw_after = np.empty((K, P))
@@ -587,7 +593,13 @@ class FastSLAM2:
         self.last_associations = winners
         self.last_votes = votes
         self._vote_margins = margins
-        self._maybe_resample()
+        self._maybe_resample("resample_after_scan")
+
+    @property
+    def rng(self) -> np.random.Generator:
+        """The one generator of an ordered source (:class:`filters.draws.OrderedDraws`);
+        a synchronised source has none (``AttributeError``)."""
+        return self.draws.rng
 
     def _label_id(self, label):
         """The common id tied to a known landmark label (-1 for a known false alarm)."""
@@ -597,13 +609,14 @@ class FastSLAM2:
             self._label_cid[label] = int(self.ids.new(1)[0])
         return self._label_cid[label]
 
-    def _maybe_resample(self):
+    def _maybe_resample(self, role: str):
         """Systematic resampling when N_eff < resample_threshold * P (compiled:
         :func:`filters.fastslam_kernel.normalise_weights` and
         :func:`~filters.fastslam_kernel.systematic_resample`, the numpy code they replaced to
         the bit, but for the weights' ``np.exp``, which stays numpy's). The uniform is drawn
         here, not in compiled code: handing the generator to a compiled function costs
-        ~7 us a call, whether or not it draws."""
+        ~7 us a call, whether or not it draws. ``role``: the call site's role of
+        :mod:`filters.draws`."""
         weights = np.exp(self._logw - self._logw.max())  # normalised in place below
         resample, ess_ratio = normalise_weights(weights, self.resample_threshold)
         self._ess_ratio = float(ess_ratio)
@@ -611,7 +624,8 @@ class FastSLAM2:
             state = (self._poses, self._prop_cov, self._mx, self._my, self._sxx, self._sxy,
                      self._syy, self._ex, self._active, self._cid, self._count, self._lineage)
             spare = tuple(np.empty_like(a) for a in state)
-            systematic_resample(weights, self.rng.random(), self._logw, state, spare)
+            offset = self.draws.generator(role).random()
+            systematic_resample(weights, offset, self._logw, state, spare)
             (self._poses, self._prop_cov, self._mx, self._my, self._sxx, self._sxy, self._syy,
              self._ex, self._active, self._cid, self._count, self._lineage) = spare
             self._outputs = {}

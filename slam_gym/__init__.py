@@ -3,7 +3,7 @@
 Importing the package registers its Gymnasium environments (idempotently)::
 
     import gymnasium as gym
-    env = gym.make("slam_gym:SlamGym/HybridSLAM-v0", clutter_level=3, n_particles=200)
+    env = gym.make("slam_gym:SlamGym/HybridSLAM-v1", clutter_level=3, n_particles=200)
 
 The public API is :data:`__all__` (with ``slam_gym.evaluation``'s, ``policies``' and
 ``filters``'): the env and its options (:class:`HybridSLAMEnv`, :class:`HybridSLAMConfig`,

@@ -45,10 +45,15 @@ class Episode:
 
     ``known_association``: hand the truth landmark ids to systems that accept them (CM's setting,
     and the comparison mode on real data). ``record_trace``: keep per-iteration arrays.
+    ``draws``: the system's source of random numbers when it is keyed by iteration
+    (:class:`filters.draws.SynchronisedDraws`): the episode sets its ``iteration`` before each
+    filter iteration, the one place that counts them.
     """
 
-    def __init__(self, system, stream, *, known_association: bool = False, record_trace=True):
+    def __init__(self, system, stream, *, known_association: bool = False, record_trace=True,
+                 draws=None):
         self.system = system
+        self.draws = draws
         self.stream = stream
         self.known_association = known_association
         self._steps = iter(stream)
@@ -88,6 +93,8 @@ class Episode:
 
     def _process(self, step) -> None:
         system = self.system
+        if self.draws is not None:
+            self.draws.iteration = self.iteration
         start = time.perf_counter()
         system.predict(step.odometry, step.dt_s)
         if step.compass_rad is not None and self.stream.compass_std_rad is not None:

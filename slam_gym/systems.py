@@ -108,7 +108,7 @@ class System:
 def make_system(
     name: str,
     stream,
-    rng: np.random.Generator,
+    rng,
     *,
     n_particles: int = 500,
     back_end: str = "ekf",
@@ -118,13 +118,15 @@ def make_system(
 
     Every filter starts at the stream's initial pose, known exactly (BB, CM). ``options`` go to
     the estimator (front-end options for sub-map systems, prefixed ``front_``/``back_`` where
-    the two need telling apart).
+    the two need telling apart). ``rng``: the filters' random numbers, a
+    ``numpy.random.Generator`` (one stream in order of use) or a source of
+    :mod:`filters.draws`.
     """
     require(name in SYSTEM_NAMES, "system", name, f"one of {SYSTEM_NAMES}")
-    require(
-        isinstance(rng, np.random.Generator), "rng", rng, "a numpy.random.Generator"
-    )
+    from filters.draws import as_draws
     from filters.types import FeatureIds
+
+    rng = as_draws(rng)  # ValueError naming rng unless a Generator or a source of draws
 
     ids = FeatureIds()
     sensor, clutter, noise = stream.sensor, stream.clutter, stream.odometry_noise

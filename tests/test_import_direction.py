@@ -221,7 +221,7 @@ def test_the_env_runs_without_importing_scipy_stats_or_optimize():
         import sys
         import gymnasium as gym
         import slam_gym
-        env = gym.make("slam_gym:SlamGym/HybridSLAM-Light-v0")
+        env = gym.make("slam_gym:SlamGym/HybridSLAM-Light-v1")
         env.reset(seed=0)
         for _ in range(12):
             env.step([1, 1])

@@ -36,7 +36,7 @@ def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
         "benchmark",
         help="compare interface policies in the env",
-        description="Run policies x clutter levels x seeds through SlamGym/HybridSLAM-v0 (a "
+        description="Run policies x clutter levels x seeds through SlamGym/HybridSLAM-v1 (a "
         "process pool or Ray), write results.jsonl (resumable), summary.json, table.md and "
         "plots. --quick is the README's main job.",
     )
@@ -46,7 +46,7 @@ def add_parser(subparsers) -> None:
                    "package.module:attribute references to a policy class, factory or object")
     p.add_argument("--env", default=None, metavar="ID",
                    help="a registered simulated env id whose front-end and back-end to use "
-                   "(e.g. SlamGym/HybridSLAM-Relative-v0); --front-end/--back-end otherwise")
+                   "(e.g. SlamGym/HybridSLAM-Relative-v1); --front-end/--back-end otherwise")
     p.add_argument("--baselines", default="dead-reckoning",
                    help="systems run on the same worlds beside the policies, comma-separated "
                    "(dead-reckoning; '' for none): dead reckoning meets BB's success "
@@ -62,6 +62,11 @@ def add_parser(subparsers) -> None:
     p.add_argument("--n-steps", type=int, default=None, metavar="N",
                    help="cut every path to N simulation steps (quick looks, tests)")
     p.add_argument("--model", default=None, help="model zip for the learned policy")
+    p.add_argument("--draws", type=int, default=1, metavar="K",
+                   help="filter draws per world for every policy (default 1): the same world "
+                   "run K times with other draws of the filter's random numbers, draw k the "
+                   "same for every policy (common random numbers); rows carry their draw and "
+                   "intervals are taken over worlds")
     p.add_argument("--quick", action="store_true",
                    help=f"the quick benchmark: {QUICK['seeds']} seeds, {QUICK['particles']} "
                    "particles, all clutter levels, fixed-10s, esdf-innovation, "
@@ -78,6 +83,8 @@ def run(args) -> int:
     if args.quick:
         apply_quick(args)
     check_run_options(args)
+    if args.draws < 1:
+        raise ValueError(f"--draws {args.draws} is invalid: must be >= 1")
     result = benchmark(
         name_list(args.policies),
         clutter_levels=int_list(args.clutter_levels),
@@ -91,6 +98,7 @@ def run(args) -> int:
         back_end=args.back_end,
         n_steps=args.n_steps,
         model=args.model,
+        draws=args.draws,
         baselines=name_list(args.baselines) if args.baselines else [],
         out=args.out,
         figures=not args.no_figures,

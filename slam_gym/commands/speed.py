@@ -132,7 +132,7 @@ def _schedule_action(schedule: str, iteration: int) -> np.ndarray:
 
 
 def measure_env(decisions, seed, schedule: str = "fixed-10s", **config):
-    """Decisions per second of SlamGym/HybridSLAM-v0 (its defaults unless ``config`` says
+    """Decisions per second of SlamGym/HybridSLAM-v1 (its defaults unless ``config`` says
     otherwise), resets included, deciding by ``schedule`` (:data:`ENV_SCHEDULES`);
     ``decisions=None`` runs exactly one whole episode. Resets draw new worlds (no world is
     replayed from the cache)."""
@@ -156,7 +156,7 @@ def measure_env(decisions, seed, schedule: str = "fixed-10s", **config):
             resets += 1
     cpu = time.process_time() - start
     return {
-        "env": "SlamGym/HybridSLAM-v0",
+        "env": "SlamGym/HybridSLAM-v1",
         "schedule": schedule,
         "n_particles": env.config.n_particles,
         "clutter_level": env.config.clutter_level,
@@ -197,7 +197,7 @@ def _snapshot_before_optimising(system, excluded_s: list):
 
 def measure_full_path(schedule: str, episodes: int, *, n_particles: int = 500,
                       seeds=FULL_PATH_SEEDS, repeats: int = 7, **config):
-    """Decisions per second of SlamGym/HybridSLAM-v0 over ``episodes`` episodes that run the
+    """Decisions per second of SlamGym/HybridSLAM-v1 over ``episodes`` episodes that run the
     whole path under ``schedule`` (resets included; an episode that fails is left out and
     counted), where a learner's episodes spend most of their decisions: the graph and the
     back-end grow along the path, so the mixed figure of :func:`measure_env`, which includes
@@ -235,7 +235,7 @@ def measure_full_path(schedule: str, episodes: int, *, n_particles: int = 500,
         cpu_s += episode_cpu_s
         last = getattr(env.system, "snapshot", None)
     row = {
-        "env": "SlamGym/HybridSLAM-v0", "schedule": schedule, "n_particles": n_particles,
+        "env": "SlamGym/HybridSLAM-v1", "schedule": schedule, "n_particles": n_particles,
         "clutter_level": env.config.clutter_level, "full_path_episodes": full,
         "failed_episodes": failed, "decisions": decisions, "cpu_time_s": cpu_s,
         "decisions_per_s": decisions / cpu_s if cpu_s > 0 else None,
@@ -381,12 +381,12 @@ def measure_esdf(seed):
 
 
 CALIBRATION_RUNS: tuple[tuple[str, str, dict], ...] = (
-    ("SlamGym/HybridSLAM-v0", "fixed-interval", {"interval_s": 10.0, "optimise": "every-fusion"}),
-    ("SlamGym/HybridSLAM-v0", "always", {"optimise": "never"}),
-    ("SlamGym/HybridSLAM-Relative-v0", "fixed-interval",
+    ("SlamGym/HybridSLAM-v1", "fixed-interval", {"interval_s": 10.0, "optimise": "every-fusion"}),
+    ("SlamGym/HybridSLAM-v1", "always", {"optimise": "never"}),
+    ("SlamGym/HybridSLAM-Relative-v1", "fixed-interval",
      {"interval_s": 10.0, "optimise": "every-fusion"}),
-    ("SlamGym/HybridSLAM-Relative-v0", "always", {"optimise": "never"}),
-    ("SlamGym/EKFSubmap-v0", "fixed-interval", {"interval_s": 10.0, "optimise": "every-fusion"}),
+    ("SlamGym/HybridSLAM-Relative-v1", "always", {"optimise": "never"}),
+    ("SlamGym/EKFSubmap-v1", "fixed-interval", {"interval_s": 10.0, "optimise": "every-fusion"}),
 )
 """(env id, policy, options) whose episodes the calibration times: every kind of work, over the
 sizes an episode reaches (optimising at every fusion makes the graph grow to the whole path)."""

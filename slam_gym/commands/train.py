@@ -47,7 +47,7 @@ DEFAULT_BASELINE = "fixed-10s-optimise"
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser("train", help="train learned interface policies (SB3), resumable")
     p.add_argument("--algo", choices=ALGOS, default="ppo")
-    p.add_argument("--env", default="SlamGym/HybridSLAM-v0", help="env id to train on")
+    p.add_argument("--env", default="SlamGym/HybridSLAM-v1", help="env id to train on")
     p.add_argument("--hyperparams", default=None,
                    help="YAML file (rl-zoo3 layout; default: the packaged <algo>.yml)")
     p.add_argument("--hp", action="append", default=[], metavar="KEY=VALUE",

@@ -10,37 +10,63 @@ import gymnasium as gym
 
 ENTRY_POINT = "slam_gym.envs.hybrid_slam:HybridSLAMEnv"
 
+ORDERED_STREAMS = {"random_streams": "ordered"}
+"""What a ``-v0`` id sets: the filter's random numbers in one ordered stream (the Version
+History of :mod:`slam_gym.envs.hybrid_slam`); ``-v1`` ids draw them synchronised."""
+
+
+def _both_versions(variants: dict[str, dict]) -> dict[str, dict]:
+    """``name -> kwargs`` as the ids ``name-v1`` (synchronised draws) and ``name-v0``."""
+    return ({f"{name}-v1": dict(kwargs) for name, kwargs in variants.items()}
+            | {f"{name}-v0": dict(kwargs) | ORDERED_STREAMS for name, kwargs in variants.items()})
+
+
 #: id -> default keyword arguments (each overridable in gym.make)
-ENV_VARIANTS: dict[str, dict] = {
-    "SlamGym/HybridSLAM-v0": {},
-    "SlamGym/HybridSLAM-Light-v0": {"n_particles": 100},
-    "SlamGym/HybridSLAM-Clutter0-v0": {"clutter_level": 0},
-    "SlamGym/HybridSLAM-Clutter1-v0": {"clutter_level": 1},
-    "SlamGym/HybridSLAM-Clutter2-v0": {"clutter_level": 2},
-    "SlamGym/HybridSLAM-Clutter3-v0": {"clutter_level": 3},
-    "SlamGym/HybridSLAM-Compass-v0": {"scenario": "brooks-bailey-compass", "clutter_level": 0},
-    "SlamGym/EKFSubmap-v0": {"front_end": "ekf"},
-    "SlamGym/HybridSLAM-Relative-v0": {"back_end": "relative"},
-}
+ENV_VARIANTS: dict[str, dict] = _both_versions({
+    "SlamGym/HybridSLAM": {},
+    "SlamGym/HybridSLAM-Light": {"n_particles": 100},
+    "SlamGym/HybridSLAM-Clutter0": {"clutter_level": 0},
+    "SlamGym/HybridSLAM-Clutter1": {"clutter_level": 1},
+    "SlamGym/HybridSLAM-Clutter2": {"clutter_level": 2},
+    "SlamGym/HybridSLAM-Clutter3": {"clutter_level": 3},
+    "SlamGym/HybridSLAM-Compass": {"scenario": "brooks-bailey-compass", "clutter_level": 0},
+    "SlamGym/EKFSubmap": {"front_end": "ekf"},
+    "SlamGym/HybridSLAM-Relative": {"back_end": "relative"},
+})
+
+DEFAULT_ENV_ID = "SlamGym/HybridSLAM-v1"
+"""The id to report and to train on by default."""
+
+
+def env_version(env_id: str) -> int:
+    """The version number at the end of an id (``...-v1`` -> 1)."""
+    head, sep, version = env_id.rpartition("-v")
+    if not (sep and head and version.isdigit()):
+        raise ValueError(f"env_id={env_id!r} is invalid: must end in -v<number>")
+    return int(version)
 
 
 #: envs on recorded data: id -> (entry point, default keyword arguments)
 RECORDED_ENV_VARIANTS: dict[str, tuple[str, dict]] = {
-    "SlamGym/MRCLAM-v0": ("slam_gym.envs.mrclam:MRCLAMEnv", {}),
+    "SlamGym/MRCLAM-v1": ("slam_gym.envs.mrclam:MRCLAMEnv", {}),
+    "SlamGym/MRCLAM-v0": ("slam_gym.envs.mrclam:MRCLAMEnv", dict(ORDERED_STREAMS)),
 }
 
 
 #: the same system under another action space (a wrapper of the env): id -> (entry point, default
 #: keyword arguments); the time limit is the wrapped env's, which an action never exceeds
-INTERVAL_ENV_ID = "SlamGym/HybridSLAM-Interval-v0"
+INTERVAL_ENV_ID = "SlamGym/HybridSLAM-Interval-v1"
 """One action per fusion (:mod:`slam_gym.envs.interval`)."""
 
 WRAPPED_ENV_VARIANTS: dict[str, tuple[str, dict]] = {
     INTERVAL_ENV_ID: ("slam_gym.envs.interval:make_interval_env", {}),
+    "SlamGym/HybridSLAM-Interval-v0": ("slam_gym.envs.interval:make_interval_env",
+                                       dict(ORDERED_STREAMS)),
 }
 
 #: the id of the system each wrapped variant runs (its fingerprint and options are that id's)
-WRAPPED_SYSTEM_IDS: dict[str, str] = {INTERVAL_ENV_ID: "SlamGym/HybridSLAM-v0"}
+WRAPPED_SYSTEM_IDS: dict[str, str] = {INTERVAL_ENV_ID: "SlamGym/HybridSLAM-v1",
+                                      "SlamGym/HybridSLAM-Interval-v0": "SlamGym/HybridSLAM-v0"}
 
 
 def system_env_id(env_id: str) -> str:

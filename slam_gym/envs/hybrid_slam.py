@@ -1,4 +1,4 @@
-"""``SlamGym/HybridSLAM-v0``: the local-to-global interface of hybrid SLAM as a Gymnasium env.
+"""``SlamGym/HybridSLAM-v1``: the local-to-global interface of hybrid SLAM as a Gymnasium env.
 
 A FastSLAM 2.0 front-end (or an EKF one) builds local maps while the robot drives a simulated
 scenario; the agent decides, every ``decision_interval`` filter iterations, whether to **fuse**
@@ -90,8 +90,8 @@ Rendering
     defaults: one decision is 1 s of simulated time).
 
 Which id to use
-    ``SlamGym/HybridSLAM-v0`` is the paper's configuration (BB: 500 particles): the one to report.
-    ``SlamGym/HybridSLAM-Light-v0`` runs 100 particles for quick training and smoke tests; at 100
+    ``SlamGym/HybridSLAM-v1`` is the paper's configuration (BB: 500 particles): the one to report.
+    ``SlamGym/HybridSLAM-Light-v1`` runs 100 particles for quick training and smoke tests; at 100
     particles FastSLAM's local maps become over-confident within 10 s, so the task there mostly
     rewards fusing often.
 
@@ -108,15 +108,31 @@ repeat, and the same seed must give the same infos (Gymnasium's checker compares
 time is always in ``env.unwrapped.episode.compute_time_s`` and in every evaluation result.
 
 Seeding: ``reset(seed=s)`` seeds ``self.np_random``; the world seed (unless given in
-``options["world_seed"]``) and the filter's generator are drawn from it, so the same seed gives the
-same episode bit for bit in any process.
+``options["world_seed"]``) is drawn from it, so the same seed gives the same episode bit for bit
+in any process. The world's path, landmarks, clutter and measurement noise come from the world
+seed alone. The filter's random numbers (the DAS uniforms, the pose draws, the resampling
+offsets) come from ``random_streams``:
+
+* ``"synchronised"`` (``-v1``, the default): keyed by ``(world seed, draw, iteration,
+  purpose)`` (:class:`filters.draws.SynchronisedDraws`). ``options["draw"]`` (default 0) chooses
+  another draw of the filter's numbers on the same world. Two policies on the same world and
+  draw receive the same numbers for the same purpose at every iteration, whatever either decided
+  before: common random numbers, so a paired comparison sees the decisions' effect, not the
+  filter's noise falling differently after the first decision that differs.
+* ``"ordered"`` (``-v0``): one generator seeded from ``np_random`` (draw 0) or from the world
+  and ``options["draw"]``, consumed in order of use: a different decision shifts every later
+  draw.
 
 Version History
     The id's version moves with every change to the reward, the observation or the dynamics
-    (Gymnasium's convention), from now on: the next such change registers ``-v1`` and keeps
-    this list. The changes made so far all kept ``-v0`` (the shipped model and the docs refer to
-    it); a model's provenance fingerprint (:mod:`slam_gym.training.provenance`, issue 29) is what
-    tells which of them a saved model was trained on.
+    (Gymnasium's convention); every id is registered at both versions, ``-v0`` being the same
+    env with ``random_streams="ordered"``. A model's provenance fingerprint
+    (:mod:`slam_gym.training.provenance`, issue 29) tells which a saved model was trained on.
+
+    * v1, issue 46 (2026-11-28): synchronised random numbers (above, "Seeding"). The reward,
+      the observation and the filters' equations are unchanged; every episode's filter draws
+      differ from ``-v0``'s, so its bits do. ``-v0`` stays reachable (``random_streams=
+      "ordered"``: the old draws, bit for bit) for the rows and models made with it.
 
     * v0 (2026-11-21, aa8eb86): the first release. Reward ``-(w_nees nees_excess + w_pose
       pose_error_m + w_map map_error_m + fusion_cost fused + optimise_cost optimised +
@@ -146,6 +162,7 @@ import numpy as np
 from gymnasium import spaces
 
 from filters.blas import check_blas_threads, limited_blas_threads
+from filters.draws import SynchronisedDraws
 from filters.interface_features import INTERFACE_FEATURE_NAMES
 from filters.validation import check_range, require
 from slam_gym.compute_cost import ComputeModel, filter_ops, fusion_ops, optimise_ops
@@ -171,12 +188,26 @@ OBSERVATION_MAX = 1e6
 """Observations are clipped to [0, OBSERVATION_MAX] (NaN -> 0): every feature is non-negative."""
 
 FRONT_ENDS = ("fastslam", "ekf")
+RANDOM_STREAMS = ("synchronised", "ordered")
+"""The filter's random numbers: keyed by purpose and time (``-v1``) or one ordered stream
+(``-v0``); :mod:`filters.draws`."""
 BACK_ENDS = ("ekf", "relative")
 
 REWARD_COMPONENTS: tuple[str, ...] = (
     "nees_over", "nees_under", "pose_error_m", "map_ospa_m", "compute_s", "failure_charge",
 )
 """The terms of the reward, in ``info["reward_components"]`` (module docstring)."""
+
+
+def ordered_filter_seed(np_random: np.random.Generator, world_seed: int, draw: int) -> int:
+    """The seed of the ``-v0`` filter generator: draw 0 takes the next number of the env's
+    ``np_random`` (as ``-v0`` always did); draw ``k > 0`` one derived from the world and ``k``,
+    the generator that ``reset(seed=<derived>)`` on that world gave before draws were an option,
+    so earlier rows of other draws are reproduced."""
+    if draw == 0:
+        return int(np_random.integers(0, 2**63 - 1))
+    derived = np.random.SeedSequence([int(world_seed), int(draw), 104729]).generate_state(1)[0]
+    return int(np.random.default_rng(int(derived)).integers(0, 2**63 - 1))
 
 
 @dataclass(frozen=True)
@@ -193,7 +224,9 @@ class HybridSLAMConfig:
     order (None: all of :data:`FEATURE_NAMES`). Reward weights and cut-offs: see the module
     docstring. ``blas_threads``: the BLAS threads of the env's linear algebra (default 1, set
     for each ``reset``/``step`` and restored after it; None: the process's own setting;
-    :mod:`filters.blas`).
+    :mod:`filters.blas`). ``random_streams``: where the filter's random numbers come from
+    (module docstring, "Seeding"): ``"synchronised"`` (keyed by world, draw, iteration and
+    purpose; the ``-v1`` ids) or ``"ordered"`` (one stream in order of use; the ``-v0`` ids).
     """
 
     scenario: str = "brooks-bailey"
@@ -219,6 +252,7 @@ class HybridSLAMConfig:
     compute_clip_s: float = 2.0
     info_compute_time: bool = False
     blas_threads: int | None = 1
+    random_streams: str = "synchronised"
 
     def __post_init__(self):
         require(
@@ -239,6 +273,8 @@ class HybridSLAMConfig:
                 self.alpha is not None and self.beta is not None, "alpha, beta",
                 (self.alpha, self.beta), "numbers when clutter_level is None",
             )
+        require(self.random_streams in RANDOM_STREAMS, "random_streams", self.random_streams,
+                f"one of {RANDOM_STREAMS}")
         require(self.front_end in FRONT_ENDS, "front_end", self.front_end, f"one of {FRONT_ENDS}")
         require(self.back_end in BACK_ENDS, "back_end", self.back_end, f"one of {BACK_ENDS}")
         for name, low in (("n_particles", 1), ("decision_interval", 1)):
@@ -330,8 +366,8 @@ class HybridSLAMEnv(gym.Env):
 
     #: options of ``reset(options=...)``: a world seed and fields of the config that may change
     #: between episodes without changing the spaces
-    RESET_OPTIONS = ("world_seed", "clutter_level", "alpha", "beta", "n_steps", "max_decisions",
-                     "w_compute", "compute_clip_s")
+    RESET_OPTIONS = ("world_seed", "draw", "clutter_level", "alpha", "beta", "n_steps",
+                     "max_decisions", "w_compute", "compute_clip_s")
 
     def __init__(self, render_mode: str | None = None, **config):
         require(
@@ -357,6 +393,7 @@ class HybridSLAMEnv(gym.Env):
         self.stream = None
         self.n_decisions = 0
         self.filter_rng: np.random.Generator | None = None
+        self.filter_draws: SynchronisedDraws | None = None
         self.episode_ended: str | None = None
         """``"terminated"`` or ``"truncated"`` once the episode ended (then :meth:`step`
         raises), None while it runs."""
@@ -386,6 +423,9 @@ class HybridSLAMEnv(gym.Env):
                                        and not isinstance(world_seed, bool)
                                        and 0 <= world_seed < 2**63),
                 "world_seed", world_seed, "None or an integer in [0, 2**63)")
+        draw = options.pop("draw", 0)
+        require(isinstance(draw, (int, np.integer)) and not isinstance(draw, bool)
+                and 0 <= draw < 2**31, "draw", draw, "an integer in [0, 2**31)")
         if options:
             merged = dataclasses.asdict(self.config)
             if "clutter_level" in options:
@@ -394,24 +434,32 @@ class HybridSLAMEnv(gym.Env):
             self.config = HybridSLAMConfig.from_kwargs(**merged)
         if world_seed is None:
             world_seed = int(self.np_random.integers(0, 2**31 - 1))
-        filter_seed = int(self.np_random.integers(0, 2**63 - 1))
         self.stream = self._make_stream(int(world_seed))
         from slam_gym.systems import make_system
 
-        #: the generator every random draw of the filters comes from (:meth:`reseed_future`)
-        self.filter_rng = np.random.default_rng(filter_seed)
+        if self.config.random_streams == "synchronised":
+            #: the filters' random numbers, keyed by world, draw, iteration and purpose
+            self.filter_draws = SynchronisedDraws((int(world_seed), int(draw)))
+            self.filter_rng, self.filter_seed = None, None
+            source = self.filter_draws
+        else:
+            #: the one generator every draw of the filters comes from, in order of use
+            self.filter_seed = ordered_filter_seed(self.np_random, int(world_seed), int(draw))
+            self.filter_rng = np.random.default_rng(self.filter_seed)
+            self.filter_draws = None
+            source = self.filter_rng
         self.system = make_system(
             "hybrid" if self.config.front_end == "fastslam" else "ekf-submap",
             self.stream,
-            self.filter_rng,
+            source,
             n_particles=self.config.n_particles,
             back_end=self.config.back_end,
             back_blas_threads=self.config.blas_threads,
             **self._system_options(),
         )
-        self.episode = Episode(self.system, self.stream)
+        self.episode = Episode(self.system, self.stream, draws=self.filter_draws)
         self.world_seed = int(world_seed)
-        self.filter_seed = filter_seed
+        self.draw = int(draw)
         self.n_decisions = 0
         self.episode_return = 0.0
         self.episode_compute_term_s = 0.0
@@ -552,6 +600,10 @@ class HybridSLAMEnv(gym.Env):
             "seed", seed, "a non-negative integer",
         )
         self.episode.redraw_future(int(seed))
+        if self.filter_draws is not None:
+            self.filter_draws.iteration = self.episode.iteration
+            self.filter_draws.rekey(int(seed))
+            return
         drawn = np.random.default_rng(np.random.SeedSequence([int(seed), self.episode.iteration]))
         self.filter_rng.bit_generator.state = drawn.bit_generator.state
 

@@ -1,6 +1,6 @@
-"""``SlamGym/HybridSLAM-Interval-v0``: the interface decided once per fusion (issue 39 item 3).
+"""``SlamGym/HybridSLAM-Interval-v1``: the interface decided once per fusion (issue 39 item 3).
 
-The same system, world and reward as ``SlamGym/HybridSLAM-v0``
+The same system, world and reward as ``SlamGym/HybridSLAM-v1``
 (:class:`~slam_gym.envs.hybrid_slam.HybridSLAMEnv`); one action chooses *when the next fusion
 happens and whether to optimise at it*, so an episode on BB's path has ~40 decisions instead of
 ~430 and a learner can credit a fusion's consequences to the decision that caused them.
@@ -29,7 +29,7 @@ Episode end
     decisions of the wrapped env the action covered) and ``fusion_interval_s``.
 
 Every keyword of :class:`~slam_gym.envs.hybrid_slam.HybridSLAMConfig` is accepted by
-``gym.make("SlamGym/HybridSLAM-Interval-v0", ...)``; :class:`IntervalActions` wraps an env
+``gym.make("SlamGym/HybridSLAM-Interval-v1", ...)``; :class:`IntervalActions` wraps an env
 someone already made.
 """
 

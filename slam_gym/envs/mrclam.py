@@ -1,4 +1,4 @@
-"""``SlamGym/MRCLAM-v0``: the interface env of :mod:`slam_gym.envs.hybrid_slam` on recorded data.
+"""``SlamGym/MRCLAM-v1``: the interface env of :mod:`slam_gym.envs.hybrid_slam` on recorded data.
 
 :class:`MRCLAMEnv` plays one robot of a UTIAS MRCLAM data set (Leung et al., IJRR 2011) through
 the same hybrid system, observation, action, reward and termination as
@@ -52,10 +52,12 @@ scenario fields, unused.
 
 Seeding: the recording is fixed, so ``reset(options={"world_seed": s})`` selects nothing: it is
 accepted (the evaluation code passes it) and dropped, so it changes nothing at all
-(``info["world_seed"]`` is the base class's draw and means nothing here). ``reset(seed=s)``
-seeds the filter (particles, data association sampling), so the same seed gives the same
-episode bit for bit. The stream is loaded once per (directory, robot,
-``n_steps``, ``sensor_noise_scale``) and cached on the instance.
+(``info["world_seed"]`` is the base class's draw from the reset seed and only keys the filter's
+numbers). ``reset(seed=s)`` seeds the filter (particles, data association sampling), so the
+same seed gives the same episode bit for bit; in ``-v1`` the filter's numbers are keyed by that
+draw, ``options["draw"]`` and the iteration (synchronised: two policies reset with the same seed
+and draw receive the same numbers for the same purpose). The stream is loaded once per
+(directory, robot, ``n_steps``, ``sensor_noise_scale``) and cached on the instance.
 """
 
 from __future__ import annotations
@@ -155,7 +157,7 @@ def mrclam_stream(
 class MRCLAMEnv(HybridSLAMEnv):
     """The hybrid-SLAM interface env on one MRCLAM robot (see the module docstring)."""
 
-    RESET_OPTIONS = ("world_seed", "n_steps", "max_decisions")
+    RESET_OPTIONS = ("world_seed", "draw", "n_steps", "max_decisions")
 
     def __init__(
         self,

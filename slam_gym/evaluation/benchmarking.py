@@ -173,6 +173,18 @@ def make_out_dir(out: str | os.PathLike) -> Path:
     return path
 
 
+MAX_DRAWS = 1000
+"""Filter draws per world a benchmark accepts."""
+
+
+def env_id_streams(env: str) -> str:
+    """The ``random_streams`` of a registered simulated env id (``-v1``: synchronised)."""
+    from slam_gym.envs import ENV_VARIANTS
+
+    require(env in ENV_VARIANTS, "env", env, f"one of {sorted(ENV_VARIANTS)}")
+    return ENV_VARIANTS[env].get("random_streams", "synchronised")
+
+
 def env_id_ends(env: str) -> tuple[str, str]:
     """The (front-end, back-end) of a registered simulated env id."""
     from slam_gym.envs import ENV_VARIANTS
@@ -198,6 +210,8 @@ def benchmark(
     w_compute: float | None = None,
     compute_clip_s: float | None = None,
     model: str | None = None,
+    draws: int = 1,
+    random_streams: str | None = None,
     baselines: Iterable[str] = BASELINE_SYSTEMS,
     out: str | os.PathLike = "out/benchmark",
     workers: int | None = None,
@@ -219,7 +233,10 @@ def benchmark(
     (quick looks and tests); ``w_compute`` and ``compute_clip_s`` (None: the env's defaults) set
     the reward's price of compute, so a policy's return is scored under the reward it was
     trained for. ``model``: the model zip of policy ``learned`` (None: the shipped
-    one). ``workers``, ``executor`` (``"process"``, ``"ray"``, ``"serial"``) and
+    one). ``draws``: filter draws per world for every policy (each run's row carries its
+    ``draw``; a draw is the same on every policy: common random numbers, issue 46).
+    ``random_streams``: ``"synchronised"`` (``-v1``, the default) or ``"ordered"`` (``-v0``;
+    else ``env``'s). ``workers``, ``executor`` (``"process"``, ``"ray"``, ``"serial"``) and
     ``ray_address`` as :func:`slam_gym.evaluation.run_jobs`, and so are ``retry_errors`` (run
     the error rows again), ``rerun_changed`` (replace the rows of a user policy whose code or
     options changed; without it such rows make the call refuse with ``ValueError`` naming the
@@ -242,7 +259,14 @@ def benchmark(
             require(given in (None, implied), field, given, f"{implied!r} for env={env!r} "
                     "(or left out)")
         front_end, back_end = env_front, env_back
+        implied = env_id_streams(env)
+        require(random_streams in (None, implied), "random_streams", random_streams,
+                f"{implied!r} for env={env!r} (or left out)")
+        random_streams = implied
     front_end, back_end = front_end or "fastslam", back_end or "ekf"
+    random_streams = random_streams or "synchronised"
+    require(isinstance(draws, (int, np.integer)) and not isinstance(draws, bool)
+            and 1 <= draws <= MAX_DRAWS, "draws", draws, f"an integer in [1, {MAX_DRAWS}]")
     baselines = list(baselines)
     bad = [b for b in baselines if b not in BASELINE_SYSTEMS]
     require(not bad, "baselines", bad, f"among {list(BASELINE_SYSTEMS)}")
@@ -252,13 +276,14 @@ def benchmark(
     _check_env_options(scenario, levels, n_particles=n_particles,
                        decision_interval=decision_interval, front_end=front_end,
                        back_end=back_end, n_steps=n_steps, w_compute=w_compute,
-                       compute_clip_s=compute_clip_s)
+                       compute_clip_s=compute_clip_s, random_streams=random_streams)
     if executor != "serial":
         _check_picklable(entries, executor)
     out = make_out_dir(out)
 
     options: dict[str, Any] = {"n_particles": n_particles, "decision_interval": decision_interval,
-                               "front_end": front_end, "back_end": back_end}
+                               "front_end": front_end, "back_end": back_end,
+                               "random_streams": random_streams}
     for key, value in (("n_steps", n_steps), ("w_compute", w_compute),
                        ("compute_clip_s", compute_clip_s)):
         if value is not None:
@@ -268,8 +293,8 @@ def benchmark(
         opts = options | (learned_options(model) if entry.name == "learned" else {})
         if entry.digest is not None:
             opts["policy_sha256"] = entry.digest
-        jobs += [Job("policy", entry.name, scenario, level, seed, opts)
-                 for level in levels for seed in seed_list]
+        jobs += [Job("policy", entry.name, scenario, level, seed, opts | {"draw": draw})
+                 for level in levels for seed in seed_list for draw in range(draws)]
     system_opts = {"n_steps": int(n_steps)} if n_steps is not None else {}
     jobs += [Job("system", name, scenario, level, seed, system_opts)
              for name in baselines for level in levels for seed in seed_list]

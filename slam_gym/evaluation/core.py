@@ -18,7 +18,9 @@ scenario field, so the world of the job changes with it: issue 28's calibration)
 Policy jobs take ``n_particles`` (500), ``decision_interval`` (10), ``front_end``, ``back_end``,
 ``model_path``, ``model_sha256`` (the model file's :func:`policies.learned.model_digest`: a run
 checks it, so a job key names the model it was run with) and ``deterministic`` (for ``learned``),
-``policy_sha256`` (a user policy's :func:`policies.registry.policy_digest`, checked likewise);
+``policy_sha256`` (a user policy's :func:`policies.registry.policy_digest`, checked likewise),
+``draw`` (0: which draw of the filter's random numbers on the world) and ``random_streams``
+(``"synchronised"``, the ``-v1`` envs; ``"ordered"``, ``-v0``);
 the env ends an episode at BB's failure. A learned policy's rows carry ``model_matches_code`` and
 ``model_differences`` (:func:`provenance_fields`: whether the model's fingerprint matches the code
 that ran it). ``w_compute`` and ``compute_clip_s`` (None: the env's
@@ -59,6 +61,8 @@ POLICY_OPTIONS = {
     "w_compute": None,
     "compute_clip_s": None,
     "policy_sha256": None,
+    "draw": 0,
+    "random_streams": "synchronised",
 }
 OPTIMISE_MODES = ("never", "at-end", "every-fusion", "after-loop-closure")
 LOOP_CLOSURE_UNSEEN_S = 60.0
@@ -248,14 +252,15 @@ def run_policy_object(
     w_compute=None,
     compute_clip_s=None,
     policy_name=None,
-    filter_reset_seed=None,
+    draw=0,
+    random_streams="synchronised",
 ):
     """Run a policy object (``act(obs, info)``, ``reset()``) for one episode; (episode, env).
 
     The world is the scenario's world for ``seed`` (the same as a system run with that seed);
-    the episode ends at the end of the path or at BB's failure. ``filter_reset_seed``, if given,
-    seeds the env's ``reset`` instead of ``seed``: the same world, other draws of the filter's
-    random numbers (``scripts/results/filter_noise.py``). ``on_step(action, info)``, if
+    the episode ends at the end of the path or at BB's failure. ``draw`` chooses the draw of the
+    filter's random numbers on that world (``reset``'s option), ``random_streams`` how they are
+    drawn (:class:`~slam_gym.envs.hybrid_slam.HybridSLAMConfig`). ``on_step(action, info)``, if
     given, sees every decision and the info that followed it. Every action is checked
     (:func:`policies.base.check_action`): a wrong shape, dtype or value raises ``ValueError``
     naming the policy (``policy_name``, else the object's name) and what it returned.
@@ -276,13 +281,13 @@ def run_policy_object(
         front_end=front_end,
         back_end=back_end,
         n_steps=n_steps,
+        random_streams=random_streams,
         **reward,
     )
     if callable(getattr(policy, "bind_env", None)):  # a planning policy acts on copies of env
         policy.bind_env(env)
     policy.reset()
-    reset_seed = int(seed) if filter_reset_seed is None else int(filter_reset_seed)
-    obs, info = env.reset(seed=reset_seed, options={"world_seed": int(seed)})
+    obs, info = env.reset(seed=int(seed), options={"world_seed": int(seed), "draw": int(draw)})
     while True:
         action = check_action(policy.act(obs, info), label)
         obs, _, terminated, truncated, info = env.step(action)
@@ -338,6 +343,7 @@ def run_job(job, policy_factories=None) -> dict:
     episode, env = run_policy_object(policy, job.scenario, job.clutter_level, job.seed,
                                      policy_name=job.name, **opts)
     row = episode_result(episode, env.stream)
+    row["draw"] = int(opts["draw"])
     row.update(provenance_fields(policy))
     if callable(getattr(policy, "episode_fields", None)):  # e.g. a lookahead's planning cost
         row.update(policy.episode_fields())

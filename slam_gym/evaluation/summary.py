@@ -17,9 +17,13 @@ cannot be negative (:data:`NON_NEGATIVE_KEYS`: errors, ANEES, completeness, CPU 
 percentile bootstrap interval of the mean (:func:`bootstrap_interval`), which stays within the
 runs' range (a symmetric t-interval from 3 runs reached -3 s of CPU and -30 m of map error);
 only ``return`` keeps the Student-t interval. ``n_values`` counts the runs behind each
-interval. Errored runs never count as failures: they are excluded from every rate and mean
-and reported in ``n_errors`` (per group and in total), so a crash cannot pass for a SLAM
-failure. A null metric (e.g. not computable for that run) is left out of its mean.
+interval. With several filter draws per world (``draw``, issue 46) the draws of a world are
+runs of one group, and every interval is taken over worlds: of the per-world means
+(:func:`per_world`), the success rate's by the percentile bootstrap instead of Wilson's
+(draws of one world are not independent runs). Errored runs never count as failures: they
+are excluded from every rate and mean and reported in ``n_errors`` (per group and in total), so
+a crash cannot pass for a SLAM failure. A null metric (e.g. not computable for that run) is
+left out of its mean.
 """
 
 from __future__ import annotations
@@ -148,6 +152,22 @@ def metric_values(rows: Sequence[Mapping[str, Any]], key: str) -> list[float]:
     return out
 
 
+PER_RUN_OPTIONS = ("draw",)
+"""Job options that tell runs of one group apart (the draw of a world) rather than groups."""
+
+
+def per_world(rows: Sequence[Mapping[str, Any]], key: str) -> list[float]:
+    """``key``'s values as one value per world (``seed``): the mean over the world's draws, so
+    that an interval over worlds treats the draws of one world as the one observation they are
+    (a cluster); with one draw per world, the values themselves."""
+    by_world: dict[Any, list[float]] = {}
+    for row in rows:
+        values = metric_values([row], key)
+        if values:
+            by_world.setdefault(row.get("seed"), []).append(values[0])
+    return [sum(v) / len(v) for v in by_world.values()]
+
+
 def _mean(values: list[float]) -> float | None:
     return statistics.fmean(values) if values else None
 
@@ -181,7 +201,9 @@ def summarise(
         kind, name = _kind_name(row)
         status = row.get("status")
         require(status in (STATUS_OK, STATUS_ERROR), "row status", status, "'ok' or 'error'")
-        options = json.dumps(row.get("options") or {}, sort_keys=True)
+        # the draws of a world are one group's runs, not groups of their own
+        options = json.dumps({k: v for k, v in (row.get("options") or {}).items()
+                              if k not in PER_RUN_OPTIONS}, sort_keys=True)
         name_order.setdefault((kind, name), len(name_order))
         scenario_order.setdefault(row.get("scenario"), len(scenario_order))
         gkey = (kind, name, row.get("scenario"), row.get("clutter_level"), options)
@@ -201,6 +223,11 @@ def summarise(
         judged = [r for r in ok if r.get("success") is not None]
         n_success = sum(1 for r in judged if r.get("success") is True)
         ci = list(wilson_interval(n_success, len(judged))) if judged else None
+        n_worlds = len({r.get("seed") for r in members})
+        if judged and len(judged) > len({r.get("seed") for r in judged}):
+            # several draws per world: the world is the unit (draws are not independent runs)
+            boot = bootstrap_interval(per_world(judged, "success"))
+            ci = None if boot is None else list(boot)
         first = next((r for r in ok if r.get("alpha") is not None), {})
         group: dict[str, Any] = {
             kind: name,
@@ -210,6 +237,7 @@ def summarise(
             "alpha": first.get("alpha"),
             "beta": first.get("beta"),
             "n": len(members),
+            "n_worlds": n_worlds,
             "n_ok": len(ok),
             "n_errors": len(members) - len(ok),
             "n_success": n_success,
@@ -226,7 +254,7 @@ def summarise(
             values = metric_values(ok, key)
             if values:
                 group.setdefault(key, _mean(values))
-                intervals[key] = interval(key, values)
+                intervals[key] = interval(key, per_world(ok, key))
                 counts[key] = len(values)
         succeeded = [r for r in judged if r["success"]]
         values = metric_values(succeeded, "map_error_m")
@@ -234,7 +262,8 @@ def summarise(
             # the map error of the runs that did not fail: a rule that fails early keeps a small
             # map with small errors, which the mean over all runs would reward
             group["map_error_m_succeeded"] = _mean(values)
-            intervals["map_error_m_succeeded"] = interval("map_error_m_succeeded", values)
+            intervals["map_error_m_succeeded"] = interval("map_error_m_succeeded",
+                                                          per_world(succeeded, "map_error_m"))
             counts["map_error_m_succeeded"] = len(values)
         if intervals:
             group["ci95"] = intervals

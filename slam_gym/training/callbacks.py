@@ -6,9 +6,9 @@ Use it as SB3's own ``EvalCallback``::
     from stable_baselines3 import PPO
     from slam_gym.training.callbacks import BenchmarkEvalCallback
 
-    env = gym.make("slam_gym:SlamGym/HybridSLAM-Light-v0")
+    env = gym.make("slam_gym:SlamGym/HybridSLAM-Light-v1")
     model = PPO("MlpPolicy", env)
-    callback = BenchmarkEvalCallback(eval_freq=5_000, env_id="SlamGym/HybridSLAM-Light-v0",
+    callback = BenchmarkEvalCallback(eval_freq=5_000, env_id="SlamGym/HybridSLAM-Light-v1",
                                      clutter_levels=(1, 2), log_path="out/ppo")
     model.learn(50_000, callback=callback)
     callback.evaluations[-1]        # {"timesteps": ..., "success_rate": ..., "anees": ...}

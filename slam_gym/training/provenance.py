@@ -60,7 +60,7 @@ SIGNIFICANT_DIGITS = 4
 CHUNK_DECISIONS = 20
 """Decisions per chunk digest."""
 
-DEFAULT_ENV_ID = "SlamGym/HybridSLAM-v0"
+DEFAULT_ENV_ID = "SlamGym/HybridSLAM-v1"
 """The env id of a model whose config names none."""
 
 IGNORED_OPTIONS = ("n_steps", "max_decisions", "features", "info_compute_time")

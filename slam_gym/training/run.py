@@ -123,7 +123,7 @@ class TrainingSetup:
 
 def registered_kwargs(env_id: str) -> dict[str, Any]:
     """The keyword arguments ``env_id`` is registered with (a trainable simulated id; a wrapped
-    variant such as ``SlamGym/HybridSLAM-Interval-v0`` has those of the system it wraps)."""
+    variant such as ``SlamGym/HybridSLAM-Interval-v1`` has those of the system it wraps)."""
     from slam_gym.envs import ENV_VARIANTS, system_env_id
 
     env_id = system_env_id(env_id)

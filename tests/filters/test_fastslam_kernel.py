@@ -150,7 +150,7 @@ def test_update_bookkeeping_equals_the_numpy_code_to_the_bit(known, monkeypatch)
             m.setattr(fastslam_module, "scan_update", capture)
             m.setattr(fastslam_module, "finish_scan",
                       lambda *a: (None, None, 0, a[16], a[17]))
-            m.setattr(FastSLAM2, "_maybe_resample", lambda self: None)
+            m.setattr(FastSLAM2, "_maybe_resample", lambda self, role: None)
             ref.update(step.z, labels)
         ref._steps -= 1  # counted again by the reference's tail
         active_before = int(ref._active.sum())

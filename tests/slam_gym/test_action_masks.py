@@ -15,7 +15,7 @@ SMALL = {"n_particles": 20, "n_steps": 400}
 
 
 def make_discrete(**kwargs):
-    return DiscreteActions(gym.make("slam_gym:SlamGym/HybridSLAM-v0", **(SMALL | kwargs)))
+    return DiscreteActions(gym.make("slam_gym:SlamGym/HybridSLAM-v1", **(SMALL | kwargs)))
 
 
 def _optimise_records(env):
@@ -69,7 +69,7 @@ def test_before_any_fusion_optimising_is_masked_and_a_fusion_unmasks_it():
 def test_the_env_mask_is_factorised_all_true_and_in_every_info():
     """On ``MultiDiscrete([2, 2])`` a factorised mask that excluded optimise=1 would also exclude
     fuse-then-optimise, which is never a no-op: the exact factorised mask allows everything."""
-    env = gym.make("slam_gym:SlamGym/HybridSLAM-v0", **SMALL)
+    env = gym.make("slam_gym:SlamGym/HybridSLAM-v1", **SMALL)
     _, info = env.reset(seed=0)
     assert info["action_mask"].dtype == bool and info["action_mask"].all()
     assert info["optimise_redundant"] is True
@@ -90,7 +90,7 @@ def test_env_checkers_pass_with_masks_in_the_infos():
     from gymnasium.utils.env_checker import check_env
     from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
-    env = gym.make("slam_gym:SlamGym/HybridSLAM-v0", **SMALL)
+    env = gym.make("slam_gym:SlamGym/HybridSLAM-v1", **SMALL)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         check_env(env.unwrapped, skip_render_check=True)

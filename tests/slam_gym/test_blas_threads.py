@@ -68,7 +68,7 @@ def test_a_plain_gym_make_episode_optimises_with_one_blas_thread(tmp_path):
         import numpy as np
         from filters.blas import blas_thread_counts
 
-        env = gym.make("slam_gym:SlamGym/HybridSLAM-v0", n_particles=10, n_steps=300)
+        env = gym.make("slam_gym:SlamGym/HybridSLAM-v1", n_particles=10, n_steps=300)
         env.reset(seed=0)
         done = False
         while not done:  # fuse and optimise at every decision

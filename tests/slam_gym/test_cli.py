@@ -100,7 +100,7 @@ def test_benchmark_tiny(tmp_path, capsys):
 
 def test_benchmark_reports_accuracy_against_compute_with_a_pareto_figure(tmp_path, capsys):
     # the compass scenario (BB Fig. 3): both rules survive there, so every figure has points
-    doc = run_json(capsys, ["benchmark", "--env", "SlamGym/HybridSLAM-Relative-v0", "--policies",
+    doc = run_json(capsys, ["benchmark", "--env", "SlamGym/HybridSLAM-Relative-v1", "--policies",
                             "fixed-10s,fixed-10s-optimise", "--scenario", "brooks-bailey-compass",
                             "--clutter-levels", "0", "--seeds", "2", "--particles", "100",
                             "--workers", "1", "--executor", "serial", "--out", str(tmp_path)])
@@ -128,7 +128,7 @@ def test_benchmark_reports_accuracy_against_compute_with_a_pareto_figure(tmp_pat
 
 def test_benchmark_rejects_unknown_envs_and_baselines(tmp_path):
     base = ["benchmark", "--policies", "always", "--seeds", "1", "--out", str(tmp_path)]
-    assert main([*base, "--env", "SlamGym/Nope-v0"]) == 2
+    assert main([*base, "--env", "SlamGym/Nope-v1"]) == 2
     assert main([*base, "--baselines", "teleport"]) == 2
 
 

@@ -16,12 +16,16 @@ import slam_gym
 from slam_gym.envs.hybrid_slam import FEATURE_NAMES, HybridSLAMEnv
 from slam_gym.envs.wrappers import DiscreteActions, discrete_to_multi
 
-ENV_IDS = sorted(slam_gym.ENV_VARIANTS)
+# every id at the current version; the -v0 ids are the same envs with ordered draws
+# (test_v0_ids_are_the_same_env_with_ordered_streams)
+ENV_IDS = sorted(i for i in slam_gym.ENV_VARIANTS if i.endswith("-v1"))
 SMALL = {"n_particles": 20, "n_steps": 150}
 
 
 def make(env_id, **kwargs):
-    return gym.make(f"slam_gym:{env_id}", **(SMALL | kwargs))
+    with warnings.catch_warnings():  # gymnasium calls a -v0 id out of date
+        warnings.simplefilter("ignore", DeprecationWarning)
+        return gym.make(f"slam_gym:{env_id}", **(SMALL | kwargs))
 
 
 def rollout(env, seed, actions):
@@ -84,7 +88,7 @@ def test_registered_time_limit_does_not_cut_a_normal_episode(env_id):
                np.array([[1, 0]]), 3, "fuse"],
 )
 def test_invalid_actions_raise_value_error(action):
-    env = make("SlamGym/HybridSLAM-v0")
+    env = make("SlamGym/HybridSLAM-v1")
     env.reset(seed=0)
     with pytest.raises(ValueError, match="action"):
         env.step(action)
@@ -122,7 +126,7 @@ def _rollout_in_subprocess(env_id, seed, queue):
 
 
 def test_same_episode_across_spawned_processes():
-    env_id = "SlamGym/HybridSLAM-v0"
+    env_id = "SlamGym/HybridSLAM-v1"
     ctx = mp.get_context("spawn")
     queue = ctx.Queue()
     proc = ctx.Process(target=_rollout_in_subprocess, args=(env_id, 11, queue))
@@ -136,7 +140,7 @@ def test_same_episode_across_spawned_processes():
 def test_make_in_a_fresh_interpreter_without_importing_slam_gym():
     code = (
         "import gymnasium as gym, sys; "
-        "env = gym.make('slam_gym:SlamGym/HybridSLAM-v0', n_particles=5, n_steps=30); "
+        "env = gym.make('slam_gym:SlamGym/HybridSLAM-v1', n_particles=5, n_steps=30); "
         "obs, info = env.reset(seed=0); assert obs.shape == (19,); "
         "assert 'slam_gym' in sys.modules"
     )
@@ -173,7 +177,7 @@ def test_env_pickles_and_the_copy_continues_identically(env_id):
 
 
 def test_observation_matches_features_by_name_and_info_keys():
-    env = make("SlamGym/HybridSLAM-v0")
+    env = make("SlamGym/HybridSLAM-v1")
     obs, info = env.reset(seed=1)
     assert obs.dtype == np.float32 and obs.shape == (len(FEATURE_NAMES),)
     assert list(info["features"]) == list(FEATURE_NAMES) + ["compute_price_per_s"]
@@ -194,14 +198,14 @@ def test_observation_matches_features_by_name_and_info_keys():
 
 
 def test_compute_time_in_info_on_request():
-    env = make("SlamGym/HybridSLAM-v0", info_compute_time=True)
+    env = make("SlamGym/HybridSLAM-v1", info_compute_time=True)
     env.reset(seed=0)
     info = env.step(np.array([1, 0]))[4]
     assert info["filter_time_s"] == env.unwrapped.episode.compute_time_s > 0
 
 
 def test_vector_envs_run():
-    fns = [lambda: make("SlamGym/HybridSLAM-v0") for _ in range(2)]
+    fns = [lambda: make("SlamGym/HybridSLAM-v1") for _ in range(2)]
     for vec in (gym.vector.SyncVectorEnv(fns), gym.vector.AsyncVectorEnv(fns, context="spawn")):
         obs, _ = vec.reset(seed=[0, 1])
         assert obs.shape == (2, len(FEATURE_NAMES))
@@ -214,7 +218,7 @@ def test_sb3_subproc_vec_env_runs():
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import SubprocVecEnv
 
-    vec = make_vec_env("slam_gym:SlamGym/HybridSLAM-v0", n_envs=2, seed=0,
+    vec = make_vec_env("slam_gym:SlamGym/HybridSLAM-v1", n_envs=2, seed=0,
                        vec_env_cls=SubprocVecEnv, env_kwargs=SMALL,
                        vec_env_kwargs={"start_method": "spawn"})
     obs = vec.reset()
@@ -235,7 +239,7 @@ def test_discrete_wrapper_matches_the_policies_mapping():
 
     for a in range(4):
         assert np.array_equal(discrete_to_multi(a), policies_mapping(a))
-    env = DiscreteActions(make("SlamGym/HybridSLAM-v0"))
+    env = DiscreteActions(make("SlamGym/HybridSLAM-v1"))
     assert env.action_space == gym.spaces.Discrete(4)
     env.reset(seed=0)
     _, _, _, _, info = env.step(3)
@@ -262,11 +266,11 @@ def test_discrete_wrapper_matches_the_policies_mapping():
 )
 def test_bad_keyword_values_raise_value_error(kwargs, field):
     with pytest.raises(ValueError, match=field):
-        make("SlamGym/HybridSLAM-v0", **kwargs)
+        make("SlamGym/HybridSLAM-v1", **kwargs)
 
 
 def test_reset_options_override_and_are_validated():
-    env = make("SlamGym/HybridSLAM-v0")
+    env = make("SlamGym/HybridSLAM-v1")
     env.reset(seed=0, options={"clutter_level": 3, "world_seed": 9})
     assert env.unwrapped.stream.clutter.alpha == 0.1 and env.unwrapped.world_seed == 9
     with pytest.raises(ValueError, match="bogus"):
@@ -326,7 +330,7 @@ def test_a_real_failure_returns_less_than_surviving_on_the_same_world():
 
     returns = {}
     for name in ("never", "always"):
-        env = make("SlamGym/HybridSLAM-Compass-v0", n_steps=None, clutter_level=3, n_particles=5)
+        env = make("SlamGym/HybridSLAM-Compass-v1", n_steps=None, clutter_level=3, n_particles=5)
         policy = policies.make(name)
         obs, info = env.reset(seed=0)
         total, terminated, truncated = 0.0, False, False
@@ -339,7 +343,7 @@ def test_a_real_failure_returns_less_than_surviving_on_the_same_world():
 
 
 def test_the_map_term_charges_an_empty_map_the_cutoff():
-    env = make("SlamGym/HybridSLAM-v0", clutter_level=0)
+    env = make("SlamGym/HybridSLAM-v1", clutter_level=0)
     env.reset(seed=0)
     _, _, _, _, info = env.step(np.array([0, 0]))
     score = env.unwrapped.episode.map_score()
@@ -350,7 +354,7 @@ def test_the_map_term_charges_an_empty_map_the_cutoff():
 def test_under_confidence_is_penalised():
     """A NEES far below the 95 % band (an estimate claiming far more uncertainty than its error)
     costs nees_under; inside the band costs nothing."""
-    env = make("SlamGym/HybridSLAM-v0", clutter_level=0)
+    env = make("SlamGym/HybridSLAM-v1", clutter_level=0)
     env.reset(seed=0)
     lo, hi = env.unwrapped._nees_band
     ep = env.unwrapped.episode
@@ -372,27 +376,27 @@ def test_under_confidence_is_penalised():
 )
 def test_bad_reward_weights_features_and_options_raise_value_error_naming_the_field(option, value):
     with pytest.raises(ValueError, match=option):
-        make("SlamGym/HybridSLAM-v0", **{option: value})
+        make("SlamGym/HybridSLAM-v1", **{option: value})
 
 
 def test_the_features_option_selects_the_observation():
     names = ("loop_closure_flag", "local_map_age_s", "stored_submaps")
-    env = make("SlamGym/HybridSLAM-v0", features=list(names))
+    env = make("SlamGym/HybridSLAM-v1", features=list(names))
     obs, info = env.reset(seed=0)
     assert env.observation_space.shape == (3,)
     np.testing.assert_allclose(obs, [info["features"][n] for n in names])
 
 
 def test_the_registered_default_is_the_papers_configuration():
-    assert gym.make("slam_gym:SlamGym/HybridSLAM-v0").unwrapped.config.n_particles == 500
-    assert gym.make("slam_gym:SlamGym/HybridSLAM-Light-v0").unwrapped.config.n_particles == 100
+    assert gym.make("slam_gym:SlamGym/HybridSLAM-v1").unwrapped.config.n_particles == 500
+    assert gym.make("slam_gym:SlamGym/HybridSLAM-Light-v1").unwrapped.config.n_particles == 100
 
 
 def test_compute_cost_is_modelled_deterministically_and_recorded_for_calibration():
-    a = rollout(make("SlamGym/HybridSLAM-Relative-v0"), 3, [np.array([1, 1])] * 4)
-    b = rollout(make("SlamGym/HybridSLAM-Relative-v0"), 3, [np.array([1, 1])] * 4)
+    a = rollout(make("SlamGym/HybridSLAM-Relative-v1"), 3, [np.array([1, 1])] * 4)
+    b = rollout(make("SlamGym/HybridSLAM-Relative-v1"), 3, [np.array([1, 1])] * 4)
     assert [r for _, r, _, _ in a] == [r for _, r, _, _ in b]
-    env = make("SlamGym/HybridSLAM-Relative-v0")
+    env = make("SlamGym/HybridSLAM-Relative-v1")
     env.reset(seed=3)
     _, _, _, _, info = env.step(np.array([1, 1]))
     kinds = [k for k, _, _ in env.unwrapped.compute_records]
@@ -401,7 +405,7 @@ def test_compute_cost_is_modelled_deterministically_and_recorded_for_calibration
 
 
 def test_truncation_by_decision_limit():
-    env = make("SlamGym/HybridSLAM-v0", max_decisions=3, clutter_level=0)
+    env = make("SlamGym/HybridSLAM-v1", max_decisions=3, clutter_level=0)
     env.reset(seed=0)
     flags = [env.step(np.array([0, 0]))[3] for _ in range(3)]
     assert flags == [False, False, True]
@@ -436,14 +440,16 @@ class _OriginStartEnv(HybridSLAMEnv):
 
 def _env_and_reference(system_name, system_options=None, **config):
     """An env episode's stream and a system built exactly as the env builds its own."""
+    from filters.draws import SynchronisedDraws
     from slam_gym.episode import Episode
     from slam_gym.systems import make_system
 
     env = _OriginStartEnv(**config)
     env.reset(seed=3, options={"world_seed": 5})
-    system = make_system(system_name, env.stream, np.random.default_rng(env.filter_seed),
+    draws = SynchronisedDraws((5, 0))  # what the env keys its filter's numbers by
+    system = make_system(system_name, env.stream, draws,
                          n_particles=env.config.n_particles, **(system_options or {}))
-    return env, Episode(system, env.stream)
+    return env, Episode(system, env.stream, draws=draws)
 
 
 def _play(env, reference, fuse_every_iterations):
@@ -454,7 +460,8 @@ def _play(env, reference, fuse_every_iterations):
         *_, terminated, truncated, _ = env.step(np.array([fuse, 0]))
         if fuse:
             reference.fuse()
-        reference.advance(env.config.decision_interval)
+        # to where the env is: the end of the interval, or the iteration where it failed
+        reference.advance(env.episode.iteration - reference.iteration)
     assert env.episode.iteration == reference.iteration
 
 
@@ -488,7 +495,7 @@ def test_env_never_fusing_reproduces_pure_fastslam():
 def test_map_score_from_means_only_equals_the_score_of_the_full_landmarks():
     from slam_gym.metrics import score_map
 
-    env = make("SlamGym/HybridSLAM-v0")
+    env = make("SlamGym/HybridSLAM-v1")
     env.reset(seed=3)
     ep = env.unwrapped.episode
     for k in range(40):
@@ -506,7 +513,7 @@ def test_an_env_on_a_remembered_world_repeats_the_fresh_rollout():
     from slam_gym.world import _remembered_world
 
     def rollout():
-        env = make("SlamGym/HybridSLAM-Light-v0")
+        env = make("SlamGym/HybridSLAM-Light-v1")
         out = [env.reset(seed=4, options={"world_seed": 9})[0]]
         for k in range(30):
             obs, reward, terminated, truncated, _ = env.step(np.array([int(k % 10 == 9), 0]))
@@ -529,7 +536,7 @@ def test_redundant_optimisation_is_a_free_no_op():
     episode continues exactly as if the agent had not asked (observation, reward and its
     components, the optimisation count), while a fusion in between makes it count again."""
     def episode(actions):
-        env = make("SlamGym/HybridSLAM-v0", n_steps=400)
+        env = make("SlamGym/HybridSLAM-v1", n_steps=400)
         env.reset(seed=4)
         out = [env.step(np.array(a)) for a in actions]
         charged = sum(kind == "optimise" for kind, _, _ in env.unwrapped.compute_records)
@@ -600,3 +607,93 @@ def test_return_at_another_price_follows_from_the_compute_term():
     r7, term7 = play(7.0)
     assert term1 == term7 > 0
     assert r7 == pytest.approx(r1 + (1.0 - 7.0) * term1, rel=1e-12, abs=1e-9)
+
+
+class RecordingDraws:
+    """Wraps the env's synchronised source: where each role's numbers started, per iteration."""
+
+    def __init__(self, inner):
+        self.inner, self.log = inner, {}
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def __setattr__(self, name, value):
+        if name == "iteration":
+            self.inner.iteration = value
+        else:
+            object.__setattr__(self, name, value)
+
+    def generator(self, role):
+        generator = self.inner.generator(role)
+        state = generator.bit_generator.state
+        self.log.setdefault((self.inner.iteration, role), []).append(
+            (tuple(int(k) for k in state["state"]["key"]),
+             tuple(int(c) for c in state["state"]["counter"])))
+        return generator
+
+
+def recorded_episode(actions, decision_interval=10):
+    """An episode of HybridSLAM-v1 under ``actions`` with the filter's draws recorded."""
+    env = gym.make("slam_gym:SlamGym/HybridSLAM-v1", n_particles=30, n_steps=260).unwrapped
+    env.reset(seed=4)
+    recorder = RecordingDraws(env.filter_draws)
+    front = env.system.estimator.front_end
+    front.draws = recorder
+    env.episode.draws = recorder
+    env.filter_draws = recorder
+    for action in actions:
+        _, _, terminated, truncated, _ = env.step(np.array(action))
+        if terminated or truncated:
+            break
+    return recorder.log, env.episode.metrics()
+
+
+def test_two_policies_that_differ_at_a_decision_draw_the_same_numbers_for_each_purpose_after():
+    """Synchronised streams (issue 46): B fuses and optimises at decision k where A waits; at
+    every later iteration each role starts from the same generator state in both episodes."""
+    k, n = 4, 25
+    rule = [(int(i % 10 == 9), int(i % 10 == 9)) for i in range(n)]
+    other = list(rule)
+    other[k] = (1, 1)
+    log_a, metrics_a = recorded_episode(rule)
+    log_b, metrics_b = recorded_episode(other)
+    assert metrics_a["n_fusions"] != metrics_b["n_fusions"]  # the decision did change the run
+    first_after = (k + 1) * 10
+    after_a = {key: v for key, v in log_a.items() if key[0] >= first_after}
+    after_b = {key: v for key, v in log_b.items() if key[0] >= first_after}
+    scans = {key for key in after_a if key[1] in ("association", "scan_pose")}
+    assert len(scans) > 100 and scans == {key for key in after_b
+                                           if key[1] in ("association", "scan_pose")}
+    common = set(after_a) & set(after_b)
+    assert common >= scans
+    for key in common:  # every role present in both (resampling is state-dependent)
+        assert after_a[key][0] == after_b[key][0], key
+
+
+def test_v0_ids_are_the_same_env_with_ordered_streams():
+    for env_id in sorted(i for i in slam_gym.ENV_VARIANTS if i.endswith("-v0")):
+        twin = env_id[:-3] + "-v1"
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)
+            old = gym.make(f"slam_gym:{env_id}", **SMALL).unwrapped
+        new = gym.make(f"slam_gym:{twin}", **SMALL).unwrapped
+        assert old.config == dataclasses.replace(new.config, random_streams="ordered")
+    env = make("SlamGym/HybridSLAM-v0")
+    env.reset(seed=2)
+    assert env.unwrapped.filter_draws is None and env.unwrapped.filter_rng is not None
+
+
+def test_draw_option_changes_only_the_filters_numbers():
+    env = make("SlamGym/HybridSLAM-v1")
+    runs = {}
+    for draw in (0, 0, 1):
+        _, info = env.reset(seed=5, options={"world_seed": 5, "draw": draw})
+        z = [step.z.copy() for _, step in zip(range(40), env.unwrapped.stream, strict=False)]
+        runs.setdefault(draw, []).append((z, info["features"]))
+    (z0, f0), (_, f0b) = runs[0]
+    ((z1, f1),) = runs[1]
+    assert all(np.array_equal(a, b) for a, b in zip(z0, z1, strict=True))  # the same world
+    assert f0 == f0b and f0 != f1  # the same draw repeats, another draw differs
+    with pytest.raises(ValueError, match="^draw="):
+        env.reset(seed=1, options={"draw": -1})

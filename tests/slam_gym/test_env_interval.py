@@ -1,4 +1,4 @@
-"""``SlamGym/HybridSLAM-Interval-v0``: one action per fusion (issue 39 item 3)."""
+"""``SlamGym/HybridSLAM-Interval-v1``: one action per fusion (issue 39 item 3)."""
 
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ from slam_gym.envs.interval import (
     make_interval_env,
 )
 
-ENV_ID = "SlamGym/HybridSLAM-Interval-v0"
+ENV_ID = "SlamGym/HybridSLAM-Interval-v1"
 SMALL = {"n_particles": 20, "n_steps": 400}
 
 

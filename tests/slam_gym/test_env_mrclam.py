@@ -57,7 +57,7 @@ def test_default_data_dir_comes_from_the_one_setting(monkeypatch, tmp_path):
 def test_gymnasium_env_checker_without_warnings():
     from gymnasium.utils.env_checker import check_env
 
-    env = gym.make("slam_gym:SlamGym/MRCLAM-v0", render_mode="rgb_array", **SMALL)
+    env = gym.make("slam_gym:SlamGym/MRCLAM-v1", render_mode="rgb_array", **SMALL)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         check_env(env.unwrapped)  # with its render check of every declared mode
@@ -245,8 +245,8 @@ def test_simulation_reset_options_are_rejected():
 
 
 def test_gym_make_registered_id():
-    # passes once SlamGym/MRCLAM-v0 is registered (slam_gym.envs.register_envs)
-    env = gym.make("slam_gym:SlamGym/MRCLAM-v0", data_dir=str(MRCLAM_DIR), robot=2,
+    # passes once SlamGym/MRCLAM-v1 is registered (slam_gym.envs.register_envs)
+    env = gym.make("slam_gym:SlamGym/MRCLAM-v1", data_dir=str(MRCLAM_DIR), robot=2,
                    n_particles=5, n_steps=30)
     obs, info = env.reset(seed=0)
     assert isinstance(env.unwrapped, MRCLAMEnv) and env.unwrapped.robot == 2

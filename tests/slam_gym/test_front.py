@@ -79,7 +79,7 @@ def test_front_command_runs_rules_once_and_the_model_at_every_price(tmp_path):
         "env_kwargs": {"n_particles": 5, "n_steps": 120, "w_compute": 10.0,
                        "compute_clip_s": 0.2},
         "n_steps": 32, "batch_size": 32, "n_epochs": 1})
-    setup = TrainingSetup("ppo", "SlamGym/HybridSLAM-v0", 0, params, clutter_levels=(0,),
+    setup = TrainingSetup("ppo", "SlamGym/HybridSLAM-v1", 0, params, clutter_levels=(0,),
                           eval_seeds=(7,), eval_every=64, eval_workers=1, checkpoint_every=64)
     train_run(setup, tmp_path / "run", progress=False)
     chosen = tmp_path / "chosen.json"

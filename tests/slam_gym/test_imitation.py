@@ -38,13 +38,13 @@ def _vec(env_id, wrap, **options):
 
 
 def _rule_of(env_id):
-    if env_id == "SlamGym/HybridSLAM-Interval-v0":
+    if env_id == "SlamGym/HybridSLAM-Interval-v1":
         return lambda info: RULE_ACTION
     rule = policies.make("fixed-10s-optimise")
     return lambda info: rule.act(None, info)
 
 
-@pytest.mark.parametrize("env_id", ["SlamGym/HybridSLAM-Interval-v0", "SlamGym/HybridSLAM-v0"])
+@pytest.mark.parametrize("env_id", ["SlamGym/HybridSLAM-Interval-v1", "SlamGym/HybridSLAM-v1"])
 def test_a_cloned_policy_makes_the_rules_decisions_on_worlds_it_never_saw(env_id):
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import VecNormalize

@@ -21,7 +21,7 @@ RULE = "fixed-10s-optimise"
 def _env_after(n_decisions: int, **options) -> tuple[HybridSLAMEnv, np.ndarray, dict]:
     env = HybridSLAMEnv(**({"n_particles": 40, "clutter_level": 2} | options))
     rule = policies.make(RULE)
-    obs, info = env.reset(seed=5, options={"world_seed": 11})
+    obs, info = env.reset(seed=5, options={"world_seed": 12})
     for _ in range(n_decisions):
         obs, _, terminated, truncated, info = env.step(rule.act(obs, info))
         assert not (terminated or truncated)
@@ -64,7 +64,7 @@ def test_a_clone_shares_the_world_and_copies_the_filter():
     twin = env.clone()
     assert twin.stream is env.stream  # read-only world, shared
     assert twin.episode.system is twin.system and twin.system is not env.system
-    assert twin.filter_rng is not env.filter_rng
+    assert twin.filter_draws is not env.filter_draws
     before = env.system.pose()[0].copy()
     twin.step(np.array([1, 1]))
     np.testing.assert_array_equal(env.system.pose()[0], before)

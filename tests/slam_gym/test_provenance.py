@@ -45,8 +45,8 @@ def perturbed_step(monkeypatch, factor: float, feature: str | None = None) -> No
 
 
 def test_the_fingerprint_repeats_and_exercises_fusion_and_the_optimiser():
-    first = system_fingerprint("SlamGym/HybridSLAM-v0", CHEAP, cache=False)
-    second = system_fingerprint("SlamGym/HybridSLAM-v0", CHEAP, cache=False)
+    first = system_fingerprint("SlamGym/HybridSLAM-v1", CHEAP, cache=False)
+    second = system_fingerprint("SlamGym/HybridSLAM-v1", CHEAP, cache=False)
     assert first["digest"] == second["digest"] and len(first["digest"]) == 64
     assert compare_fingerprints(first, second) == []
     summary = first["summary"]
@@ -55,25 +55,25 @@ def test_the_fingerprint_repeats_and_exercises_fusion_and_the_optimiser():
     assert summary["n_fusions"] == 12 and summary["n_optimisations"] == 7
     assert [scheduled_action(d).tolist() for d in (5, 10, 12, 37)] == [[1, 0], [1, 1], [0, 1],
                                                                       [0, 1]]
-    assert first["env_options"] == CHEAP and first["env_id"] == "SlamGym/HybridSLAM-v0"
+    assert first["env_options"] == CHEAP and first["env_id"] == "SlamGym/HybridSLAM-v1"
     assert "compute_price_per_s" in first["feature_names"]
     json.dumps(first, allow_nan=False)  # plain JSON, as model.json holds it
 
 
 def test_the_cache_holds_one_fingerprint_per_system(fresh_cache):
-    a = system_fingerprint("SlamGym/HybridSLAM-v0", CHEAP)
+    a = system_fingerprint("SlamGym/HybridSLAM-v1", CHEAP)
     # the same system by another id, and options the rollout sets itself: one computation
-    b = system_fingerprint("SlamGym/HybridSLAM-Light-v0", {"n_particles": 5, "n_steps": 50,
+    b = system_fingerprint("SlamGym/HybridSLAM-Light-v1", {"n_particles": 5, "n_steps": 50,
                                                            "features": ["ess_ratio"]})
     assert len(provenance._CACHE) == 1 and a["digest"] == b["digest"]
     a["summary"]["return"] = 0.0  # callers get their own copy
-    assert system_fingerprint("SlamGym/HybridSLAM-v0", CHEAP)["summary"]["return"] != 0.0
+    assert system_fingerprint("SlamGym/HybridSLAM-v1", CHEAP)["summary"]["return"] != 0.0
 
 
 def test_rounding_lets_float_noise_pass(fresh_cache, monkeypatch):
-    clean = system_fingerprint("SlamGym/HybridSLAM-v0", CHEAP)
+    clean = system_fingerprint("SlamGym/HybridSLAM-v1", CHEAP)
     perturbed_step(monkeypatch, 1.0 + 1e-9)
-    noisy = system_fingerprint("SlamGym/HybridSLAM-v0", CHEAP, cache=False)
+    noisy = system_fingerprint("SlamGym/HybridSLAM-v1", CHEAP, cache=False)
     assert noisy["digest"] == clean["digest"]
     assert compare_fingerprints(clean, noisy) == []
     assert provenance._fmt(1.234567e-3) == provenance._fmt(1.234567e-3 * (1 + 1e-12)) == "0.001235"
@@ -81,9 +81,9 @@ def test_rounding_lets_float_noise_pass(fresh_cache, monkeypatch):
 
 
 def test_a_behaviour_change_changes_the_fingerprint_and_is_named(fresh_cache, monkeypatch):
-    clean = system_fingerprint("SlamGym/HybridSLAM-v0", CHEAP)
+    clean = system_fingerprint("SlamGym/HybridSLAM-v1", CHEAP)
     perturbed_step(monkeypatch, 1.01, feature="global_heading_std_rad")
-    changed = system_fingerprint("SlamGym/HybridSLAM-v0", CHEAP, cache=False)
+    changed = system_fingerprint("SlamGym/HybridSLAM-v1", CHEAP, cache=False)
     assert changed["digest"] != clean["digest"]
     differences = compare_fingerprints(clean, changed)
     assert differences[0].startswith("digest: " + clean["digest"][:16])
@@ -98,8 +98,8 @@ def test_a_behaviour_change_changes_the_fingerprint_and_is_named(fresh_cache, mo
     ({"n_particles": 5, "w_map": 2.0}, "w_map"),
 ])
 def test_another_system_has_another_fingerprint(options, named):
-    base = system_fingerprint("SlamGym/HybridSLAM-v0", CHEAP)
-    other = system_fingerprint("SlamGym/HybridSLAM-v0", options)
+    base = system_fingerprint("SlamGym/HybridSLAM-v1", CHEAP)
+    other = system_fingerprint("SlamGym/HybridSLAM-v1", options)
     assert other["digest"] != base["digest"]
     differences = compare_fingerprints(base, other)
     assert any(d.startswith("env options: ") and named in d for d in differences)
@@ -107,7 +107,7 @@ def test_another_system_has_another_fingerprint(options, named):
 
 
 def test_comparisons_name_a_missing_fingerprint_another_version_and_features():
-    current = system_fingerprint("SlamGym/HybridSLAM-v0", CHEAP)
+    current = system_fingerprint("SlamGym/HybridSLAM-v1", CHEAP)
     assert "no system fingerprint" in compare_fingerprints(None, current)[0]
     assert "version" in compare_fingerprints(dict(current, version=0), current)[0]
     fewer = dict(current, feature_names=current["feature_names"][:-1], digest="0" * 64)
@@ -118,11 +118,11 @@ def test_comparisons_name_a_missing_fingerprint_another_version_and_features():
 
 
 @pytest.mark.parametrize("env_id, options, field", [
-    ("SlamGym/MRCLAM-v0", {}, "env_id"),
-    ("SlamGym/Nope-v0", {}, "env_id"),
-    ("SlamGym/HybridSLAM-v0", {"n_particles": 0}, "n_particles"),
-    ("SlamGym/HybridSLAM-v0", {"w_mapp": 1.0}, "w_mapp"),
-    ("SlamGym/HybridSLAM-v0", [("n_particles", 5)], "env_options"),
+    ("SlamGym/MRCLAM-v1", {}, "env_id"),
+    ("SlamGym/Nope-v1", {}, "env_id"),
+    ("SlamGym/HybridSLAM-v1", {"n_particles": 0}, "n_particles"),
+    ("SlamGym/HybridSLAM-v1", {"w_mapp": 1.0}, "w_mapp"),
+    ("SlamGym/HybridSLAM-v1", [("n_particles", 5)], "env_options"),
 ])
 def test_bad_systems_raise_naming_the_field(env_id, options, field):
     with pytest.raises(ValueError, match=field):
@@ -141,7 +141,7 @@ def tiny_setup():
         "env_kwargs": {"n_particles": 5, "n_steps": 120},
         "n_steps": 32, "batch_size": 32, "n_epochs": 1, "policy_kwargs": {"net_arch": [8]},
     })
-    return TrainingSetup("ppo", "SlamGym/HybridSLAM-v0", 0, params, clutter_levels=(2,),
+    return TrainingSetup("ppo", "SlamGym/HybridSLAM-v1", 0, params, clutter_levels=(2,),
                          eval_seeds=(7,))
 
 
@@ -175,9 +175,9 @@ def stale_zip(tmp_path, monkeypatch):
 def test_a_saved_model_records_the_fingerprint_of_its_system(model_zip):
     config = json.loads(model_zip.with_suffix(".json").read_text())
     saved = config["fingerprint"]
-    assert saved["env_id"] == "SlamGym/HybridSLAM-v0"
+    assert saved["env_id"] == "SlamGym/HybridSLAM-v1"
     assert saved["env_options"] == {"n_particles": 5}  # n_steps is the rollout's own
-    assert saved == system_fingerprint("SlamGym/HybridSLAM-v0", config["env_options"])
+    assert saved == system_fingerprint("SlamGym/HybridSLAM-v1", config["env_options"])
 
 
 def test_loading_a_matching_model_is_silent(model_zip, caplog):

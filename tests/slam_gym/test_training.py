@@ -30,10 +30,10 @@ TRAINABLE = [i for i, k in ENV_VARIANTS.items() if "clutter_level" not in k and 
 
 
 @pytest.mark.parametrize("algo", ALGOS)
-@pytest.mark.parametrize("env_id", ["SlamGym/HybridSLAM-v0", "SlamGym/HybridSLAM-Light-v0"])
+@pytest.mark.parametrize("env_id", ["SlamGym/HybridSLAM-v1", "SlamGym/HybridSLAM-Light-v1"])
 def test_packaged_hyperparams_load_and_name_the_papers_particles(algo, env_id):
     params = load_hyperparams(algo, env_id)
-    want = 500 if env_id == "SlamGym/HybridSLAM-v0" else 100
+    want = 500 if env_id == "SlamGym/HybridSLAM-v1" else 100
     assert params["env_kwargs"]["n_particles"] == want
     assert params["n_timesteps"] >= 1 and params["n_envs"] >= 1 and params["normalize"] is True
 
@@ -41,7 +41,7 @@ def test_packaged_hyperparams_load_and_name_the_papers_particles(algo, env_id):
 def test_overrides_parse_as_yaml_and_merge_env_kwargs():
     over = parse_overrides(["learning_rate=1e-3", "policy_kwargs={net_arch: [8, 8]}",
                             "env_kwargs={n_steps: 50}"])
-    params = load_hyperparams("ppo", "SlamGym/HybridSLAM-v0", overrides=over)
+    params = load_hyperparams("ppo", "SlamGym/HybridSLAM-v1", overrides=over)
     assert params["learning_rate"] == pytest.approx(1e-3)
     assert params["policy_kwargs"] == {"net_arch": [8, 8]}
     assert params["env_kwargs"] == {"n_particles": 500, "n_steps": 50}
@@ -62,23 +62,23 @@ def test_bad_hyperparams_raise_naming_the_field(params, field):
 
 def test_bad_files_ids_and_override_syntax_raise(tmp_path):
     with pytest.raises(ValueError, match="no such file"):
-        load_hyperparams("ppo", "SlamGym/HybridSLAM-v0", tmp_path / "missing.yml")
-    (tmp_path / "h.yml").write_text("SlamGym/Other-v0: {n_timesteps: 5, n_envs: 1}\n")
+        load_hyperparams("ppo", "SlamGym/HybridSLAM-v1", tmp_path / "missing.yml")
+    (tmp_path / "h.yml").write_text("SlamGym/Other-v1: {n_timesteps: 5, n_envs: 1}\n")
     with pytest.raises(ValueError, match="env_id"):
-        load_hyperparams("ppo", "SlamGym/HybridSLAM-v0", tmp_path / "h.yml")
+        load_hyperparams("ppo", "SlamGym/HybridSLAM-v1", tmp_path / "h.yml")
     with pytest.raises(ValueError, match="key=value"):
         parse_overrides(["learning_rate"])
     with pytest.raises(ValueError, match="algo"):
-        load_hyperparams("sac", "SlamGym/HybridSLAM-v0")
+        load_hyperparams("sac", "SlamGym/HybridSLAM-v1")
 
 
 def test_only_ids_that_leave_the_clutter_level_free_train():
     for env_id in TRAINABLE:
         registered_kwargs(env_id)
     with pytest.raises(ValueError, match="env_id"):
-        registered_kwargs("SlamGym/HybridSLAM-Clutter2-v0")
+        registered_kwargs("SlamGym/HybridSLAM-Clutter2-v1")
     with pytest.raises(ValueError, match="eval_seeds"):
-        TrainingSetup("ppo", "SlamGym/HybridSLAM-v0", 0, {}, eval_seeds=(1_000_000,))
+        TrainingSetup("ppo", "SlamGym/HybridSLAM-v1", 0, {}, eval_seeds=(1_000_000,))
 
 
 def tiny_setup(seed=0, n_timesteps=96, algo="ppo"):
@@ -89,7 +89,7 @@ def tiny_setup(seed=0, n_timesteps=96, algo="ppo"):
            "a2c": {"n_steps": 8, "policy_kwargs": {"net_arch": [16]}},  # SB3 writes into it
            "dqn": {"learning_starts": 16, "buffer_size": 500}}[algo],
     })
-    return TrainingSetup(algo, "SlamGym/HybridSLAM-v0", seed, params, clutter_levels=(0, 2),
+    return TrainingSetup(algo, "SlamGym/HybridSLAM-v1", seed, params, clutter_levels=(0, 2),
                          eval_seeds=(7,), eval_every=64, eval_workers=1, checkpoint_every=32)
 
 
@@ -319,13 +319,13 @@ def test_an_interval_learner_starts_at_the_rule_and_its_model_plays_the_rule(tmp
         "n_timesteps": 48, "n_envs": 1, "normalize": True, "n_steps": 16, "batch_size": 16,
         "n_epochs": 1, "behaviour_cloning_decisions": 300, "rule_anchor_weight": 20.0,
         "rule_anchor_fraction": 0.5, "env_kwargs": {"n_particles": 20, "n_steps": 600}})
-    setup = TrainingSetup("ppo", "SlamGym/HybridSLAM-Interval-v0", 0, params,
+    setup = TrainingSetup("ppo", "SlamGym/HybridSLAM-Interval-v1", 0, params,
                           clutter_levels=(0, 1), eval_seeds=(7,), eval_every=10**6,
                           eval_workers=1, checkpoint_every=10**6)
     config = train_run(setup, tmp_path / "run", progress=False)
     assert config["fusion_intervals_s"][4] == 10.0
     assert config["training_setup"]["extra"]["behaviour_cloning"]["agreement"] >= 0.995
-    assert config["fingerprint"]["env_id"] == "SlamGym/HybridSLAM-v0"
+    assert config["fingerprint"]["env_id"] == "SlamGym/HybridSLAM-v1"
     assert anchor_weight(params, 0) == 20.0 and anchor_weight(params, 24) == 0.0
     assert anchor_weight(params, 12) == pytest.approx(10.0)
     learned = policies.make("learned", path=str(tmp_path / "run" / "model.zip"),
@@ -347,5 +347,5 @@ def test_an_interval_learner_starts_at_the_rule_and_its_model_plays_the_rule(tmp
                                         ("rule_anchor_fraction", 1.5)])
 def test_cloning_and_anchor_options_are_validated(key, value):
     with pytest.raises(ValueError, match=key):
-        validate_hyperparams("ppo", load_hyperparams("ppo", "SlamGym/HybridSLAM-v0")
+        validate_hyperparams("ppo", load_hyperparams("ppo", "SlamGym/HybridSLAM-v1")
                              | {key: value})

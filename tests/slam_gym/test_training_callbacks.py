@@ -17,11 +17,11 @@ ENV_KWARGS = {"n_particles": 10, "n_steps": 150}
 
 
 def test_callback_logs_the_benchmark_metrics_of_the_model_being_trained(tmp_path):
-    env = gym.make("slam_gym:SlamGym/HybridSLAM-Light-v0", clutter_level=2, **ENV_KWARGS)
+    env = gym.make("slam_gym:SlamGym/HybridSLAM-Light-v1", clutter_level=2, **ENV_KWARGS)
     model = PPO("MlpPolicy", env, n_steps=8, batch_size=8, n_epochs=1, seed=0, device="cpu")
     model.set_logger(configure(str(tmp_path / "sb3"), ["csv"]))
     callback = BenchmarkEvalCallback(
-        eval_freq=8, env_id="SlamGym/HybridSLAM-Light-v0", env_kwargs=ENV_KWARGS,
+        eval_freq=8, env_id="SlamGym/HybridSLAM-Light-v1", env_kwargs=ENV_KWARGS,
         clutter_levels=(1, 2), seeds=(900_000,), log_path=tmp_path / "eval", verbose=0)
     model.learn(16, callback=callback)
     assert [e["timesteps"] for e in callback.evaluations] == [8, 16]
@@ -44,7 +44,7 @@ def test_callback_logs_the_benchmark_metrics_of_the_model_being_trained(tmp_path
     # the plain function on the saved snapshot, as a policy object, gives the same figures
     snapshot = tmp_path / "eval" / "evals" / "t16" / "model.zip"
     record = evaluate_policy(LearnedPolicy(path=snapshot), clutter_levels=(1, 2),
-                             seeds=(900_000,), env_id="SlamGym/HybridSLAM-Light-v0",
+                             seeds=(900_000,), env_id="SlamGym/HybridSLAM-Light-v1",
                              env_kwargs=ENV_KWARGS)
     for key in EVAL_METRICS:
         if key != "interface_cpu_s":  # measured CPU time
@@ -52,11 +52,11 @@ def test_callback_logs_the_benchmark_metrics_of_the_model_being_trained(tmp_path
 
 
 def test_evaluation_refuses_env_options_it_cannot_forward():
-    assert evaluation_options("SlamGym/HybridSLAM-Light-v0", {"clutter_level": 2}) == {
+    assert evaluation_options("SlamGym/HybridSLAM-Light-v1", {"clutter_level": 2}) == {
         "n_particles": 100}
     with pytest.raises(ValueError, match="env_kwargs.*w_nees"):
         evaluation_options(None, {"w_nees": 2.0})
     with pytest.raises(ValueError, match="env_id"):
-        evaluation_options("SlamGym/Nope-v0")
+        evaluation_options("SlamGym/Nope-v1")
     with pytest.raises(ValueError, match="eval_freq"):
         BenchmarkEvalCallback(eval_freq=0)

@@ -19,10 +19,10 @@ def _untrained_model(tmp_path, fuse, optimise):
 
 
 def test_packaged_maskable_ppo_hyperparams_are_ppos():
-    for env_id in ("SlamGym/HybridSLAM-v0", "SlamGym/HybridSLAM-Light-v0"):
+    for env_id in ("SlamGym/HybridSLAM-v1", "SlamGym/HybridSLAM-Light-v1"):
         masked = load_hyperparams("maskable-ppo", env_id)
         assert masked == load_hyperparams("ppo", env_id)  # they compare on the mask alone
-    setup = TrainingSetup("maskable-ppo", "SlamGym/HybridSLAM-v0", 0, masked)
+    setup = TrainingSetup("maskable-ppo", "SlamGym/HybridSLAM-v1", 0, masked)
     assert setup.discrete and setup.samples
 
 
@@ -46,7 +46,7 @@ def test_learned_policy_applies_the_mask_at_every_decision(tmp_path, determinist
     _, path = _untrained_model(tmp_path, 0.1, 0.8)
     policy = policies.make("learned", path=str(path), deterministic=deterministic)
     assert policy.algo == "maskable-ppo" and policy.maskable and policy.discrete
-    env = gym.make("slam_gym:SlamGym/HybridSLAM-v0", n_particles=10, n_steps=300)
+    env = gym.make("slam_gym:SlamGym/HybridSLAM-v1", n_particles=10, n_steps=300)
     env.unwrapped.terminate_on_failure = False  # the masks, not the filter, are under test
     obs, info = env.reset(seed=2)
     policy.reset()

@@ -17,7 +17,7 @@ LSTM_KEYS = {"lstm_hidden_size", "n_lstm_layers"}
 
 
 def test_packaged_recurrent_ppo_hyperparams_are_ppos_with_a_memory():
-    for env_id in ("SlamGym/HybridSLAM-v0", "SlamGym/HybridSLAM-Light-v0"):
+    for env_id in ("SlamGym/HybridSLAM-v1", "SlamGym/HybridSLAM-Light-v1"):
         recurrent = load_hyperparams("recurrent-ppo", env_id)
         ppo = load_hyperparams("ppo", env_id)
         assert recurrent["policy"] == "MlpLstmPolicy"
@@ -28,7 +28,7 @@ def test_packaged_recurrent_ppo_hyperparams_are_ppos_with_a_memory():
             k: v for k, v in ppo.items() if k not in strip}
         assert {k: v for k, v in recurrent["policy_kwargs"].items() if k not in LSTM_KEYS} == \
             ppo["policy_kwargs"]
-    setup = TrainingSetup("recurrent-ppo", "SlamGym/HybridSLAM-v0", 0, recurrent)
+    setup = TrainingSetup("recurrent-ppo", "SlamGym/HybridSLAM-v1", 0, recurrent)
     assert not setup.discrete and setup.samples
     # without a policy entry the recurrent algorithm gets the LSTM policy, not the MLP one
     assert validate_hyperparams("recurrent-ppo", {"n_timesteps": 8, "n_envs": 1})["policy"] == \

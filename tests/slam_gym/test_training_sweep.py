@@ -40,9 +40,9 @@ def test_executor_options_without_prices_and_a_conditioned_sweep_raise(tmp_path,
     params = validate_hyperparams("ppo", {"n_timesteps": 8, "n_envs": 1,
                                           "compute_price_range": [1, 100]})
     with pytest.raises(ValueError, match="prices"):
-        SweepSpec("ppo", "SlamGym/HybridSLAM-v0", params, str(tmp_path))
+        SweepSpec("ppo", "SlamGym/HybridSLAM-v1", params, str(tmp_path))
     with pytest.raises(ValueError, match="compute_clip_s"):
-        SweepSpec("ppo", "SlamGym/HybridSLAM-v0", {"n_timesteps": 8}, str(tmp_path),
+        SweepSpec("ppo", "SlamGym/HybridSLAM-v1", {"n_timesteps": 8}, str(tmp_path),
                   compute_clip_s=-1.0)
 
 
@@ -98,7 +98,7 @@ def test_a_sweep_on_a_local_ray_instance(tmp_path):
     params = validate_hyperparams("ppo", {
         "n_timesteps": 32, "n_envs": 1, "env_kwargs": {"n_particles": 5, "n_steps": 60},
         "n_steps": 32, "batch_size": 32, "n_epochs": 1})
-    spec = SweepSpec("ppo", "SlamGym/HybridSLAM-v0", params, str(tmp_path), clutter_levels=(1,),
+    spec = SweepSpec("ppo", "SlamGym/HybridSLAM-v1", params, str(tmp_path), clutter_levels=(1,),
                      eval_seeds=(3,), eval_every=1000, eval_workers=1, checkpoint_every=1000)
     doc = run_sweep(spec, [1.0, 10.0], [0], executor="ray", workers=2)
     rows = read_results(tmp_path)

@@ -6,7 +6,7 @@ from slam_gym.training.run import TrainingSetup
 
 
 def untrained_model(tmp_path, algo, fuse=None, optimise=None, policy_kwargs=None):
-    """An untrained ``algo`` model on ``SlamGym/HybridSLAM-v0`` (5 particles, no normalisation)
+    """An untrained ``algo`` model on ``SlamGym/HybridSLAM-v1`` (5 particles, no normalisation)
     started at the given chances of fusing and optimising (None: SB3's 0.5), and the path of the
     ``model.zip`` (+ ``model.json``) it was saved to."""
     from policies.learned import algorithm_class
@@ -23,7 +23,7 @@ def untrained_model(tmp_path, algo, fuse=None, optimise=None, policy_kwargs=None
     if optimise is not None:
         params["initial_optimise_probability"] = optimise
     params = validate_hyperparams(algo, params)
-    setup = TrainingSetup(algo, "SlamGym/HybridSLAM-v0", 0, params)
+    setup = TrainingSetup(algo, "SlamGym/HybridSLAM-v1", 0, params)
     vec = _build_vec_env(setup, tmp_path, 0, None)
     model = algorithm_class(algo)(params["policy"], vec, seed=0, device="cpu",
                              policy_kwargs=policy_kwargs)
