@@ -130,7 +130,7 @@ first minute, after which the term is zero (a single lineage says nothing about 
 That covariance is itself estimated from few lineages (a median of 7 effective ones at fusion),
 so its inverse, the information the back-end fuses, is biased high, and the local-pose NEES is
 heavy-tailed: local maps whose pose covariance has fewer than 10 effective degrees of freedom
-were over the 95 % band at 10.5 % of fusions (nominal 2.5 %; scripts/results/lineage_diagnosis.py).
+were over the 95 % band at 10.5 % of fusions (nominal 2.5 %; scripts/archive/lineage_diagnosis.py).
 With ``small_sample_correction`` (the default) the pose block is also scaled by
 :func:`filters.conversion.small_sample_factor`, ``nu / (nu - 4)`` for ``nu`` effective degrees
 of freedom, which makes that information unbiased (docs/RESULTS.md).

@@ -59,7 +59,7 @@ def local_pose_nees_at_fusion(front_end, stream, interval_steps: int = 100,
 
 def add_fusion_run_arguments(parser) -> None:
     """The positional options of a run of local maps over BB's path at several clutter levels
-    and seeds (the local-map diagnostics of scripts/results/ take them): ``LEVELS`` (e.g.
+    and seeds (the local-map diagnostics of scripts/archive/ take them): ``LEVELS`` (e.g.
     ``0,1,2,3``), ``SEEDS`` (a count N: seeds 0..N-1, or a range FIRST-LAST), ``N_STEPS``,
     ``[N_PARTICLES]`` (default 500), ``[known]`` (the true associations). Parsed, they are
     ``levels``, ``seeds`` (a ``range``), ``n_steps``, ``n_particles`` and ``known`` (a bool)."""

@@ -1,7 +1,7 @@
 """What a copy of the env mid-episode costs: ``env.clone()`` against ``copy.deepcopy(env)``
 (issue 39 item 1), and a re-seeded future's first decision.
 
-Supports docs/PERFORMANCE.md, "Copies of the env (lookahead)". Command::
+Supports docs/PERFORMANCE.md, "Copies of the env for planning (issue 39)". Command::
 
     python scripts/performance/clone_cost.py --decisions 300 --repeats 20
 

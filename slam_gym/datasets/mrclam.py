@@ -98,7 +98,7 @@ The models then estimated on the (corrected) calibration part:
   reproduces the dead-reckoning error growth over one window. The errors are correlated over
   seconds, so that noise grows with the window until the window outlasts the correlation (on
   Dataset 7 the speed's, at v = 0.1 m/s: 0.015-0.021 m/s over 1 s, 0.024-0.035 m/s over 10 s,
-  0.029-0.038 m/s over 20-30 s; ``scripts/results/mrclam_odometry_windows.py``). The default
+  0.029-0.038 m/s over 20-30 s; ``scripts/archive/mrclam_odometry_windows.py``). The default
   window is BB's local-map length, 10 s (:data:`DEFAULT_ODOMETRY_WINDOW_S`): the span over which a
   front-end integrates the odometry between fusions, so a local map's odometry covariance is
   not under-stated (the earlier 1 s window gave 57-68 % of the 10 s std for the speed). The

@@ -70,7 +70,7 @@ def _fastslam_nees(levels, seeds=range(4), n_steps=1000, sample_clutter=False,
                    lineage_correction=True, small_sample_correction=True):
     """Local-pose NEES of FastSLAM 2.0 (DAS, 500 particles, built as HYBRID's front-end: the
     existence clip is the float guard) at fusion, BB's path, per level and seed: the measurement
-    of scripts/results/local_pose_nees.py."""
+    of scripts/archive/local_pose_nees.py."""
     values = []
     for level in levels:
         for seed in seeds:

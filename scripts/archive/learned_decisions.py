@@ -1,8 +1,8 @@
 """When an interface policy fuses and optimises, over several worlds (#15: "whether the learned
 policy uses the optimise action, and when").
 
-Usage: python scripts/results/learned_decisions.py [POLICY] [SEED_START] [N_SEEDS] [LEVELS]
-e.g.   python scripts/results/learned_decisions.py learned 100 5 0,1,2,3
+Usage: python scripts/archive/learned_decisions.py [POLICY] [SEED_START] [N_SEEDS] [LEVELS]
+e.g.   python scripts/archive/learned_decisions.py learned 100 5 0,1,2,3
 
 Plays POLICY (default ``learned``: the shipped model) on ``SlamGym/HybridSLAM-v0`` worlds
 SEED_START..SEED_START+N_SEEDS-1 at each clutter level (the benchmark's worlds and seeds, so the
@@ -25,7 +25,7 @@ episodes are the benchmark's) and prints per episode, then pooled:
 Supports docs/results/history.md, "Learned interface policies (issue 15)".
 The command behind it::
 
-    python scripts/results/learned_decisions.py learned 100 5 0,1,2,3
+    python scripts/archive/learned_decisions.py learned 100 5 0,1,2,3
 """
 
 from __future__ import annotations

@@ -10,14 +10,14 @@ describes the motion since the lineages coalesced, whatever the true uncertainty
 over-confidence that makes FASTSLAM fail). The resampling indices are recomputed from a copy of
 the filter's generator state, so the filter runs exactly as it does without this script.
 
-Usage: ``python scripts/results/mrclam_depletion.py DATA_DIR [--robots 1,2,3,4,5] [--particles 200]
+Usage: ``python scripts/archive/mrclam_depletion.py DATA_DIR [--robots 1,2,3,4,5] [--particles 200]
 [--seed 0]``.
 
 Supports docs/results/real_data.md, "HYBRID, robots 1-5, seeds 0-2, 200 particles, fusion every 10
 s, the loader's defaults".
 The command behind it::
 
-    python scripts/results/mrclam_depletion.py .../MRCLAM_Dataset7
+    python scripts/archive/mrclam_depletion.py .../MRCLAM_Dataset7
 """
 
 from __future__ import annotations

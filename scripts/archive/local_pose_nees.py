@@ -1,8 +1,8 @@
 """Local-pose NEES of a front-end's local maps at BB's fusion points (#14, docs/RESULTS.md).
 
-Usage: python scripts/results/local_pose_nees.py FRONT_END LEVELS SEEDS N_STEPS [N_PARTICLES]
+Usage: python scripts/archive/local_pose_nees.py FRONT_END LEVELS SEEDS N_STEPS [N_PARTICLES]
            [known]
-e.g.   python scripts/results/local_pose_nees.py fastslam 0,1,2,3 4 1000 500
+e.g.   python scripts/archive/local_pose_nees.py fastslam 0,1,2,3 4 1000 500
 SEEDS is a count (seeds 0 .. SEEDS-1) or a range FIRST-LAST (inclusive), e.g. 4-11.
 FRONT_END is fastslam, fastslam-no-small-sample (the lineage term without the small-sample
 factor, ``small_sample_correction=False``), fastslam-no-lineage (BB (7) alone,
@@ -17,7 +17,7 @@ docs/RESULTS.md, "Local maps at fusion", are without it).
 Supports docs/RESULTS.md, "Local maps at fusion: local-pose NEES".
 The command behind it::
 
-    PYTHONPATH=. python scripts/results/local_pose_nees.py fastslam 0,1,2,3 28-43 2000 500
+    PYTHONPATH=. python scripts/archive/local_pose_nees.py fastslam 0,1,2,3 28-43 2000 500
 """
 
 import argparse

@@ -23,7 +23,7 @@ option (``hybrid.front_max_existence=0.999999999`` for one system only), and
 ``--omega-noise-scale`` multiplies the assumed turn-rate noise of the stream (a sensitivity
 check of the odometry assumption of :mod:`slam_gym.datasets.victoria_park`).
 
-Usage: ``python scripts/results/vp_fusion_diagnosis.py DATA_DIR [--systems hybrid,ekf-submap]
+Usage: ``python scripts/archive/vp_fusion_diagnosis.py DATA_DIR [--systems hybrid,ekf-submap]
 [--seed 0] [--max-steps N] [--particles 200] [--near 1.5] [--option K=V]
 [--omega-noise-scale 1] [--json out.json]``.
 
@@ -31,7 +31,7 @@ Supports docs/results/real_data.md, "HYBRID's duplicate trees (issue 16 item 4):
 lineage term and the small-sample factor".
 The command behind it::
 
-    python scripts/results/vp_fusion_diagnosis.py ../shared/data/victoria_park --seed S \
+    python scripts/archive/vp_fusion_diagnosis.py ../shared/data/victoria_park --seed S \
         --systems hybrid --option hybrid.front_lineage_correction=False
 """
 

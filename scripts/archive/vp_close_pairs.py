@@ -1,6 +1,6 @@
 """Victoria Park: trees mapped twice, and how many of a map's trees another system maps too.
 
-Usage: python scripts/results/vp_close_pairs.py OUT_DIR [OUT_DIR ...] [--reference OUT_DIR:SYSTEM]
+Usage: python scripts/archive/vp_close_pairs.py OUT_DIR [OUT_DIR ...] [--reference OUT_DIR:SYSTEM]
 
 Reads the ``results.jsonl`` of ``slam-gym reproduce victoria-park`` runs (their
 ``figure.trees_xy``: the confirmed trees at the end) and prints, per system and seed, the trees
@@ -25,7 +25,7 @@ Supports docs/results/real_data.md, "HYBRID's duplicate trees (issue 16 item 4):
 lineage term and the small-sample factor".
 The command behind it::
 
-    python scripts/results/vp_close_pairs.py out/vp-ekf out/vp-lineage out/vp-lineage-5-9 out/vp-ss
+    python scripts/archive/vp_close_pairs.py out/vp-ekf out/vp-lineage out/vp-lineage-5-9 out/vp-ss
 """
 
 from __future__ import annotations

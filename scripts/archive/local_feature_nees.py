@@ -1,24 +1,24 @@
 """Feature NEES (2 dof) of FastSLAM's converted local maps at BB's fusion points, on the simulator.
 
-Usage: python scripts/results/local_feature_nees.py LEVELS SEEDS N_STEPS [N_PARTICLES]
-e.g.   python scripts/results/local_feature_nees.py 0,3 4 2000
+Usage: python scripts/archive/local_feature_nees.py LEVELS SEEDS N_STEPS [N_PARTICLES]
+e.g.   python scripts/archive/local_feature_nees.py 0,3 4 2000
 
 FastSLAM 2.0 with the true associations (so that every converted feature has a known landmark)
 over BB's path, restarted every 100 steps by :func:`slam_gym.local_consistency.local_maps`; at
 every fusion each converted feature's mean and marginal
 covariance are compared with its landmark's true position in the frame of the true pose at the
 local map's start. SEEDS is a count (seeds 0 .. SEEDS-1). The reference for the same measurement
-on MRCLAM is ``scripts/results/mrclam_optimise_diagnosis.py`` (docs/RESULTS.md, issue 16 item 3).
+on MRCLAM is ``scripts/archive/mrclam_optimise_diagnosis.py`` (docs/RESULTS.md, issue 16 item 3).
 FastSLAM keeps the filter's default existence clip 0.999, with which its figures in
 docs/results/history.md were measured (HYBRID's front-end now uses the float guard,
-:data:`filters.fastslam.LOCAL_MAP_MAX_EXISTENCE`; ``scripts/results/local_pose_nees.py``
+:data:`filters.fastslam.LOCAL_MAP_MAX_EXISTENCE`; ``scripts/archive/local_pose_nees.py``
 measures both).
 
 Supports docs/results/history.md, "optimise() on MRCLAM, step by step to the small-sample factor
 (issue 16 items 2, 3)".
 The command behind it::
 
-    python scripts/results/local_feature_nees.py 0,1,2,3 4 2000
+    python scripts/archive/local_feature_nees.py 0,1,2,3 4 2000
 """
 
 from __future__ import annotations

@@ -1,10 +1,10 @@
 """Local maps at fusion against their lineage count (#14 item 2, docs/RESULTS.md).
 
-Usage: python scripts/results/lineage_diagnosis.py LEVELS SEEDS N_STEPS [N_PARTICLES] [known]
-e.g.   python scripts/results/lineage_diagnosis.py 0,1,2,3 0-3 1000 500 known
+Usage: python scripts/archive/lineage_diagnosis.py LEVELS SEEDS N_STEPS [N_PARTICLES] [known]
+e.g.   python scripts/archive/lineage_diagnosis.py 0,1,2,3 0-3 1000 500 known
 
 Runs FastSLAM 2.0 over BB's path with :func:`slam_gym.local_consistency.local_maps` (restart
-every 100 steps, the same random streams as scripts/results/local_pose_nees.py) and, at every
+every 100 steps, the same random streams as scripts/archive/local_pose_nees.py) and, at every
 fusion, converts the local map three ways: by BB (7) alone, with the lineage term, and with the
 lineage term and the small-sample factor (the filtering is the same; only the Gaussian differs).
 Reports the median number of lineages (distinct ancestors at the restart) and of effective
@@ -14,14 +14,14 @@ and by the effective degrees of freedom ``nu`` of :func:`filters.conversion.smal
 SEEDS is a count or a range FIRST-LAST (inclusive).
 FastSLAM keeps the filter's default existence clip 0.999, with which its figures in
 docs/results/history.md were measured (HYBRID's front-end now uses the float guard,
-:data:`filters.fastslam.LOCAL_MAP_MAX_EXISTENCE`; ``scripts/results/local_pose_nees.py``
+:data:`filters.fastslam.LOCAL_MAP_MAX_EXISTENCE`; ``scripts/archive/local_pose_nees.py``
 measures both).
 
 Supports docs/results/history.md, "Local maps at fusion with FastSLAM's 0.999 existence clip (issue
 14 item 2)".
 The command behind it::
 
-    python scripts/results/lineage_diagnosis.py 0,1,2,3 0-3 1000 500 known
+    python scripts/archive/lineage_diagnosis.py 0,1,2,3 0-3 1000 500 known
 """
 
 from __future__ import annotations

@@ -8,14 +8,14 @@ for every window; errors correlated over seconds give a std that grows with the 
 window outlasts the correlation. The loader's window (``DEFAULT_ODOMETRY_WINDOW_S``, BB's 10 s
 local map) is the span over which a front-end integrates the odometry between fusions.
 
-Usage: ``python scripts/results/mrclam_odometry_windows.py DATA_DIR [--robots 1,2,3,4,5]
+Usage: ``python scripts/archive/mrclam_odometry_windows.py DATA_DIR [--robots 1,2,3,4,5]
 [--calibration-s 300] [--windows 1,2,5,10,20,30]``.
 
 Supports docs/results/real_data.md, "HYBRID, robots 1-5, seeds 0-2, 200 particles, fusion every 10
 s, the loader's defaults".
 The command behind it::
 
-    python scripts/results/mrclam_odometry_windows.py .../MRCLAM_Dataset7
+    python scripts/archive/mrclam_odometry_windows.py .../MRCLAM_Dataset7
 """
 
 from __future__ import annotations

@@ -22,14 +22,14 @@ once at the end and reports:
   a local feature moves to another global feature when the move gains 100:1 likelihood odds
   (``map_error_reassociated``), or any gain at all (``..._greedy``).
 
-Usage: ``python scripts/results/mrclam_optimise_diagnosis.py DATA_DIR [--robots 1,2,3,4,5]
+Usage: ``python scripts/archive/mrclam_optimise_diagnosis.py DATA_DIR [--robots 1,2,3,4,5]
 [--system hybrid] [--particles 200] [--seed 0] [--max-steps N]``.
 
 Supports docs/results/history.md, "optimise() on MRCLAM, step by step to the small-sample factor
 (issue 16 items 2, 3)".
 The command behind it::
 
-    python scripts/results/mrclam_optimise_diagnosis.py .../MRCLAM_Dataset7 --seeds 0,1,2
+    python scripts/archive/mrclam_optimise_diagnosis.py .../MRCLAM_Dataset7 --seeds 0,1,2
 """
 
 from __future__ import annotations

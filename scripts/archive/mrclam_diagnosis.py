@@ -6,14 +6,14 @@ noise) and (2) EKF-SLAM with known association under each of the loader's correc
 all but one, and with the motion capture's own velocities as odometry (the floor the odometry
 leaves). EKF-SLAM is deterministic, so one run per robot.
 
-Usage: ``python scripts/results/mrclam_diagnosis.py DATA_DIR [--robots 1,2,3,4,5]
+Usage: ``python scripts/archive/mrclam_diagnosis.py DATA_DIR [--robots 1,2,3,4,5]
 [--calibration-s 300]``
 (DATA_DIR: an MRCLAM data set directory, e.g. .../MRCLAM_Dataset7).
 
 Supports docs/results/real_data.md, "Why known association left 0.7 m (issue 16 diagnosis)".
 The command behind it::
 
-    python scripts/results/mrclam_diagnosis.py .../MRCLAM_Dataset7
+    python scripts/archive/mrclam_diagnosis.py .../MRCLAM_Dataset7
 """
 
 from __future__ import annotations

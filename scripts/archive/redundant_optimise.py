@@ -1,8 +1,8 @@
 """What an optimisation with no fusion since the previous one changes, and what the reward
 charges for it (#15).
 
-Usage: python scripts/results/redundant_optimise.py [SEED] [CLUTTER_LEVEL]
-e.g.   python scripts/results/redundant_optimise.py 900001 3
+Usage: python scripts/archive/redundant_optimise.py [SEED] [CLUTTER_LEVEL]
+e.g.   python scripts/archive/redundant_optimise.py 900001 3
 
 Plays ``fixed-10s-optimise`` on one world of ``SlamGym/HybridSLAM-v0`` twice: as it is, and with
 an extra optimisation at every decision that follows an optimisation and fuses nothing. Prints
@@ -13,7 +13,7 @@ charge for an optimisation that changes nothing.
 Supports docs/results/history.md, "Learned interface policies (issue 15)".
 The command behind it::
 
-    python scripts/results/redundant_optimise.py 900001 3
+    python scripts/archive/redundant_optimise.py 900001 3
 """
 
 from __future__ import annotations

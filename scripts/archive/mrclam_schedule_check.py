@@ -1,6 +1,6 @@
 """Issue 16 item 3: the MRCLAM runs where optimising after every fusion ends worse than never.
 
-Usage: python scripts/results/mrclam_schedule_check.py DATA_DIR [--robots 1,2,3,4,5] [--seeds 0,1,2]
+Usage: python scripts/archive/mrclam_schedule_check.py DATA_DIR [--robots 1,2,3,4,5] [--seeds 0,1,2]
 [--particles 200]
 
 Plays HYBRID over each robot and seed on BB's 10 s schedule (as ``reproduce mrclam`` does) three
@@ -15,7 +15,7 @@ Supports docs/results/history.md, "optimise() on MRCLAM, step by step to the sma
 (issue 16 items 2, 3)".
 The command behind it::
 
-    python scripts/results/mrclam_schedule_check.py .../MRCLAM_Dataset7
+    python scripts/archive/mrclam_schedule_check.py .../MRCLAM_Dataset7
 """
 
 from __future__ import annotations

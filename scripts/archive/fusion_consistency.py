@@ -1,8 +1,8 @@
 """Why the sub-map systems fail after fusions (docs/RESULTS.md): consistency at every fusion.
 
-Usage: python scripts/results/fusion_consistency.py SEEDS [NOISE_SCALE] [N_STEPS]
-e.g.   python scripts/results/fusion_consistency.py 0-9          # BB's path as is
-       python scripts/results/fusion_consistency.py 0-5 0.01     # every noise std times 0.01
+Usage: python scripts/archive/fusion_consistency.py SEEDS [NOISE_SCALE] [N_STEPS]
+e.g.   python scripts/archive/fusion_consistency.py 0-9          # BB's path as is
+       python scripts/archive/fusion_consistency.py 0-5 0.01     # every noise std times 0.01
 
 Runs ``ekf-submap`` on ``brooks-bailey`` at clutter level 0 with BB's fusion every 100 steps,
 to the end of the path (no stop at BB's failure), with every noise std of the world (odometry
@@ -22,7 +22,7 @@ the simulator's truth ids (the votes of :class:`slam_gym.metrics.FeatureTruth`):
 Supports docs/RESULTS.md, "Why the sub-map systems fail after fusions".
 The command behind it::
 
-    PYTHONPATH=. python scripts/results/fusion_consistency.py 0-9
+    PYTHONPATH=. python scripts/archive/fusion_consistency.py 0-9
 """
 
 import argparse
