@@ -168,6 +168,17 @@ def per_world(rows: Sequence[Mapping[str, Any]], key: str) -> list[float]:
     return [sum(v) / len(v) for v in by_world.values()]
 
 
+def draw_discordance(rows: Sequence[Mapping[str, Any]]) -> tuple[int, int]:
+    """(worlds run with more than one draw, those of them whose success differs between their
+    draws): how often the filter's random numbers alone change a world's outcome."""
+    outcomes: dict[Any, list[bool]] = {}
+    for row in rows:
+        if row.get("success") is not None:
+            outcomes.setdefault(row.get("seed"), []).append(bool(row["success"]))
+    several = [v for v in outcomes.values() if len(v) > 1]
+    return len(several), sum(len(set(v)) > 1 for v in several)
+
+
 def _mean(values: list[float]) -> float | None:
     return statistics.fmean(values) if values else None
 
@@ -228,6 +239,7 @@ def summarise(
             # several draws per world: the world is the unit (draws are not independent runs)
             boot = bootstrap_interval(per_world(judged, "success"))
             ci = None if boot is None else list(boot)
+        several, varies = draw_discordance(judged)
         first = next((r for r in ok if r.get("alpha") is not None), {})
         group: dict[str, Any] = {
             kind: name,
@@ -244,6 +256,11 @@ def summarise(
             "success_rate": n_success / len(judged) if judged else None,
             "success_ci95": ci,
         }
+        if several:
+            # the noise floor of a success comparison: worlds whose outcome the filter's draws
+            # alone change (issue 46; formerly scripts/results/filter_noise.py)
+            group["worlds_with_draws"] = several
+            group["worlds_outcome_varies"] = varies
         for key in _MEAN_KEYS:
             group[key] = _mean(metric_values(ok, key))
         for key in _MEAN_MEDIAN_KEYS:
@@ -451,9 +468,22 @@ def markdown_table(
         return "| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |"
 
     align = ["---"] + ["---:"] * (len(header) - 1)
-    footnote = provenance_footnote(_groups(summary))
+    notes = [n for n in (provenance_footnote(_groups(summary)),
+                         draws_footnote(_groups(summary))) if n]
     return "\n".join([line(header), "|" + "|".join(align) + "|", *map(line, body)]
-                     + (["", footnote] if footnote else [])) + "\n"
+                     + [x for n in notes for x in ("", n)]) + "\n"
+
+
+def draws_footnote(groups: Sequence[Mapping[str, Any]]) -> str | None:
+    """With several filter draws per world: per group, the worlds whose success differed
+    between draws, out of those run with several (None without draws)."""
+    parts = [f"{g.get('policy') or g.get('system')} at clutter {g.get('clutter_level')}: "
+             f"{g['worlds_outcome_varies']} of {g['worlds_with_draws']}"
+             for g in groups if g.get("worlds_with_draws")]
+    if not parts:
+        return None
+    return ("Worlds whose success differs between filter draws (the noise floor of a paired "
+            "success comparison): " + "; ".join(parts) + ".")
 
 
 def format_table(
