@@ -161,10 +161,11 @@ def per_world(rows: Sequence[Mapping[str, Any]], key: str) -> list[float]:
     that an interval over worlds treats the draws of one world as the one observation they are
     (a cluster); with one draw per world, the values themselves."""
     by_world: dict[Any, list[float]] = {}
-    for row in rows:
+    for i, row in enumerate(rows):
         values = metric_values([row], key)
-        if values:
-            by_world.setdefault(row.get("seed"), []).append(values[0])
+        if values:  # a row that names no world is a world of its own
+            world = row["seed"] if row.get("seed") is not None else ("run", i)
+            by_world.setdefault(world, []).append(values[0])
     return [sum(v) / len(v) for v in by_world.values()]
 
 
@@ -172,9 +173,10 @@ def draw_discordance(rows: Sequence[Mapping[str, Any]]) -> tuple[int, int]:
     """(worlds run with more than one draw, those of them whose success differs between their
     draws): how often the filter's random numbers alone change a world's outcome."""
     outcomes: dict[Any, list[bool]] = {}
-    for row in rows:
+    for i, row in enumerate(rows):
         if row.get("success") is not None:
-            outcomes.setdefault(row.get("seed"), []).append(bool(row["success"]))
+            world = row["seed"] if row.get("seed") is not None else ("run", i)
+            outcomes.setdefault(world, []).append(bool(row["success"]))
     several = [v for v in outcomes.values() if len(v) > 1]
     return len(several), sum(len(set(v)) > 1 for v in several)
 
@@ -234,12 +236,13 @@ def summarise(
         judged = [r for r in ok if r.get("success") is not None]
         n_success = sum(1 for r in judged if r.get("success") is True)
         ci = list(wilson_interval(n_success, len(judged))) if judged else None
-        n_worlds = len({r.get("seed") for r in members})
-        if judged and len(judged) > len({r.get("seed") for r in judged}):
+        n_worlds = len({r["seed"] if r.get("seed") is not None else ("run", i)
+                        for i, r in enumerate(members)})
+        several, varies = draw_discordance(judged)
+        if several:
             # several draws per world: the world is the unit (draws are not independent runs)
             boot = bootstrap_interval(per_world(judged, "success"))
             ci = None if boot is None else list(boot)
-        several, varies = draw_discordance(judged)
         first = next((r for r in ok if r.get("alpha") is not None), {})
         group: dict[str, Any] = {
             kind: name,
