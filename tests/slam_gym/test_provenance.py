@@ -339,3 +339,22 @@ def test_ship_model_refuses_a_model_of_another_system(stale_zip, tmp_path, monke
     assert ship.main(["--force", str(out)]) == 0
     assert ship.TARGET.is_file()
     assert np.isfinite(json.loads(ship.TARGET.with_suffix(".json").read_text())["timesteps"])
+
+
+def test_fingerprint_says_which_env_version_a_model_was_trained_on_and_what_was_done():
+    from slam_gym.commands.fingerprint import env_version_lines
+
+    lines, version = env_version_lines({"env_id": "SlamGym/HybridSLAM-Interval-v0"})
+    assert version["trained_on_version"] == 0
+    assert version["current_id"] == "SlamGym/HybridSLAM-Interval-v1"
+    assert "trained on v0" in lines[0] and "not compared" in lines[1]
+    assert "--env SlamGym/HybridSLAM-v0" in lines[1]  # the system the wrapper runs
+    check = {"checked_on": "SlamGym/HybridSLAM-Interval-v1", "outcome": "not re-stamped",
+             "why": "undecided at 40 worlds"}
+    lines, _ = env_version_lines({"env_id": "SlamGym/HybridSLAM-Interval-v0",
+                                  "env_version_check": check})
+    assert "not re-stamped - undecided at 40 worlds" in lines[1]
+    lines, version = env_version_lines({"env_id": "SlamGym/HybridSLAM-v1"})
+    assert version["trained_on_version"] == 1 and "the current version" in lines[0]
+    with pytest.raises(ValueError, match="env_id="):
+        env_version_lines({"env_id": "SlamGym/HybridSLAM"})
