@@ -19,8 +19,8 @@ Two designs:
 * **sequential** (``max_worlds``): worlds in batches of ``batch_seeds`` seeds at every clutter
   level, a look after each batch (from :data:`slam_gym.evaluation.paired.MIN_WORLDS` worlds on)
   at the declared metric's confidence sequence (valid under any number of looks), stopping at
-  the first look that decides the question or at ``max_worlds``. The looks are a function of the rows alone, so a rerun looks at the same
-  batches and decides the same.
+  the first look that decides the question or at ``max_worlds``. The looks are a function of
+  the rows alone, so a rerun looks at the same batches and decides the same.
 * **fixed** (``seeds``): that many seeds at every level, the fixed-sample intervals, the
   question (if any) answered on them.
 
