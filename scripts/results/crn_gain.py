@@ -9,8 +9,13 @@ optimising after every fusion) and against the shipped ``learned`` model. Each r
 benchmark (``slam_gym.evaluation.benchmark``; resumable under ``OUT/<streams>/``) at the price of
 compute the shipped model was trained for (10 /s, clip 0.2 s). Per pair and design: the worlds
 whose success differs (discordant), the paired mean and standard error of the map error
-difference over the worlds where both have one, and the mean absolute difference. Writes
-``OUT/crn_gain.md`` and ``.json``; supports docs/RESULTS.md, "Synchronised random numbers".
+difference over the worlds where both have one, and the mean absolute difference. Also, from the
+same rows: the shipped ``learned`` model on ``-v1`` against its ``-v0`` self (issue 46 item 1: not
+worse by 3 pp on success, by 0.15 m on map error, paired by world with
+:mod:`slam_gym.evaluation.paired`'s fixed-sample intervals; the two designs share the worlds, not
+the filter's numbers) and each pair restated with ``slam-gym compare``'s statistics on the
+``-v1`` rows. Writes ``OUT/crn_gain.md`` and ``.json``; supports docs/RESULTS.md, "Synchronised
+random numbers".
 """
 
 from __future__ import annotations
@@ -59,6 +64,60 @@ def pair_statistics(rows: list[dict], a: str, b: str) -> dict:
             "identical_worlds": int(np.sum(diffs == 0.0)) if n else 0}
 
 
+VERSION_MARGINS = {"success": 3.0, "map_error_m": 0.15}
+"""The margins the shipped model's -v1 self must hold against its -v0 self (issue 46)."""
+
+
+def version_check(rows_v0: list[dict], rows_v1: list[dict], policy: str = "learned") -> dict:
+    """``policy`` on -v1 (B) against -v0 (A), paired by world: per metric the report of
+    ``slam-gym compare`` and, for the margins of :data:`VERSION_MARGINS`, the decision."""
+    from slam_gym.evaluation import paired
+    from slam_gym.evaluation.compare import UNIT_SCALE, metric_report, oriented, paired_arrays
+
+    a = [r for r in rows_v0 if r.get("policy") == policy]
+    b = [r for r in rows_v1 if r.get("policy") == policy]
+    worlds = sorted({(r["clutter_level"], r["seed"]) for r in a} & {(r["clutter_level"],
+                                                                     r["seed"]) for r in b})
+    out = {}
+    for metric in ("success", "nees_in_band_fraction", "map_error_m", "interface_cpu_s"):
+        report = metric_report(a, b, metric, worlds)
+        if metric in VERSION_MARGINS and report["worlds"] >= 2:
+            d = oriented(metric, *paired_arrays(a, b, metric, worlds))
+            scale = UNIT_SCALE.get(metric, 1.0)
+            interval = (paired.matched_rate_interval(d.differences)
+                        if metric in paired.RATE_METRICS else
+                        paired.stratified_bootstrap_interval(d.differences, d.strata, rng=46))
+            report["margin"] = VERSION_MARGINS[metric]
+            report["decision"] = paired.decide(interval.lo, interval.hi,
+                                               VERSION_MARGINS[metric] / scale)
+        out[metric] = report
+    return out
+
+
+def restated(rows: list[dict], a: str, b: str) -> dict:
+    """``slam-gym compare``'s report of ``b`` against ``a`` on one design's rows."""
+    from slam_gym.evaluation.compare import METRICS, metric_report
+
+    rows_a = [r for r in rows if r.get("policy") == a]
+    rows_b = [r for r in rows if r.get("policy") == b]
+    worlds = sorted({(r["clutter_level"], r["seed"]) for r in rows_a})
+    return {m: metric_report(rows_a, rows_b, m, worlds) for m in METRICS}
+
+
+def report_table(title: str, report: dict) -> str:
+    lines = [title, "", "| metric | A | B | B - A [95 %] | worlds | decision |",
+             "|---|---:|---:|---:|---:|---|"]
+    for metric, m in report.items():
+        def fmt(x, signed=False):
+            return "-" if x is None else (f"{x:+.2f}" if signed else f"{x:.2f}")
+        ci = "-" if m["ci"] is None else f"[{m['ci'][0]:+.2f}, {m['ci'][1]:+.2f}]"
+        decision = (f"{m['decision']} (margin {m['margin']:g} {m['unit']})"
+                    if "decision" in m else "")
+        lines.append(f"| {metric} ({m['unit'] or '-'}) | {fmt(m['a'])} | {fmt(m['b'])} | "
+                     f"{fmt(m['difference'], True)} {ci} | {m['worlds']} | {decision} |")
+    return "\n".join(lines) + "\n"
+
+
 def table(stats: dict[str, list[dict]]) -> str:
     lines = ["| pair | design | worlds | discordant (success) | map diff mean (m) | paired SD (m) "
              "| paired SE (m) | mean abs diff (m) | identical map errors |",
@@ -87,7 +146,7 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--out", type=Path, default=Path("out/crn"))
     args = parser.parse_args(argv)
     levels = [int(v) for v in args.clutter_levels.split(",")]
-    stats = {}
+    stats, rows = {}, {}
     for design in DESIGNS:
         result = benchmark(policy_factories(), clutter_levels=levels, seeds=args.seeds,
                            seed_start=args.seed_start, n_particles=args.particles,
@@ -95,9 +154,16 @@ def main(argv: list[str]) -> int:
                            random_streams=design, baselines=[], figures=False,
                            out=args.out / design, workers=args.workers, progress=True)
         stats[design] = [pair_statistics(result.rows, a, b) for a, b in PAIRS]
-    text = table(stats)
+        rows[design] = result.rows
+    check = version_check(rows["ordered"], rows["synchronised"])
+    again = {f"{b} - {a}": restated(rows["synchronised"], a, b) for a, b in PAIRS}
+    text = "\n".join([table(stats), report_table(
+        "The shipped `learned` on -v1 (B) against its -v0 self (A), paired by world", check),
+        *(report_table(f"{pair}, -v1, paired by world", r) for pair, r in again.items())])
     (args.out / "crn_gain.md").write_text(text)
-    (args.out / "crn_gain.json").write_text(json.dumps(stats, indent=2) + "\n")
+    (args.out / "crn_gain.json").write_text(json.dumps(
+        {"pairs": stats, "learned_v1_against_v0": check, "restated_v1": again},
+        indent=2, default=float) + "\n")
     sys.stdout.write(text)
     return 0
 
