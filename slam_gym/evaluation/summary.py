@@ -462,6 +462,84 @@ def format_table(
     return "\n".join(out)
 
 
+KEY_COLUMNS = frozenset(("scenario", "options", "clutter"))
+"""Columns (besides the first, the name) repeated in every part of a split console table."""
+
+_BOX_COST = 3
+"""Characters a column of a rich table costs besides its text: a border and two of padding."""
+
+
+def _longest_word(text: str) -> int:
+    return max((len(word) for word in text.split()), default=0)
+
+
+def split_columns(header: Sequence[str], body: Sequence[Sequence[str]], width: int
+                  ) -> list[list[tuple[int, int]]]:
+    """How a table of ``header`` and ``body`` fits ``width`` characters of a rich table with
+    borders: its parts, each a list of (column index, column width). The first column and
+    :data:`KEY_COLUMNS` are in every part, the others in order, as many per part as fit. No
+    cell is ever wrapped or cut: a column is as wide as its widest cell; its header folds at
+    spaces (a column as wide as the header's longest word) only in a part that does not fit
+    at the headers' full widths. A part holds at least one other column, even if that is
+    wider than ``width``."""
+    n = len(header)
+
+    def widths_of(head_width) -> list[int]:
+        return [max([head_width(header[i]), *(len(row[i]) for row in body)]) for i in range(n)]
+
+    def cost(columns, widths) -> int:
+        return sum(widths[i] + _BOX_COST for i in columns) + 1
+
+    keys = [0] + [i for i in range(1, n) if header[i] in KEY_COLUMNS]
+    others = [i for i in range(n) if i not in keys]
+    full, compact = widths_of(len), widths_of(_longest_word)
+    parts: list[list[int]] = []
+    current: list[int] = []
+    for i in others:
+        if current and cost(keys + current + [i], compact) > width:
+            parts.append(current)
+            current = []
+        current.append(i)
+    parts.append(current)
+    out = []
+    for part in parts:
+        columns = sorted(keys + part)
+        widths = full if cost(columns, full) <= width else compact
+        out.append([(i, widths[i]) for i in columns])
+    return out
+
+
+def format_tables(
+    summary: Mapping[str, Any] | Sequence[Mapping[str, Any]],
+    *,
+    width: int,
+    paper: PaperValues | None = None,
+    title: str | None = "Benchmark summary (success: Wilson 95 % interval)",
+) -> list[Any]:
+    """The console table as ``rich.table.Table`` parts that fit ``width`` characters
+    (:func:`split_columns`): one table when it fits, else the columns spread over several,
+    each repeating the names (and clutter level) so that every row is read on one line. The
+    title heads the first part, the footnote closes the last."""
+    from rich.table import Table
+
+    header, body = table_cells(summary, paper=paper)
+    footnote = provenance_footnote(_groups(summary))
+    parts = split_columns(header, body, width)
+    tables = []
+    for k, columns in enumerate(parts):
+        part_title = title if k == 0 else None
+        if title and len(parts) > 1:
+            part_title = f"{title} ({k + 1}/{len(parts)})" if k == 0 else f"({k + 1}/{len(parts)})"
+        table = Table(title=part_title, caption=footnote if k == len(parts) - 1 else None)
+        for i, w in columns:
+            table.add_column(header[i], justify="left" if i == 0 else "right",
+                             overflow="fold", min_width=w, max_width=w)
+        for cells in body:
+            table.add_row(*(cells[i] for i, _ in columns))
+        tables.append(table)
+    return tables
+
+
 def _write_atomic(path: Path, text: str) -> None:
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(text, encoding="utf-8")
