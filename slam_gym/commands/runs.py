@@ -195,4 +195,5 @@ def print_table(args, doc, paper=None, title=None) -> None:
     width = console_width()
     console = Console(width=width, file=sys.stdout)
     for table in format_tables(doc, width=width, paper=paper, title=title):
-        console.print(table)
+        # a part wider than the terminal (its names alone are) is printed whole, not cropped
+        console.print(table, width=max(width, table.min_width or 0), crop=False)

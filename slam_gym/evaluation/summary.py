@@ -477,22 +477,26 @@ def split_columns(header: Sequence[str], body: Sequence[Sequence[str]], width: i
                   ) -> list[list[tuple[int, int]]]:
     """How a table of ``header`` and ``body`` fits ``width`` characters of a rich table with
     borders: its parts, each a list of (column index, column width). The first column and
-    :data:`KEY_COLUMNS` are in every part, the others in order, as many per part as fit. No
-    cell is ever wrapped or cut: a column is as wide as its widest cell; its header folds at
-    spaces (a column as wide as the header's longest word) only in a part that does not fit
-    at the headers' full widths. A part holds at least one other column, even if that is
-    wider than ``width``."""
+    :data:`KEY_COLUMNS` are in every part, the others in order, as many per part as fit. A cell
+    is never cut: a column is as wide as its widest cell, and a header folds at spaces (a column
+    as wide as the header's longest word) only in a part that does not fit at the headers' full
+    widths. Only a column too wide to fit beside the key columns even alone wraps its cells, at
+    spaces (never narrower than its longest word; the key columns never wrap, so such a part
+    may be wider than ``width``)."""
     n = len(header)
 
-    def widths_of(head_width) -> list[int]:
-        return [max([head_width(header[i]), *(len(row[i]) for row in body)]) for i in range(n)]
+    def widths_of(head_width, cell_width) -> list[int]:
+        return [max([head_width(header[i]), *(cell_width(row[i]) for row in body)])
+                for i in range(n)]
 
     def cost(columns, widths) -> int:
         return sum(widths[i] + _BOX_COST for i in columns) + 1
 
     keys = [0] + [i for i in range(1, n) if header[i] in KEY_COLUMNS]
     others = [i for i in range(n) if i not in keys]
-    full, compact = widths_of(len), widths_of(_longest_word)
+    full = widths_of(len, len)
+    compact = widths_of(_longest_word, len)
+    narrowest = widths_of(_longest_word, _longest_word)
     parts: list[list[int]] = []
     current: list[int] = []
     for i in others:
@@ -504,9 +508,17 @@ def split_columns(header: Sequence[str], body: Sequence[Sequence[str]], width: i
     out = []
     for part in parts:
         columns = sorted(keys + part)
-        widths = full if cost(columns, full) <= width else compact
+        widths = list(full if cost(columns, full) <= width else compact)
+        if len(part) == 1 and cost(columns, widths) > width:  # wrap its cells at spaces
+            i = part[0]
+            widths[i] = max(narrowest[i], width - cost(keys, widths) - _BOX_COST)
         out.append([(i, widths[i]) for i in columns])
     return out
+
+
+def parts_width(part: Sequence[tuple[int, int]]) -> int:
+    """The characters a part of :func:`split_columns` takes."""
+    return sum(w + _BOX_COST for _, w in part) + 1
 
 
 def format_tables(
@@ -518,8 +530,9 @@ def format_tables(
 ) -> list[Any]:
     """The console table as ``rich.table.Table`` parts that fit ``width`` characters
     (:func:`split_columns`): one table when it fits, else the columns spread over several,
-    each repeating the names (and clutter level) so that every row is read on one line. The
-    title heads the first part, the footnote closes the last."""
+    each repeating the names (and clutter level). The title heads the first part, the footnote
+    closes the last. A part's ``min_width`` is its width: print it at least that wide (a part
+    can be wider than ``width`` only when its names alone are)."""
     from rich.table import Table
 
     header, body = table_cells(summary, paper=paper)
@@ -530,7 +543,8 @@ def format_tables(
         part_title = title if k == 0 else None
         if title and len(parts) > 1:
             part_title = f"{title} ({k + 1}/{len(parts)})" if k == 0 else f"({k + 1}/{len(parts)})"
-        table = Table(title=part_title, caption=footnote if k == len(parts) - 1 else None)
+        table = Table(title=part_title, caption=footnote if k == len(parts) - 1 else None,
+                      min_width=max(parts_width(columns), 1))
         for i, w in columns:
             table.add_column(header[i], justify="left" if i == 0 else "right",
                              overflow="fold", min_width=w, max_width=w)
