@@ -281,9 +281,14 @@ def success_figure(
             Line2D([], [], linestyle="none", marker="D", markerfacecolor="none", color="0.3")
         )
         labels.append(paper_label)
-    ax.legend(handles, labels, loc="best", fontsize=9, framealpha=0.9)
+    # under the axes: inside, the legend of five policies covered their error bars
     bottom = add_notes(fig, [f"{name} (no run finished without an error)" for name in left_out])
-    fig.tight_layout(rect=(0, bottom, 1, 1))
+    ncol = 2 if len(labels) > 2 else len(labels)
+    fig.legend(handles, labels, loc="lower center", bbox_to_anchor=(0.5, bottom), fontsize=8,
+               ncol=ncol, frameon=False)
+    rows = math.ceil(len(labels) / ncol)
+    legend_h = (rows * 1.4 * 8 / 72 + 0.15) / fig.get_figheight()
+    fig.tight_layout(rect=(0, bottom + legend_h, 1, 1))
     return fig
 
 

@@ -28,6 +28,9 @@ if TYPE_CHECKING:  # matplotlib is imported where a figure is drawn, not in the 
     from matplotlib.figure import Figure
 
 DPI = 110
+LEGEND_ORDER = ("fusion", "optimisation", "closure detected (CM Def. 1)", "true loop closure",
+                "end of path", "failure (BB's criterion)")
+"""The entries of the decisions figure's legend, in this order (those drawn)."""
 
 __all__ = ["TimelineRecorder", "decision_timeline", "decisions_figure",
            "plot_decision_timelines", "true_loop_closure_s"]
@@ -104,9 +107,15 @@ def decisions_figure(timelines: Mapping[str, Mapping[str, Any]], title: str = ""
         [f"{n} ({timelines[n]['n_fusions']} fus., {timelines[n]['n_optimisations']} opt.)"
          for n in reversed(names)], fontsize=8)
     ax.set_ylim(-0.7, len(names) - 0.2)
+    ends = [float(timelines[n]["end_s"]) for n in names]
+    ends += [float(timelines[n]["true_loop_closure_s"]) for n in names
+             if timelines[n].get("true_loop_closure_s") is not None]
+    ax.set_xlim(0.0, 1.02 * max(ends + [1.0]))
     ax.set_xlabel("time (s)")
     ax.set_title(title)
-    handles, labels = ax.get_legend_handles_labels()
+    pairs = dict(zip(*reversed(ax.get_legend_handles_labels()), strict=True))
+    labels = sorted(pairs, key=LEGEND_ORDER.index)
+    handles = [pairs[label] for label in labels]
     notes_h = add_notes(fig, notes)
     fig.legend(handles, labels, loc="lower center", ncol=max(1, len(labels)), fontsize=8,
                frameon=False, bbox_to_anchor=(0.5, notes_h))
