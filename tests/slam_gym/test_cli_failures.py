@@ -457,6 +457,7 @@ def test_the_benchmark_figures_stay_within_their_quantities_bounds(tmp_path, cap
         assert any(b == 3 for _, b in counts)  # the CPU time of all 3 runs
 
 
+@pytest.mark.xdist_group("ray")  # one local Ray instance at a time (pytest -n)
 def test_the_ray_executor_stops_a_run_over_its_time_limit(tmp_path):
     """Ray runs each job in a worker process's main thread, where the time limit's timer
     interrupts it: the sleeping run is an error row saying so, the other one completes."""

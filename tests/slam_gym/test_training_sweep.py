@@ -87,6 +87,7 @@ def test_a_process_sweep_trains_each_job_at_its_price_resumes_and_summarises(tmp
     assert json.loads((out / "price-1" / "seed-0" / "model.json").read_text())["timesteps"] == 64
 
 
+@pytest.mark.xdist_group("ray")  # one local Ray instance at a time (pytest -n)
 def test_a_sweep_on_a_local_ray_instance(tmp_path):
     """Two jobs (prices 1 and 10, seed 0) through Ray on this machine: the same rows and run
     directories as the process pool makes, so a sweep runs on a cluster unchanged."""
