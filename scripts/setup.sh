@@ -24,7 +24,11 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   .venv/bin/python -m pip install --quiet --upgrade pip
   # torch first, pinned to the CPU build, then everything else under the same constraint
   .venv/bin/python -m pip install --quiet -c constraints.txt "torch==2.13.0"
-  .venv/bin/python -m pip install --quiet -c constraints.txt -e ".[test,ray,contrib]"
+  # setuptools announces every editable install ("Editable installation. Please be careful
+  # with folders in your working directory with the same name as your package ..."): a notice,
+  # not a problem here (the packages are those folders), so it is filtered by its text alone
+  PYTHONWARNINGS="ignore:Editable installation:UserWarning" \
+    .venv/bin/python -m pip install --quiet -c constraints.txt -e ".[test,ray,contrib]"
   # compile the numba kernels now (numba caches them in __pycache__), not in the first env reset
   # of the first process (~8 s): a few decisions of each back-end, fusing and optimising
   .venv/bin/python -c 'import numpy as np; from slam_gym.envs.hybrid_slam import HybridSLAMEnv

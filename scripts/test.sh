@@ -3,4 +3,5 @@
 set -euo pipefail
 source "$(dirname "${BASH_SOURCE[0]}")/setup.sh"
 .venv/bin/ruff check .
-.venv/bin/python -m pytest -q "$@"
+# across the cores (pytest-xdist; tests that start a local Ray instance share one worker)
+.venv/bin/python -m pytest -q -n auto --dist loadgroup "$@"

@@ -13,6 +13,9 @@ from pathlib import Path
 
 import pytest
 
+# its module-scoped fixtures are built once: every test of this file on one worker (pytest -n)
+pytestmark = pytest.mark.xdist_group("test_import_direction")
+
 ROOT = Path(__file__).resolve().parents[1]
 
 LAYERS = {"filters": 0, "policies": 1, "slam_gym": 2, "scripts": 3, "examples": 3}

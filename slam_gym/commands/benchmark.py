@@ -51,10 +51,14 @@ def add_parser(subparsers) -> None:
                    help="systems run on the same worlds beside the policies, comma-separated "
                    "(dead-reckoning; '' for none): dead reckoning meets BB's success "
                    "criterion without a map, which map completeness shows")
-    p.add_argument("--clutter-levels", default="0,1,2,3", action=Given)
-    p.add_argument("--scenario", default="brooks-bailey")
-    p.add_argument("--particles", type=int, default=500, action=Given)
-    p.add_argument("--decision-interval", type=int, default=10)
+    p.add_argument("--clutter-levels", default="0,1,2,3", action=Given, metavar="L,...",
+                   help="comma-separated clutter levels 0-3, distinct (default 0,1,2,3)")
+    p.add_argument("--scenario", default="brooks-bailey",
+                   help="the worlds' scenario (slam_gym/scenarios.py; default brooks-bailey)")
+    p.add_argument("--particles", type=int, default=500, action=Given, metavar="P",
+                   help="FastSLAM particles of the front-end (default 500, BB's)")
+    p.add_argument("--decision-interval", type=int, default=10, metavar="K",
+                   help="simulation steps between decisions (default 10: one a second)")
     p.add_argument("--front-end", choices=["fastslam", "ekf"], default=None,
                    help="default fastslam (or --env's)")
     p.add_argument("--back-end", choices=["ekf", "relative"], default=None,
@@ -72,7 +76,9 @@ def add_parser(subparsers) -> None:
                    "particles, all clutter levels, fixed-10s, esdf-innovation, "
                    "fixed-10s-optimise, learned (an explicit --seeds or --particles is kept; "
                    "--policies and --clutter-levels cannot be combined with it)")
-    p.add_argument("--no-figures", action="store_true")
+    p.add_argument("--no-figures", action="store_true",
+                   help="write no figures (by default: success rates, two Pareto figures, and "
+                   "the uncertainty, NEES, decisions and map of one world)")
     add_run_options(p, default_out="out/benchmark", trials_flag="--seeds")
     p.set_defaults(run=run)
 
@@ -87,7 +93,7 @@ def run(args) -> int:
         raise ValueError(f"--draws {args.draws} is invalid: must be >= 1")
     result = benchmark(
         name_list(args.policies),
-        clutter_levels=int_list(args.clutter_levels),
+        clutter_levels=int_list(args.clutter_levels, "clutter_levels"),
         seeds=args.trials,
         seed_start=args.seed_start,
         scenario=args.scenario,

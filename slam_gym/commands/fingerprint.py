@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import logging
+import zipfile
 
 from slam_gym.commands.common import emit
 
@@ -70,6 +71,9 @@ def run(args) -> int:
         path = resolve_model_path(args.model)
     except FileNotFoundError as exc:
         raise ValueError(f"MODEL={args.model!r} is invalid: {exc}") from exc
+    if not zipfile.is_zipfile(path):
+        raise ValueError(f"MODEL={str(path)!r} is invalid: it is not a zip file (a model is the "
+                         "zip that slam-gym train writes, with its config JSON beside it)")
     config = read_model_config(path)
     if config is None:
         raise ValueError(f"MODEL={str(path)!r} is invalid: it has no config JSON "

@@ -34,6 +34,7 @@ from slam_gym.commands.runs import (
     add_run_options,
     check_run_options,
     errors_exit_code,
+    float_list,
     int_list,
     name_list,
     run_options,
@@ -55,13 +56,16 @@ def add_parser(subparsers) -> None:
     p.add_argument("--prices", default="1,10,100", help="prices of compute (w_compute, /s)")
     p.add_argument("--run-price", type=float, default=10.0,
                    help="the price the rules run at (their returns at the others are recomputed)")
-    p.add_argument("--compute-clip-s", type=float, default=0.2)
+    p.add_argument("--compute-clip-s", type=float, default=0.2, metavar="S",
+                   help="the reward's per-decision clip of compute (s; default 0.2)")
     p.add_argument("--rules", default=DEFAULT_RULES, help="rule names (must include "
                    f"{REFERENCE}, the reference)")
     p.add_argument("--threshold-rules", default=None,
                    help="chosen.json of `slam-gym threshold-rule` (the best rule per price)")
-    p.add_argument("--clutter-levels", default="0,1,2,3")
-    p.add_argument("--particles", type=int, default=500)
+    p.add_argument("--clutter-levels", default="0,1,2,3", metavar="L,...",
+                   help="comma-separated clutter levels 0-3, distinct (default 0,1,2,3)")
+    p.add_argument("--particles", type=int, default=500, metavar="P",
+                   help="FastSLAM particles (default 500)")
     p.add_argument("--n-steps", type=int, default=None, help="cut every path (quick looks)")
     add_run_options(p, default_out="out/front", trials_flag="--seeds")
     p.set_defaults(seed_start=400)
@@ -84,8 +88,9 @@ def run(args) -> int:
     from slam_gym.evaluation.front import compare, goal, plot_front
     from slam_gym.evaluation.summary import group_provenance, provenance_footnote
 
-    prices = [float(v) for v in args.prices.split(",") if v.strip()]
-    require(bool(prices), "prices", args.prices, "at least one price")
+    prices = float_list(args.prices, "prices")
+    require(bool(prices) and all(p >= 0 for p in prices) and len(set(prices)) == len(prices),
+            "prices", args.prices, "distinct comma-separated numbers >= 0 (at least one)")
     rule_names = name_list(args.rules)
     require(REFERENCE in rule_names, "rules", args.rules, f"a list including {REFERENCE}")
     check_run_options(args)
@@ -107,7 +112,8 @@ def run(args) -> int:
             except FileNotFoundError as exc:
                 raise ValueError(f"{field}={path!r} is invalid: {exc}") from exc
     out = out_dir(args)
-    common = dict(clutter_levels=int_list(args.clutter_levels), seeds=args.trials,
+    levels = int_list(args.clutter_levels, "clutter_levels")
+    common = dict(clutter_levels=levels, seeds=args.trials,
                   seed_start=args.seed_start, n_particles=args.particles, n_steps=args.n_steps,
                   compute_clip_s=args.compute_clip_s, baselines=[], figures=False,
                   **run_options(args))

@@ -176,9 +176,12 @@ def add_parser(subparsers) -> None:
     bb.add_argument("--existence-model", default="gate",
                     help="comma-separated readings of BB (11) among gate (clutter in the gate, "
                     "the default) and bb (BB's beta as written); filters.existence")
-    bb.add_argument("--clutter-levels", default="0,1,2,3")
-    bb.add_argument("--particles", type=int, default=500)
-    bb.add_argument("--fusion-interval-s", type=float, default=10.0)
+    bb.add_argument("--clutter-levels", default="0,1,2,3", metavar="L,...",
+                    help="comma-separated clutter levels 0-3 (default 0,1,2,3)")
+    bb.add_argument("--particles", type=int, default=500, metavar="P",
+                    help="FastSLAM particles (default 500, BB's)")
+    bb.add_argument("--fusion-interval-s", type=float, default=10.0, metavar="S",
+                    help="seconds between fusions of the sub-map systems (default 10, BB's)")
     bb.add_argument("--optimise", choices=["never", "at-end", "every-fusion", "after-loop-closure"],
                     default="never",
                     help="optimise() schedule of the sub-map systems (BB: never)")
@@ -204,7 +207,7 @@ def run_brooks_bailey(args) -> int:
     unknown = [s for s in systems if s not in BB_SYSTEMS]
     if unknown:
         raise ValueError(f"systems={unknown} is invalid: must be among {sorted(BB_SYSTEMS)}")
-    levels = int_list(args.clutter_levels)
+    levels = int_list(args.clutter_levels, "clutter_levels")
     from filters.existence import validate_existence_model
 
     models = [validate_existence_model(m) for m in name_list(args.existence_model)]
@@ -213,6 +216,12 @@ def run_brooks_bailey(args) -> int:
     world = {} if args.path_perturbation_m is None else {
         "path_perturbation_m": float(args.path_perturbation_m)}
     scenario = get_scenario(args.scenario, **world)  # validates the name and the jitter
+    from filters.validation import require
+
+    require(bool(levels) and len(set(levels)) == len(levels), "clutter_levels", levels,
+            "distinct levels (at least one)")
+    for level in levels:  # each level of the world, before any run
+        get_scenario(args.scenario, clutter_level=level, **world)
     out = out_dir(args)
 
     def options(system, model):
@@ -252,9 +261,13 @@ def run_brooks_bailey(args) -> int:
         + bb_table_markdown(table1)
     )
     from slam_gym.evaluation import plot_success_rates
+    from slam_gym.evaluation.benchmarking import draw_figure
 
-    figures = {"success": str(plot_success_rates(doc, out / "success_rates.png", paper=paper,
-                                                 title="BB Table 1: success rate"))}
+    figures: dict[str, str] = {}
+    if any(g.get("success_rate") is not None for g in doc["groups"]):  # not when all errored
+        draw_figure("success", lambda: plot_success_rates(
+            doc, out / "success_rates.png", paper=paper, title="BB Table 1: success rate"),
+            figures, {})
     if not args.no_figures:
         figures.update(trace_figures(systems, args.seed_start, args.particles, out,
                                      scenario=args.scenario, **world))

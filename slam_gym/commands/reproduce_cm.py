@@ -394,7 +394,7 @@ def run_conte_martinelli(args) -> int:
 
     from slam_gym.evaluation import Job, read_results, run_jobs, write_summary
 
-    sims = int_list(args.sims)
+    sims = int_list(args.sims, "sims")
     for sim in sims:
         scenario_of(sim)
     if args.trials < 1:

@@ -295,7 +295,7 @@ def run_mrclam(args) -> int:
 
     _check_common(args)
     data = _data_dir(args.data, "mrclam", "MRCLAM_Dataset7")
-    robots = [check_robot(r) for r in int_list(args.robots)]
+    robots = [check_robot(r) for r in int_list(args.robots, "robots")]
     require(bool(robots) and len(set(robots)) == len(robots), "--robots", args.robots,
             "distinct robots among 1-5")
     for r in robots:

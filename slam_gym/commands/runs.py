@@ -39,11 +39,30 @@ def plot_episode_map(episode, path, title: str):
     return plot(episode, path, title)
 
 
-def int_list(text: str) -> list[int]:
+def int_list(text: str, field: str = "list") -> list[int]:
+    """Comma-separated integers; ``field`` names the option in the error (its destination, so
+    the command line names it as typed)."""
     try:
         return [int(v) for v in text.split(",") if v.strip() != ""]
     except ValueError as exc:
-        raise ValueError(f"{text!r} is invalid: must be comma-separated integers") from exc
+        raise ValueError(f"{field}={text!r} is invalid: must be comma-separated integers") \
+            from exc
+
+
+def float_list(text: str, field: str = "list") -> list[float]:
+    """Comma-separated finite numbers (:func:`int_list`'s ``field``)."""
+    import math
+
+    from filters.validation import require
+
+    try:
+        values = [float(v) for v in text.split(",") if v.strip() != ""]
+    except ValueError as exc:
+        raise ValueError(f"{field}={text!r} is invalid: must be comma-separated numbers") \
+            from exc
+    require(all(math.isfinite(v) for v in values), field, text,
+            "comma-separated finite numbers")
+    return values
 
 
 def name_list(text: str) -> list[str]:
@@ -55,12 +74,17 @@ def add_run_options(parser, default_out: str, *, trials_flag: str | None = "--tr
     (for a command that takes its own list of seeds)."""
     if trials_flag is not None:
         parser.add_argument(trials_flag, dest="trials", type=int, default=20, action=Given,
-                            help="runs per configuration (seeds)")
-        parser.add_argument("--seed-start", type=int, default=0, help="first seed")
+                            metavar="N", help="worlds (seeds) per configuration, from "
+                            "--seed-start")
+        parser.add_argument("--seed-start", type=int, default=0, metavar="S",
+                            help="the first world's seed (the worlds are S, S+1, ...)")
     parser.add_argument("--workers", type=int, default=None, action=Given,
                         help="parallel worker processes (default: all cores; not with "
                         "--executor serial)")
-    parser.add_argument("--executor", choices=["process", "ray", "serial"], default="process")
+    parser.add_argument("--executor", choices=["process", "ray", "serial"], default="process",
+                        help="where the runs go: a process pool on this machine (default), Ray "
+                        "(this machine or a cluster, pip install slam-gym[ray]) or this process, "
+                        "one after the other (serial)")
     parser.add_argument("--ray-address", default=None,
                         help="existing Ray cluster (only with --executor ray)")
     parser.add_argument("--retry-errors", action="store_true",
@@ -85,19 +109,22 @@ def check_run_options(args) -> None:
     import math
     import os
 
-    if getattr(args, "trials", None) is not None and args.trials < 1:
-        raise ValueError(f"trials={args.trials} is invalid: must be >= 1")
-    if args.workers is not None and args.workers < 1:
-        raise ValueError(f"workers={args.workers} is invalid: must be >= 1")
+    from filters.validation import require
+
+    if getattr(args, "trials", None) is not None:
+        require(args.trials >= 1, "trials", args.trials, "a number of worlds >= 1")
+    if getattr(args, "seed_start", None) is not None:
+        require(args.seed_start >= 0, "seed_start", args.seed_start, "a seed >= 0")
+    if args.workers is not None:
+        require(args.workers >= 1, "workers", args.workers, "a number of processes >= 1")
     if args.executor == "serial" and given(args, "workers") and args.workers != 1:
         raise ValueError(f"--workers {args.workers} is invalid with --executor serial, which "
                          "runs one run at a time: leave --workers out, or use --executor process")
     if args.ray_address is not None and args.executor != "ray":
         raise ValueError(f"--ray-address {args.ray_address} is invalid with --executor "
                          f"{args.executor}: it is used only by --executor ray")
-    if not (math.isfinite(args.run_timeout_s) and args.run_timeout_s > 0):
-        raise ValueError(f"run_timeout_s={args.run_timeout_s} is invalid: must be a number of "
-                         "seconds > 0")
+    require(math.isfinite(args.run_timeout_s) and args.run_timeout_s > 0, "run_timeout_s",
+            args.run_timeout_s, "a number of seconds > 0")
     if args.workers is None:
         args.workers = os.cpu_count() or 1
 
@@ -143,11 +170,30 @@ def execute(args, jobs, out):
     return run_jobs(jobs, run_job, out, **run_options(args))
 
 
+PIPED_WIDTH = 100
+"""The width of the console table when the output is not a terminal (and ``COLUMNS`` is not
+set): a pipe, a file, a CI log."""
+
+
+def console_width() -> int:
+    """The width to lay the console table out for: ``COLUMNS`` when set, else the terminal's,
+    else (piped) :data:`PIPED_WIDTH`."""
+    import shutil
+
+    return max(40, shutil.get_terminal_size(fallback=(PIPED_WIDTH, 24)).columns)
+
+
 def print_table(args, doc, paper=None, title=None) -> None:
+    """The summary on stdout (not with ``--json``), laid out for :func:`console_width`: split
+    into parts rather than any value cut (``table.md`` holds it whole)."""
     if args.json:
         return
     from rich.console import Console
 
-    from slam_gym.evaluation.summary import format_table
+    from slam_gym.evaluation.summary import format_tables
 
-    Console(width=160).print(format_table(doc, paper=paper, title=title))
+    width = console_width()
+    console = Console(width=width, file=sys.stdout)
+    for table in format_tables(doc, width=width, paper=paper, title=title):
+        # a part wider than the terminal (its names alone are) is printed whole, not cropped
+        console.print(table, width=max(width, table.min_width or 0), crop=False)

@@ -16,9 +16,11 @@ def add_parser(subparsers) -> None:
         help="simulate one run (dead reckoning only) and draw the world",
         description="Simulate one run of a scenario with dead reckoning only; writes world.png.",
     )
-    p.add_argument("--scenario", default="brooks-bailey", choices=scenario_names())
-    p.add_argument("--clutter-level", type=int, default=None, choices=[0, 1, 2, 3])
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--scenario", default="brooks-bailey", choices=scenario_names(),
+                   help="the world's scenario (slam_gym/scenarios.py; default brooks-bailey)")
+    p.add_argument("--clutter-level", type=int, default=None, choices=[0, 1, 2, 3],
+                   help="BB's clutter level 0-3 (default: the scenario's)")
+    p.add_argument("--seed", type=int, default=0, metavar="S", help="the world's seed")
     p.add_argument("--path-perturbation-m", type=float, default=None,
                    help="the waypoint jitter of the path (m; default: the scenario's), the scalar "
                    "that sets its turning (issue 28)")

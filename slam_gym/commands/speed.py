@@ -37,12 +37,16 @@ def add_parser(subparsers) -> None:
         "and clutter level on brooks-bailey; decisions per second of the env; ESDF update time "
         "against state size. One process, one core.",
     )
-    p.add_argument("--systems", default="fastslam,ekf-submap,hybrid")
-    p.add_argument("--particles", default="100,500,2000")
-    p.add_argument("--clutter-levels", default="0,1,2,3")
+    p.add_argument("--systems", default="fastslam,ekf-submap,hybrid",
+                   help="comma-separated systems to time (slam_gym.systems)")
+    p.add_argument("--particles", default="100,500,2000", metavar="P,...",
+                   help="comma-separated particle counts to time them at")
+    p.add_argument("--clutter-levels", default="0,1,2,3", metavar="L,...",
+                   help="comma-separated clutter levels to time them at")
     p.add_argument("--iterations", type=int, default=None,
                    help="iterations per measurement (default: the whole path)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, metavar="S",
+                   help="the world's seed of the measurements")
     p.add_argument("--env-decisions", type=int, default=1000,
                    help="decisions for the env throughput at each --env-particles count, over "
                    "as many episodes as they take, resets included (0 to skip)")
@@ -52,7 +56,8 @@ def add_parser(subparsers) -> None:
                    help="skip timing the env's import and first reset in a fresh process")
     p.add_argument("--skip-paper-episode", action="store_true",
                    help="skip timing one whole env episode at the paper's 500 particles")
-    p.add_argument("--skip-esdf", action="store_true")
+    p.add_argument("--skip-esdf", action="store_true",
+                   help="skip timing the ESDF update against the state size")
     p.add_argument("--calibrate-compute", action="store_true",
                    help="only fit the env's compute-cost model (slam_gym.compute_cost) to "
                    "measured CPU time and print its coefficients and correlation")
@@ -423,7 +428,7 @@ def calibrate_compute(args) -> int:
 
     from slam_gym.compute_cost import calibrate
 
-    seeds = int_list(args.calibration_seeds)
+    seeds = int_list(args.calibration_seeds, "calibration_seeds")
     bar = tqdm(total=len(CALIBRATION_RUNS) * len(seeds), desc="calibration episodes",
                disable=args.quiet or args.json)
     records = collect_records(seeds, progress=bar.update)
@@ -532,8 +537,8 @@ def run(args) -> int:
         return 2
 
     systems = name_list(args.systems)
-    particles = int_list(args.particles)
-    levels = int_list(args.clutter_levels)
+    particles = int_list(args.particles, "particles")
+    levels = int_list(args.clutter_levels, "clutter_levels")
     configs = [
         (s, level, p)
         for s in systems
@@ -551,7 +556,7 @@ def run(args) -> int:
     if args.env_decisions > 0 and args.env_particles:
         result["env_runs"] = [
             measure_env(args.env_decisions, args.seed, n_particles=n)
-            for n in int_list(args.env_particles)
+            for n in int_list(args.env_particles, "env_particles")
         ]
         result["env"] = result["env_runs"][-1]
     if args.env_decisions > 0 and schedules:
@@ -569,10 +574,10 @@ def run(args) -> int:
             measure_full_path(s, args.full_path_episodes, n_particles=args.schedule_particles)
             for s in tqdm(FULL_PATH_SCHEDULES, desc="full paths", disable=args.quiet or args.json)
         ]
-    counts = int_list(args.optimise_counts)
+    counts = int_list(args.optimise_counts, "optimise_counts")
     if counts:
-        result["optimise"] = measure_optimise(int_list(args.optimise_seeds), counts,
-                                              n_steps=optimise_steps)
+        result["optimise"] = measure_optimise(int_list(args.optimise_seeds, "optimise_seeds"),
+                                              counts, n_steps=optimise_steps)
     if not args.skip_first_reset:
         result["env_first_reset"] = measure_first_reset(args.seed)
     if args.env_decisions > 0 and not args.skip_paper_episode:

@@ -35,6 +35,7 @@ from slam_gym.commands.runs import (
     add_run_options,
     check_run_options,
     errors_exit_code,
+    float_list,
     int_list,
     run_options,
 )
@@ -64,8 +65,10 @@ def add_parser(subparsers) -> None:
                    help="the reward's per-decision clip of compute (s)")
     p.add_argument("--seeds", default=",".join(str(s) for s in DEFAULT_EVAL_SEEDS),
                    help="worlds per level (default: the training-time evaluation worlds)")
-    p.add_argument("--clutter-levels", default="0,1,2,3")
-    p.add_argument("--particles", type=int, default=500)
+    p.add_argument("--clutter-levels", default="0,1,2,3", metavar="L,...",
+                   help="comma-separated clutter levels 0-3, distinct (default 0,1,2,3)")
+    p.add_argument("--particles", type=int, default=500, metavar="P",
+                   help="FastSLAM particles (default 500)")
     p.add_argument("--n-steps", type=int, default=None, help="cut every path (quick looks)")
     add_run_options(p, default_out="out/threshold-rule", trials_flag=None)
     p.set_defaults(run=run)
@@ -155,16 +158,17 @@ def run(args) -> int:
     from slam_gym.envs.wrappers import TRAINING_WORLD_SEED_OFFSET
     from slam_gym.evaluation import benchmark
 
-    prices = [float(v) for v in args.prices.split(",") if v.strip()]
+    prices = float_list(args.prices, "prices")
     require(bool(prices) and all(p >= 0 for p in prices), "prices", args.prices,
             "comma-separated non-negative numbers")
-    seeds = int_list(args.seeds)
+    seeds = int_list(args.seeds, "seeds")
     require(bool(seeds) and all(0 <= s < TRAINING_WORLD_SEED_OFFSET for s in seeds), "seeds",
             args.seeds, f"seeds in [0, {TRAINING_WORLD_SEED_OFFSET})")
     check_run_options(args)
     out = out_dir(args)
     rules = candidates()
-    result = benchmark(rules, clutter_levels=int_list(args.clutter_levels), seeds=seeds,
+    levels = int_list(args.clutter_levels, "clutter_levels")
+    result = benchmark(rules, clutter_levels=levels, seeds=seeds,
                        n_particles=args.particles, n_steps=args.n_steps,
                        w_compute=args.run_price, compute_clip_s=args.compute_clip_s,
                        baselines=[], figures=False, out=out, **run_options(args))
@@ -174,7 +178,7 @@ def run(args) -> int:
     chosen = choose(table, prices, rules)
     (Path(out) / "candidates.md").write_text(markdown(table, prices))
     doc = {"prices": prices, "run_price": args.run_price, "compute_clip_s": args.compute_clip_s,
-           "seeds": seeds, "clutter_levels": int_list(args.clutter_levels), "chosen": chosen,
+           "seeds": seeds, "clutter_levels": levels, "chosen": chosen,
            "candidates": table, "not_scored": failed}
     (Path(out) / "chosen.json").write_text(json.dumps(doc, indent=2) + "\n")
     emit(args, doc, [markdown(table, prices).rstrip(),

@@ -46,7 +46,8 @@ DEFAULT_BASELINE = "fixed-10s-optimise"
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser("train", help="train learned interface policies (SB3), resumable")
-    p.add_argument("--algo", choices=ALGOS, default="ppo")
+    p.add_argument("--algo", choices=ALGOS, default="ppo",
+                   help="the stable-baselines3 (or sb3-contrib) algorithm (default ppo)")
     p.add_argument("--env", default="SlamGym/HybridSLAM-v1", help="env id to train on")
     p.add_argument("--hyperparams", default=None,
                    help="YAML file (rl-zoo3 layout; default: the packaged <algo>.yml)")
@@ -61,7 +62,8 @@ def add_parser(subparsers) -> None:
                    help="FastSLAM particles (default: the YAML's env_kwargs)")
     p.add_argument("--n-steps", type=int, default=None,
                    help="cut every training and evaluation path to this many iterations")
-    p.add_argument("--clutter-levels", default="0,1,2,3")
+    p.add_argument("--clutter-levels", default="0,1,2,3", metavar="L,...",
+                   help="clutter levels the training and evaluation worlds are drawn from")
     p.add_argument("--eval-every", type=int, default=25_000, help="decisions between evaluations")
     p.add_argument("--eval-seeds", default=DEFAULT_EVAL_SEEDS,
                    help="evaluation worlds per level (seeds < 1e6, never trained on)")
@@ -71,7 +73,8 @@ def add_parser(subparsers) -> None:
                         f"{DEFAULT_BASELINE}; 'none': skip; not with --prices)")
     p.add_argument("--eval-workers", type=int, default=None,
                    help="processes for evaluation (default: n_envs)")
-    p.add_argument("--checkpoint-every", type=int, default=25_000)
+    p.add_argument("--checkpoint-every", type=int, default=25_000, metavar="N",
+                   help="decisions between checkpoints (what --resume continues from)")
     p.add_argument("--resume", action="store_true",
                    help="continue unfinished seeds from their newest checkpoints")
     p.add_argument("--compute-clip-s", type=float, default=None,
@@ -112,7 +115,7 @@ def run(args) -> int:
     from slam_gym.training.run import TrainingSetup, train_run
 
     params = build_hyperparams(args)
-    seeds = int_list(args.seeds)
+    seeds = int_list(args.seeds, "seeds")
     if not seeds or len(set(seeds)) != len(seeds):
         raise ValueError(f"seeds={args.seeds!r} is invalid: must be distinct integers")
     if args.prices is not None:
@@ -136,8 +139,8 @@ def run(args) -> int:
     for seed in seeds:
         setup = TrainingSetup(
             algo=args.algo, env_id=args.env, seed=seed, hyperparams=params,
-            clutter_levels=tuple(int_list(args.clutter_levels)),
-            eval_seeds=tuple(int_list(args.eval_seeds)), eval_every=args.eval_every,
+            clutter_levels=tuple(int_list(args.clutter_levels, "clutter_levels")),
+            eval_seeds=tuple(int_list(args.eval_seeds, "eval_seeds")), eval_every=args.eval_every,
             eval_workers=args.eval_workers or params["n_envs"],
             checkpoint_every=args.checkpoint_every,
             command="slam-gym " + " ".join(sys.argv[1:]),
@@ -194,8 +197,8 @@ def run_sweep_command(args, params: dict, seeds: list[int]) -> int:
     out = out_dir(args)
     spec = SweepSpec(
         algo=args.algo, env_id=args.env, hyperparams=params, out=str(out.resolve()),
-        clutter_levels=tuple(int_list(args.clutter_levels)),
-        eval_seeds=tuple(int_list(args.eval_seeds)), eval_every=args.eval_every,
+        clutter_levels=tuple(int_list(args.clutter_levels, "clutter_levels")),
+        eval_seeds=tuple(int_list(args.eval_seeds, "eval_seeds")), eval_every=args.eval_every,
         eval_workers=args.eval_workers or params["n_envs"],
         checkpoint_every=args.checkpoint_every, compute_clip_s=args.compute_clip_s,
         command="slam-gym " + " ".join(sys.argv[1:]))

@@ -186,6 +186,8 @@ SELECTABLE_FEATURES: tuple[str, ...] = FEATURE_NAMES + ENV_FEATURE_NAMES
 
 OBSERVATION_MAX = 1e6
 """Observations are clipped to [0, OBSERVATION_MAX] (NaN -> 0): every feature is non-negative."""
+WORLD_SEED_LIMIT = 2**63
+"""World seeds are integers in [0, WORLD_SEED_LIMIT) (``reset(options={"world_seed": s})``)."""
 
 FRONT_ENDS = ("fastslam", "ekf")
 RANDOM_STREAMS = ("synchronised", "ordered")
@@ -421,7 +423,7 @@ class HybridSLAMEnv(gym.Env):
         world_seed = options.pop("world_seed", None)
         require(world_seed is None or (isinstance(world_seed, (int, np.integer))
                                        and not isinstance(world_seed, bool)
-                                       and 0 <= world_seed < 2**63),
+                                       and 0 <= world_seed < WORLD_SEED_LIMIT),
                 "world_seed", world_seed, "None or an integer in [0, 2**63)")
         draw = options.pop("draw", 0)
         require(isinstance(draw, (int, np.integer)) and not isinstance(draw, bool)

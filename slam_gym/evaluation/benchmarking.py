@@ -25,6 +25,13 @@ Each action is checked as it is returned (:func:`policies.base.check_action`): a
 dtype or value is a ``ValueError`` naming the policy and the value. A policy that raises turns
 its runs into error rows (``status="error"``, the message and traceback in the row) and the rest
 of the benchmark completes; the summary counts errors apart and excludes them from the rates.
+
+The figures never call a policy: the runs of the figure world (the first seed at the last
+clutter level) record what the episode figures draw as they run (:mod:`.episodes`), under the
+executors' error handling and time limit, and the figures are drawn from those recordings and
+from the summary. A policy whose run of that world is an error row is left out of them, with a
+note in the figure; a figure that cannot be drawn is logged in one line and left out
+(:attr:`BenchmarkResult.figure_errors`), and changes nothing else.
 """
 
 from __future__ import annotations
@@ -33,8 +40,8 @@ import functools
 import logging
 import os
 import pickle
-from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -47,16 +54,25 @@ logger = logging.getLogger(__name__)
 BASELINE_SYSTEMS = ("dead-reckoning",)
 """Systems that can run beside the policies on the same worlds (``baselines``)."""
 
+MAX_RUNS = {"process": 20_000, "serial": 20_000, "ray": 200_000}
+"""The most runs one benchmark makes, per executor, checked before any job is built: 20 000 runs
+on one machine are days of work at the benchmark's default size (a run takes seconds to
+minutes; 2 cores), and a list of a million jobs takes the better part of a gigabyte and minutes
+to build before the first run. More worlds: several benchmarks with other ``seed_start`` values,
+or Ray on a cluster."""
+
 
 @dataclass(frozen=True)
 class BenchmarkResult:
     """What :func:`benchmark` returns: the ``results.jsonl`` rows of its jobs (in job order),
-    the ``summary.json`` document, the figures written (name -> path) and the output folder."""
+    the ``summary.json`` document, the figures written (name -> path), the output folder, and
+    the figures that could not be drawn (name -> one-line reason; also logged)."""
 
     rows: list[dict[str, Any]]
     summary: dict[str, Any]
     figures: dict[str, str]
     out: Path
+    figure_errors: dict[str, str] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -136,14 +152,47 @@ def _check_picklable(entries: Sequence[PolicyEntry], executor: str) -> None:
                 f"in a function or as a lambda; or use executor='serial'): {exc}") from exc
 
 
-def _seed_range(seeds: int | Iterable[int], seed_start: int) -> list[int]:
+def _check_size(n_seeds: int, seeds: Any, runs_per_seed: int, n_levels: int,
+                executor: str) -> None:
+    """At most :data:`MAX_RUNS` runs (``ValueError`` naming ``seeds``), before any job is
+    built."""
+    limit = MAX_RUNS.get(executor, MAX_RUNS["process"])
+    n_runs = n_seeds * runs_per_seed * n_levels
+    if n_runs <= limit:
+        return
+    ray = "" if executor == "ray" else (f", or use the ray executor (--executor ray, at most "
+                                        f"{MAX_RUNS['ray']} runs) on a cluster")
+    require(False, "seeds", seeds,
+            f"at most {limit} runs with executor {executor!r}, and {n_seeds} seeds x "
+            f"{runs_per_seed} policies and baselines x {n_levels} clutter levels are {n_runs}: "
+            f"split them over several benchmarks with other first seeds (--seed-start) and "
+            f"outputs{ray}")
+
+
+def _seed_range(seeds: int | Iterable[int], seed_start: int, runs_per_seed: int = 1,
+                n_levels: int = 1, executor: str = "process") -> list[int]:
+    """The seeds of the benchmark, each a world seed of the env (:data:`WORLD_SEED_LIMIT`),
+    checked against :data:`MAX_RUNS` before the list is made."""
+    from slam_gym.envs.hybrid_slam import WORLD_SEED_LIMIT
+
     if isinstance(seeds, (int, np.integer)) and not isinstance(seeds, bool):
         require(seeds >= 1, "seeds", seeds, "a number of worlds >= 1 or a list of seeds")
-        return list(range(seed_start, seed_start + int(seeds)))
+        _check_size(int(seeds), seeds, runs_per_seed, n_levels, executor)
+        last = WORLD_SEED_LIMIT - int(seeds)
+        require(isinstance(seed_start, (int, np.integer)) and not isinstance(seed_start, bool)
+                and 0 <= seed_start <= last, "seed_start", seed_start,
+                f"an integer in [0, {last}], so that all {int(seeds)} seeds from it are world "
+                "seeds of the env (integers in [0, 2**63))")
+        return list(range(int(seed_start), int(seed_start) + int(seeds)))
+    if hasattr(seeds, "__len__"):  # a range or list: its size before it is copied
+        _check_size(len(seeds), f"<{len(seeds)} seeds>", runs_per_seed, n_levels, executor)
     values = list(seeds)
-    require(bool(values) and all(isinstance(s, int) and s >= 0 for s in values), "seeds",
-            seeds, "a number of worlds >= 1 or a list of seeds >= 0")
-    return values
+    require(bool(values) and all(isinstance(s, (int, np.integer)) and not isinstance(s, bool)
+                                 and 0 <= s < WORLD_SEED_LIMIT for s in values), "seeds",
+            seeds, "a number of worlds >= 1 or a list of seeds in [0, 2**63)")
+    require(len(set(values)) == len(values), "seeds", seeds, "distinct seeds")
+    _check_size(len(values), f"<{len(values)} seeds>", runs_per_seed, n_levels, executor)
+    return [int(s) for s in values]
 
 
 def _check_env_options(scenario: str, levels: Sequence[int], **options: Any) -> None:
@@ -245,10 +294,9 @@ def benchmark(
     Every option is checked before any run (``ValueError`` naming it): the env's options
     through :class:`~slam_gym.envs.hybrid_slam.HybridSLAMConfig` at every clutter level.
     """
-    from slam_gym.evaluation.core import learned_options, run_job
+    from slam_gym.evaluation.core import learned_options
     from slam_gym.evaluation.executors import run_jobs
     from slam_gym.evaluation.jobs import Job
-    from slam_gym.evaluation.plots import plot_pareto, plot_success_rates
     from slam_gym.evaluation.summary import write_summary
 
     entries = resolve_policies(policies, model)
@@ -270,9 +318,12 @@ def benchmark(
     baselines = list(baselines)
     bad = [b for b in baselines if b not in BASELINE_SYSTEMS]
     require(not bad, "baselines", bad, f"among {list(BASELINE_SYSTEMS)}")
+    require(len(set(baselines)) == len(baselines), "baselines", baselines, "distinct systems")
     levels = [int(level) for level in clutter_levels]
     require(bool(levels), "clutter_levels", levels, "at least one level")
-    seed_list = _seed_range(seeds, seed_start)
+    require(len(set(levels)) == len(levels), "clutter_levels", levels, "distinct levels")
+    seed_list = _seed_range(seeds, seed_start, len(entries) + len(baselines), len(levels),
+                            executor)
     _check_env_options(scenario, levels, n_particles=n_particles,
                        decision_interval=decision_interval, front_end=front_end,
                        back_end=back_end, n_steps=n_steps, w_compute=w_compute,
@@ -299,65 +350,152 @@ def benchmark(
     jobs += [Job("system", name, scenario, level, seed, system_opts)
              for name in baselines for level in levels for seed in seed_list]
     shipped = {e.name: e.shipped for e in entries if e.shipped is not None}
-    run_fn = functools.partial(run_job, policy_factories=shipped) if shipped else run_job
-    rows = run_jobs(jobs, run_fn, out, workers=workers, executor=executor,
-                    ray_address=ray_address, progress=progress, retry_errors=retry_errors,
-                    rerun_changed=rerun_changed, run_timeout_s=run_timeout_s)
+    world = (levels[-1], seed_list[0])  # the world of the episode figures
+    recorder = None
+    if figures:
+        from slam_gym.evaluation.episodes import EpisodeRecorder
+
+        recorder = EpisodeRecorder(str(out), frozenset(  # draw 0 of each policy's world run
+            j.key for j in jobs if j.kind == "policy" and (j.clutter_level, j.seed) == world
+            and j.options_dict().get("draw", 0) == 0))
+    run_fn = _run_function(shipped, recorder)
+    run_kwargs = {"workers": workers, "executor": executor, "ray_address": ray_address,
+                  "retry_errors": retry_errors, "rerun_changed": rerun_changed,
+                  "run_timeout_s": run_timeout_s}
+    rows = run_jobs(jobs, run_fn, out, progress=progress, **run_kwargs)
     doc = write_summary(out, rows)
     written: dict[str, str] = {}
+    errors: dict[str, str] = {}
     if figures:
-        written["success"] = str(plot_success_rates(doc, out / "success_rates.png",
-                                                    title="Success rate per clutter level"))
         env_name = env or f"{front_end} front-end, {back_end} back-end"
-        if any(g.get("map_error_m_succeeded") is not None for g in doc["groups"]):
-            written["pareto"] = str(plot_pareto(
-                doc, out / "pareto.png",
-                title=f"Map error against all compute ({env_name}, {n_particles} particles)",
-            ))
-            written["pareto_interface"] = str(plot_pareto(
-                doc, out / "pareto_interface.png", x="interface_cpu_s",
-                title=f"Map error against the compute of fusions and optimisations "
-                f"({env_name}, {n_particles} particles)",
-            ))
+        summary_figures(doc, out, f"{env_name}, {n_particles} particles", written, errors)
+        world_jobs = [j for j in jobs if j.key in recorder.keys]
+        _record_missing(world_jobs, rows, jobs, out, run_fn, run_kwargs, errors)
+        draw_figure("episodes", lambda: episode_figures(
+            world_jobs, {j.key: r for j, r in zip(jobs, rows, strict=True)}, out,
+            level=world[0], seed=world[1], written=written, errors=errors), written, errors)
+    return BenchmarkResult(rows=rows, summary=doc, figures=written, out=out,
+                           figure_errors=errors)
+
+
+def _run_function(shipped: Mapping[str, Any], recorder: Any) -> Callable:
+    """The run function of the benchmark's jobs: :func:`~slam_gym.evaluation.core.run_job`
+    with the policies only this process knows and the recorder of the figure world's runs."""
+    from slam_gym.evaluation.core import run_job
+
+    kwargs = {k: v for k, v in (("policy_factories", shipped or None), ("recorder", recorder))
+              if v is not None}
+    return functools.partial(run_job, **kwargs) if kwargs else run_job
+
+
+def draw_figure(name: str, draw: Callable[[], Any], written: dict[str, str],
+                errors: dict[str, str]) -> None:
+    """Draw one figure (``draw()`` returns its path, or None when it has nothing to draw):
+    its path goes into ``written``; an exception is logged in one line and kept in ``errors``,
+    never raised (a figure cannot undo the runs)."""
+    try:
+        path = draw()
+    except Exception as exc:
+        errors[name] = f"{type(exc).__name__}: {exc}".splitlines()[0]
+        logger.warning("figure %s not written: %s", name, errors[name])
+        return
+    if path is not None:
+        written[name] = str(path)
+
+
+def summary_figures(doc: Mapping[str, Any], out: Path, system: str, written: dict[str, str],
+                    errors: dict[str, str]) -> None:
+    """The figures of the summary: success rates and the two Pareto figures, each left out
+    with a logged line when no group has what it draws."""
+    from slam_gym.evaluation.plots import plot_pareto, plot_success_rates
+
+    groups = doc["groups"]
+    if any(g.get("success_rate") is not None for g in groups):
+        draw_figure("success", lambda: plot_success_rates(
+            doc, out / "success_rates.png", title="Success rate per clutter level"),
+            written, errors)
+    else:
+        logger.warning("no run finished without an error: no success rates to plot "
+                       "(success_rates.png is left out)")
+    if not any(g.get("map_error_m_succeeded") is not None for g in groups):
+        logger.warning("no policy succeeded in any world: no map error to plot against "
+                       "compute (the Pareto figures are left out)")
+        return
+    draw_figure("pareto", lambda: plot_pareto(
+        doc, out / "pareto.png", title=f"Map error against all compute ({system})"),
+        written, errors)
+    draw_figure("pareto_interface", lambda: plot_pareto(
+        doc, out / "pareto_interface.png", x="interface_cpu_s",
+        title=f"Map error against the compute of fusions and optimisations ({system})"),
+        written, errors)
+
+
+def _record_missing(world_jobs: Sequence[Any], rows: Sequence[Mapping[str, Any]],
+                    jobs: Sequence[Any], out: Path, run_fn: Callable,
+                    run_kwargs: Mapping[str, Any], errors: dict[str, str]) -> None:
+    """Runs of the figure world that finished without a recording (their rows predate
+    recordings, e.g. an output folder of an earlier version) are run again to record them,
+    through the same executor, error handling and time limit as the benchmark's runs, into
+    ``OUT/episodes`` (resumable there too); their rows there are not the benchmark's."""
+    from slam_gym.evaluation.episodes import EPISODES_DIRNAME, episode_path
+    from slam_gym.evaluation.executors import run_jobs
+
+    status = {j.key: r.get("status") for j, r in zip(jobs, rows, strict=True)}
+    missing = [j for j in world_jobs
+               if status.get(j.key) == "ok" and not episode_path(out, j.key).is_file()]
+    if not missing:
+        return
+    logger.warning("%d run(s) of the figure world have no recording (rows of an earlier "
+                   "version): running them again to record them", len(missing))
+    try:
+        run_jobs(missing, run_fn, out / EPISODES_DIRNAME, progress=False, **run_kwargs)
+    except Exception as exc:  # the figures then leave those policies out, and say so
+        errors["recordings"] = f"{type(exc).__name__}: {exc}".splitlines()[0]
+        logger.warning("the figure world's runs were not recorded: %s", errors["recordings"])
+
+
+def episode_figures(world_jobs: Sequence[Any], rows_by_key: Mapping[str, Mapping[str, Any]],
+                    out: Path, *, level: int, seed: int, written: dict[str, str],
+                    errors: dict[str, str]) -> None:
+    """The figures of one world from its runs' recordings (:mod:`.episodes`): every policy's
+    vehicle uncertainty and NEES traces, when each fused and optimised against the loop
+    closure, and the map of one run (the first policy's run that did not fail, else the first
+    drawn, its failure in the title). A policy whose run there is an error row, or has no
+    readable recording, is left out with a note in each figure."""
+    from slam_gym.evaluation.episodes import episode_path, read_episode, timeline_of
+    from slam_gym.evaluation.plots import plot_nees, plot_recorded_map, plot_uncertainty_traces
+    from slam_gym.evaluation.timeline import plot_decision_timelines
+
+    recordings: dict[str, dict[str, Any]] = {}
+    notes: list[str] = []
+    for job in world_jobs:
+        row = rows_by_key.get(job.key) or {}
+        path = episode_path(out, job.key)
+        if row.get("status") != "ok":
+            notes.append(f"{job.name}: its run here is an error row")
+        elif not path.is_file():
+            notes.append(f"{job.name}: its run here was not recorded")
         else:
-            logger.warning("no policy succeeded in any world: no map error to plot against "
-                           "compute (the Pareto figures are left out)")
-        written.update(episode_figures(
-            entries, scenario=scenario, level=levels[-1], seed=seed_list[0], out=out,
-            model=model, n_particles=n_particles, decision_interval=decision_interval,
-            front_end=front_end, back_end=back_end, n_steps=n_steps, w_compute=w_compute,
-            compute_clip_s=compute_clip_s))
-    return BenchmarkResult(rows=rows, summary=doc, figures=written, out=out)
-
-
-def episode_figures(entries: Sequence[PolicyEntry], *, scenario: str, level: int, seed: int,
-                    out: Path, model: str | None, **env_options: Any) -> dict[str, str]:
-    """Uncertainty and NEES traces of every policy on one world, that world's map (of the first
-    policy), and when each policy fused and optimised against the loop closure."""
-    from slam_gym.evaluation.core import make_policy
-    from slam_gym.evaluation.plots import plot_episode_map, plot_nees, plot_uncertainty_traces
-    from slam_gym.evaluation.timeline import decision_timeline, plot_decision_timelines
-
-    shipped = {e.name: e.shipped for e in entries if e.shipped is not None}
-    traces, nees, runs, timelines = {}, {}, [], {}
-    for entry in entries:
-        policy = make_policy(entry.name, model_path=model, factories=shipped)
-        timeline, episode, env = decision_timeline(policy, scenario, level, seed,
-                                                   policy_name=entry.name, **env_options)
-        traces[entry.name] = np.array(episode.trace.cov_trace)
-        nees[entry.name] = np.array(episode.trace.nees)
-        timelines[entry.name] = timeline
-        runs.append((entry.name, episode, env))
-    dt = runs[0][2].stream.dt_s
+            try:
+                recordings[job.name] = read_episode(path)
+            except ValueError as exc:
+                logger.warning("%s", exc)
+                notes.append(f"{job.name}: its recording cannot be read")
     where = f"clutter level {level}, seed {seed}"
-    figures = {
-        "uncertainty": str(plot_uncertainty_traces(
-            traces, out / "uncertainty_traces.png", dt_s=dt,
-            title=f"Vehicle uncertainty, {where}")),
-        "nees": str(plot_nees(nees, out / "nees.png", dt_s=dt, title=f"Vehicle NEES, {where}")),
-        "decisions": str(plot_decision_timelines(
-            timelines, out / "decisions.png", title=f"Fusions and optimisations, {where}")),
-    }
-    name, episode, _ = runs[0]
-    figures["map"] = plot_episode_map(episode, out / "map.png", f"{name}, {where}")
-    return figures
+    if not recordings:
+        logger.warning("no policy's run on %s finished with a recording: the uncertainty, "
+                       "NEES, decision and map figures are left out", where)
+        return
+    dt = next(iter(recordings.values()))["dt_s"]
+    draw_figure("uncertainty", lambda: plot_uncertainty_traces(
+        {n: r["cov_trace"] for n, r in recordings.items()}, out / "uncertainty_traces.png",
+        dt_s=dt, title=f"Vehicle uncertainty, {where}", notes=notes), written, errors)
+    draw_figure("nees", lambda: plot_nees(
+        {n: r["nees"] for n, r in recordings.items()}, out / "nees.png", dt_s=dt,
+        title=f"Vehicle NEES, {where}", notes=notes), written, errors)
+    draw_figure("decisions", lambda: plot_decision_timelines(
+        {n: timeline_of(r) for n, r in recordings.items()}, out / "decisions.png",
+        title=f"Fusions and optimisations, {where}", notes=notes), written, errors)
+    name = next((n for n, r in recordings.items() if not r["failed"]), next(iter(recordings)))
+    draw_figure("map", lambda: plot_recorded_map(
+        recordings[name], out / "map.png", f"{name}, {where}"), written, errors)

@@ -319,12 +319,16 @@ def episode_result(episode: Episode, stream) -> dict:
     return metrics
 
 
-def run_job(job, policy_factories=None) -> dict:
+def run_job(job, policy_factories=None, recorder=None) -> dict:
     """The run function of the evaluation machinery (picklable, module level).
 
     ``policy_factories`` (policy name -> factory or policy object) names the policies a worker
     cannot resolve by name; pass it with ``functools.partial(run_job, policy_factories=...)``,
     which pickles when the factories do (module-level classes and functions, picklable objects).
+    ``recorder`` (e.g. :class:`slam_gym.evaluation.episodes.EpisodeRecorder`): its
+    ``start(job)`` returns None or a recording whose ``on_step`` sees every decision of a policy
+    run and whose ``finish(episode, env)`` keeps what the figures draw (the benchmark's figures
+    are drawn from the runs themselves, never from a replay).
     """
     if job.kind == "system":
         opts = _options(job.options_dict(), SYSTEM_OPTIONS, "system")
@@ -340,8 +344,13 @@ def run_job(job, policy_factories=None) -> dict:
     policy = make_policy(job.name, model_path=opts.pop("model_path"),
                          model_sha256=opts.pop("model_sha256"),
                          deterministic=opts.pop("deterministic"), factories=policy_factories)
+    recording = recorder.start(job) if recorder is not None else None
     episode, env = run_policy_object(policy, job.scenario, job.clutter_level, job.seed,
-                                     policy_name=job.name, **opts)
+                                     policy_name=job.name,
+                                     on_step=None if recording is None else recording.on_step,
+                                     **opts)
+    if recording is not None:
+        recording.finish(episode, env)
     row = episode_result(episode, env.stream)
     row["draw"] = int(opts["draw"])
     row.update(provenance_fields(policy))

@@ -416,16 +416,11 @@ def table_cells(
     header = [name_header]
     header += ["scenario"] if show_scenario else []
     header += ["options"] if show_options else []
-    header += ["clutter", "n", "errors", "success [95 % CI]"]
+    # consistency and map error first: the mission's measures (issue 46); success after them
+    header += ["clutter", "n", "errors", "NEES in band", "ANEES", "map error (m) mean / median",
+               "success [95 % CI]"]
     header += ["paper"] if show_paper else []
-    header += [
-        "ANEES",
-        "NEES in band",
-        "map error (m) mean / median",
-        "fusions",
-        "optimisations",
-        "time (s)",
-    ]
+    header += ["fusions", "optimisations", "time (s)"]
     header += ["completeness", "CPU fusion / optimise / total (s)"] if show_compute else []
     header += ["return (failed / succeeded)"] if show_return else []
     body = []
@@ -437,13 +432,15 @@ def table_cells(
         if show_options:
             cells.append(", ".join(f"{k}={v}" for k, v in (g.get("options") or {}).items()))
         cells += ["–" if level is None else str(level), str(g["n"]), str(g["n_errors"])]
-        cells.append(format_success(g))
-        cells += [_pct(ref(g))] if show_paper else []
         map_err = g.get("map_error_m") or {}
         cells += [
-            _num(g.get("anees")),
             _pct(g.get("nees_in_band_fraction")),
+            _num(g.get("anees")),
             f"{_num(map_err.get('mean'))} / {_num(map_err.get('median'))}",
+            format_success(g),
+        ]
+        cells += [_pct(ref(g))] if show_paper else []
+        cells += [
             _num(g.get("n_fusions"), 1),
             _num(g.get("n_optimisations"), 1),
             _num(g.get("wall_time_s"), 1),
@@ -522,6 +519,98 @@ def format_table(
     out += [line(header), "  ".join("-" * w for w in widths), *map(line, body)]
     out += [footnote] if footnote else []
     return "\n".join(out)
+
+
+KEY_COLUMNS = frozenset(("scenario", "options", "clutter"))
+"""Columns (besides the first, the name) repeated in every part of a split console table."""
+
+_BOX_COST = 3
+"""Characters a column of a rich table costs besides its text: a border and two of padding."""
+
+
+def _longest_word(text: str) -> int:
+    return max((len(word) for word in text.split()), default=0)
+
+
+def split_columns(header: Sequence[str], body: Sequence[Sequence[str]], width: int
+                  ) -> list[list[tuple[int, int]]]:
+    """How a table of ``header`` and ``body`` fits ``width`` characters of a rich table with
+    borders: its parts, each a list of (column index, column width). The first column and
+    :data:`KEY_COLUMNS` are in every part, the others in order, as many per part as fit. A cell
+    is never cut: a column is as wide as its widest cell, and a header folds at spaces (a column
+    as wide as the header's longest word) only in a part that does not fit at the headers' full
+    widths. Only a column too wide to fit beside the key columns even alone wraps its cells, at
+    spaces (never narrower than its longest word; the key columns never wrap, so such a part
+    may be wider than ``width``)."""
+    n = len(header)
+
+    def widths_of(head_width, cell_width) -> list[int]:
+        return [max([head_width(header[i]), *(cell_width(row[i]) for row in body)])
+                for i in range(n)]
+
+    def cost(columns, widths) -> int:
+        return sum(widths[i] + _BOX_COST for i in columns) + 1
+
+    keys = [0] + [i for i in range(1, n) if header[i] in KEY_COLUMNS]
+    others = [i for i in range(n) if i not in keys]
+    full = widths_of(len, len)
+    compact = widths_of(_longest_word, len)
+    narrowest = widths_of(_longest_word, _longest_word)
+    parts: list[list[int]] = []
+    current: list[int] = []
+    for i in others:
+        if current and cost(keys + current + [i], compact) > width:
+            parts.append(current)
+            current = []
+        current.append(i)
+    parts.append(current)
+    out = []
+    for part in parts:
+        columns = sorted(keys + part)
+        widths = list(full if cost(columns, full) <= width else compact)
+        if len(part) == 1 and cost(columns, widths) > width:  # wrap its cells at spaces
+            i = part[0]
+            widths[i] = max(narrowest[i], width - cost(keys, widths) - _BOX_COST)
+        out.append([(i, widths[i]) for i in columns])
+    return out
+
+
+def parts_width(part: Sequence[tuple[int, int]]) -> int:
+    """The characters a part of :func:`split_columns` takes."""
+    return sum(w + _BOX_COST for _, w in part) + 1
+
+
+def format_tables(
+    summary: Mapping[str, Any] | Sequence[Mapping[str, Any]],
+    *,
+    width: int,
+    paper: PaperValues | None = None,
+    title: str | None = "Benchmark summary (success: Wilson 95 % interval)",
+) -> list[Any]:
+    """The console table as ``rich.table.Table`` parts that fit ``width`` characters
+    (:func:`split_columns`): one table when it fits, else the columns spread over several,
+    each repeating the names (and clutter level). The title heads the first part, the footnote
+    closes the last. A part's ``min_width`` is its width: print it at least that wide (a part
+    can be wider than ``width`` only when its names alone are)."""
+    from rich.table import Table
+
+    header, body = table_cells(summary, paper=paper)
+    footnote = provenance_footnote(_groups(summary))
+    parts = split_columns(header, body, width)
+    tables = []
+    for k, columns in enumerate(parts):
+        part_title = title if k == 0 else None
+        if title and len(parts) > 1:
+            part_title = f"{title} ({k + 1}/{len(parts)})" if k == 0 else f"({k + 1}/{len(parts)})"
+        table = Table(title=part_title, caption=footnote if k == len(parts) - 1 else None,
+                      min_width=max(parts_width(columns), 1))
+        for i, w in columns:
+            table.add_column(header[i], justify="left" if i == 0 else "right",
+                             overflow="fold", min_width=w, max_width=w)
+        for cells in body:
+            table.add_row(*(cells[i] for i, _ in columns))
+        tables.append(table)
+    return tables
 
 
 def _write_atomic(path: Path, text: str) -> None:

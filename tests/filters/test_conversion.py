@@ -24,6 +24,9 @@ from filters.conversion import (
     vote_all,
 )
 
+# its module-scoped fixtures are built once: every test of this file on one worker (pytest -n)
+pytestmark = pytest.mark.xdist_group("test_conversion")
+
 
 def assert_spd(P, floor=0.0):
     assert np.allclose(P, P.T, atol=0.0, rtol=0.0), "not exactly symmetric"

@@ -15,6 +15,9 @@ from script_loader import load_script
 
 from filters.geometry import wrap_angle
 
+# its module-scoped fixtures are built once: every test of this file on one worker (pytest -n)
+pytestmark = pytest.mark.xdist_group("test_gtsam_reference")
+
 reference = load_script("performance/gtsam_reference.py")
 
 

@@ -29,6 +29,9 @@ from filters.types import GaussianMap
 from slam_gym.scenarios import SQUARE_LOOP_OVERRIDES
 from slam_gym.world import make_stream
 
+# its module-scoped fixtures are built once: every test of this file on one worker (pytest -n)
+pytestmark = pytest.mark.xdist_group("test_submap")
+
 SENSOR = RangeBearingSensor()
 NOISE = ProportionalVelocityNoise(v_floor_mps=0.005, omega_floor_radps=0.005)
 N_RUNS = 40

@@ -25,6 +25,9 @@ from filters.submap_optimise import _global_ids_of, _information_of, submap_arra
 from slam_gym.systems import make_system
 from slam_gym.world import make_stream
 
+# its module-scoped fixtures are built once: every test of this file on one worker (pytest -n)
+pytestmark = pytest.mark.xdist_group("test_submap_band_factor")
+
 
 @pytest.fixture(scope="module")
 def path_run():

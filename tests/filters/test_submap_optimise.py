@@ -25,6 +25,9 @@ from slam_gym.episode import Episode
 from slam_gym.scenarios import SQUARE_LOOP_OVERRIDES
 from slam_gym.world import make_stream
 
+# its module-scoped fixtures are built once: every test of this file on one worker (pytest -n)
+pytestmark = pytest.mark.xdist_group("test_submap_optimise")
+
 FUSE_EVERY = 100
 #: a small closed loop (side 27 m, ~1100 iterations) in a 60 m world: fast, with a loop closure
 # a small square loop (no sharp first turn: initial_heading_spread_rad=0, as before #14)

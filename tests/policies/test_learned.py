@@ -15,6 +15,9 @@ import policies
 import policies.learned as learned
 from policies.base import INTERFACE_FEATURES, discrete_to_multi, multi_to_discrete
 
+# its module-scoped fixtures are built once: every test of this file on one worker (pytest -n)
+pytestmark = pytest.mark.xdist_group("test_learned")
+
 N_OBS = 5
 
 

@@ -158,25 +158,57 @@ def test_retry_errors_reruns_error_rows_of_unchanged_code_and_allow_errors_exits
 
 
 @pytest.mark.parametrize("option, field", [
-    (["--particles", "-3"], "n_particles=-3"),
-    (["--n-steps", "0"], "n_steps=0"),
-    (["--clutter-levels", "5"], "clutter_level=5"),
-    (["--seeds", "0"], "trials=0"),
-    (["--run-timeout-s", "0"], "run_timeout_s=0"),
+    (["--particles", "-3"], "--particles -3 is invalid: must be an integer in [1,"),
+    (["--n-steps", "0"], "--n-steps 0 is invalid"),
+    (["--clutter-levels", "0,5"], "--clutter-levels 0,5 is invalid (clutter_level=5)"),
+    (["--clutter-levels", "2,2"], "--clutter-levels 2,2 is invalid: must be distinct levels"),
+    (["--clutter-levels", "two"], "--clutter-levels two is invalid: must be comma-separated "
+     "integers"),
+    (["--seeds", "0"], "--seeds 0 is invalid"),
+    (["--seeds", str(10**12)], f"--seeds {10**12} is invalid: must be at most 20000 runs"),
+    (["--seed-start", str(2**70)], f"--seed-start {2**70} is invalid: must be an integer in "
+     f"[0, {2**63 - 1}]"),
+    (["--seed-start", "-1"], "--seed-start -1 is invalid"),
+    (["--run-timeout-s", "0"], "--run-timeout-s 0 is invalid: must be a number of seconds > 0"),
     (["--ray-address", "auto"], "--ray-address auto is invalid with --executor process"),
     (["--workers", "4", "--executor", "serial"], "--workers 4 is invalid with --executor serial"),
-    (["--model", "m.zip"], "model='m.zip' is invalid: must be given only with policy 'learned'"),
+    (["--model", "m.zip"], "--model m.zip is invalid: must be given only with policy 'learned'"),
     (["--quick", "--policies", "never"], "--quick is invalid with --policies"),
     (["--policies", "json:dumps"], "policy 'json:dumps' is invalid"),
+    (["--particles", "many"], "argument --particles: invalid int value: 'many'"),
 ])
 def test_invalid_and_conflicting_options_exit_2_before_any_run(tmp_path, capsys, option, field):
+    """Each bad option: exit 2 and one line naming the option as typed, before any run."""
     out = tmp_path / "out"
     argv = ["benchmark", *TINY, "--seeds", "1", "--out", str(out), *option]
     if "--policies" not in option:
         argv[1:1] = ["--policies", "never"]
-    assert main(argv) == 2
+    try:
+        code = main(argv)
+    except SystemExit as exc:  # argparse's own errors
+        code = exc.code
+    assert code == 2
     assert field in one_line(capsys.readouterr().err)
     assert not (out / "results.jsonl").exists()
+
+
+def test_sizes_are_bounded_before_any_job_is_built(tmp_path, capsys):
+    """A million seeds of the default eight rules and a baseline at four levels are refused at
+    once (not after minutes of building jobs), naming the number of runs and the ways on."""
+    t0 = time.monotonic()
+    argv = ["benchmark", "--seeds", "1000000", "--baselines", "dead-reckoning", "--quiet",
+            "--out", str(tmp_path / "out")]
+    assert main(argv) == 2
+    err = one_line(capsys.readouterr().err)
+    assert time.monotonic() - t0 < 30
+    assert "--seeds 1000000 is invalid" in err and "36000000" in err
+    assert "--seed-start" in err and "--executor ray" in err
+    from slam_gym.evaluation import benchmark
+
+    with pytest.raises(ValueError, match="seed_start=9223372036854775807 is invalid"):
+        benchmark(["never"], seeds=2, seed_start=2**63 - 1, out=tmp_path / "py")
+    with pytest.raises(ValueError, match="seeds=.* is invalid: must be distinct seeds"):
+        benchmark(["never"], seeds=[1, 1], out=tmp_path / "py")
 
 
 def test_quick_keeps_explicit_seeds_and_particles():
@@ -206,7 +238,7 @@ def test_output_directory_problems_are_one_line(tmp_path, capsys):
     for out in (a_file, a_file / "below"):
         assert benchmark_cli(out, "never", "--seeds", "1", "--executor", "serial") == 2
         err = one_line(capsys.readouterr().err)
-        assert f"out={str(out)!r} is invalid" in err and "output directory" in err
+        assert f"--out {out} is invalid" in err and "output directory" in err
 
 
 def test_a_locked_output_is_one_line_and_exits_1(tmp_path, capsys):
@@ -264,7 +296,7 @@ def test_a_corrupt_model_names_the_file_and_never_suggests_unsafe_loading(tmp_pa
             "--out", str(tmp_path / "out")]
     assert main(argv) == 2
     err = one_line(capsys.readouterr().err)
-    assert f"model={str(model)!r} is invalid" in err and "weights_only" not in err
+    assert f"--model {model} is invalid" in err and "weights_only" not in err
     assert not [w for w in recwarn if "weights_only" in str(w.message)]  # nor torch's warning
     with pytest.raises(ValueError, match="cannot load it"):
         main(["--debug", *argv])
@@ -406,7 +438,7 @@ def test_the_benchmark_figures_stay_within_their_quantities_bounds(tmp_path, cap
     for x in ("interface_cpu_s", "total_cpu_s"):
         fig = pareto_figure(doc, x=x)
         ax = fig.axes[0]
-        assert ax.get_xscale() == "log" and "(s, log scale)" in ax.get_xlabel()
+        assert ax.get_xscale() == "log" and "(s, log scale)" in fig.get_supxlabel()
         assert ax.get_ylabel() == "map error of the successful runs (m)"
         assert ax.get_ylim()[0] >= 0.0
         segments = [s for c in ax.collections if isinstance(c, LineCollection)
@@ -425,6 +457,7 @@ def test_the_benchmark_figures_stay_within_their_quantities_bounds(tmp_path, cap
         assert any(b == 3 for _, b in counts)  # the CPU time of all 3 runs
 
 
+@pytest.mark.xdist_group("ray")  # one local Ray instance at a time (pytest -n)
 def test_the_ray_executor_stops_a_run_over_its_time_limit(tmp_path):
     """Ray runs each job in a worker process's main thread, where the time limit's timer
     interrupts it: the sleeping run is an error row saying so, the other one completes."""
@@ -512,14 +545,20 @@ def test_threshold_rule_with_error_rows_chooses_among_finished_rules_and_exits_3
 
 
 @pytest.mark.parametrize("argv_of, option, field", [
-    (front_argv, ["--particles", "-3"], "n_particles=-3"),
-    (front_argv, ["--seeds", "0"], "trials=0"),
-    (front_argv, ["--run-timeout-s", "0"], "run_timeout_s=0"),
+    (front_argv, ["--particles", "-3"], "--particles -3 is invalid"),
+    (front_argv, ["--seeds", "0"], "--seeds 0 is invalid"),
+    (front_argv, ["--run-timeout-s", "0"], "--run-timeout-s 0 is invalid"),
     (front_argv, ["--workers", "4"], "--workers 4 is invalid with --executor serial"),
-    (front_argv, ["--compare-model", "no-such-model.zip"], "compare_model="),
-    (threshold_rule_argv, ["--particles", "-3"], "n_particles=-3"),
-    (threshold_rule_argv, ["--n-steps", "0"], "n_steps=0"),
-    (threshold_rule_argv, ["--run-timeout-s", "0"], "run_timeout_s=0"),
+    (front_argv, ["--compare-model", "no-such-model.zip"],
+     "--compare-model no-such-model.zip is invalid"),
+    (front_argv, ["--prices", "abc"], "--prices abc is invalid: must be comma-separated numbers"),
+    (front_argv, ["--clutter-levels", "2,2"], "--clutter-levels 2,2 is invalid: must be "
+     "distinct levels"),
+    (threshold_rule_argv, ["--particles", "-3"], "--particles -3 is invalid"),
+    (threshold_rule_argv, ["--n-steps", "0"], "--n-steps 0 is invalid"),
+    (threshold_rule_argv, ["--run-timeout-s", "0"], "--run-timeout-s 0 is invalid"),
+    (threshold_rule_argv, ["--prices", "1,x"], "--prices 1,x is invalid: must be "
+     "comma-separated numbers"),
     (threshold_rule_argv, ["--workers", "4"], "--workers 4 is invalid with --executor serial"),
     (threshold_rule_argv, ["--ray-address", "auto"],
      "--ray-address auto is invalid with --executor serial"),

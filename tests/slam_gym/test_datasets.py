@@ -36,6 +36,9 @@ from slam_gym.datasets.estimators import (
 from slam_gym.datasets.mrclam import compensate_motion
 from slam_gym.datasets.victoria_park import VehicleGeometry, laser_to_vehicle, read_geometry
 
+# its module-scoped fixtures are built once: every test of this file on one worker (pytest -n)
+pytestmark = pytest.mark.xdist_group("test_datasets")
+
 ROBOT = 3  # has robot sightings and unknown barcodes (34, 52)
 DT = 0.1
 VP_DT = 0.025

@@ -296,6 +296,7 @@ def test_invalid_results_and_arguments(tmp_path):
         read_results(bad)
 
 
+@pytest.mark.xdist_group("ray")  # one local Ray instance at a time (pytest -n)
 def test_ray_gives_the_same_rows_as_the_process_pool(tmp_path):
     try:
         import ray  # noqa: F401

@@ -54,7 +54,10 @@ def test_a_cloned_policy_makes_the_rules_decisions_on_worlds_it_never_saw(env_id
     model = PPO("MlpPolicy", train, seed=0, device="cpu", n_steps=64, batch_size=64,
                 policy_kwargs={"net_arch": [64, 64]})
     rule = _rule_of(env_id)
-    obs, actions = rule_demonstrations(train, rule, 1500 if "Interval" in env_id else 3000)
+    # the interval rule is one constant action: 400 of its decisions (a whole fusion interval
+    # each) teach it; the per-decision rule, fusing at one decision in ten, needs 3000 (2000
+    # reached 0.985 on the held-out worlds)
+    obs, actions = rule_demonstrations(train, rule, 400 if "Interval" in env_id else 3000)
     assert agreement(model, obs, actions) < 0.9  # SB3's initial policy is not the rule
     report = clone_rule(model, obs, actions, target_agreement=0.999, max_epochs=400)
     assert report["agreement"] >= 0.999
@@ -64,7 +67,7 @@ def test_a_cloned_policy_makes_the_rules_decisions_on_worlds_it_never_saw(env_id
     held_out = VecNormalize(_vec(env_id, lambda env: FixedWorlds(env, worlds)),
                             norm_reward=False, clip_obs=10.0, training=False)
     held_out.obs_rms = train.obs_rms  # the statistics the learner trained with, frozen
-    new_obs, new_actions = rule_demonstrations(held_out, rule, 400 if "Interval" in env_id
+    new_obs, new_actions = rule_demonstrations(held_out, rule, 150 if "Interval" in env_id
                                                else 1500)
     assert agreement(model, new_obs, new_actions) >= 0.99
 

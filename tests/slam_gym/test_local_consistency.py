@@ -10,6 +10,9 @@ from filters.fastslam import LOCAL_MAP_MAX_EXISTENCE, FastSLAM2
 from slam_gym.local_consistency import local_pose_nees_at_fusion
 from slam_gym.world import make_stream
 
+# its module-scoped fixtures are built once: every test of this file on one worker (pytest -n)
+pytestmark = pytest.mark.xdist_group("test_local_consistency")
+
 LO, HI = chi2.ppf([0.025, 0.975], 3)
 
 
