@@ -6,8 +6,8 @@ import argparse
 import importlib
 import sys
 
-COMMAND_MODULES = ("simulate", "reproduce", "benchmark", "train", "threshold-rule", "front",
-                   "fingerprint", "speed")
+COMMAND_MODULES = ("simulate", "reproduce", "benchmark", "compare", "train", "threshold-rule",
+                   "front", "fingerprint", "speed")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -8,6 +8,11 @@ model matches, 1 when it does not (or records no fingerprint).
 ``--stamp`` writes the current fingerprint into the model's JSON instead: for a model trained on
 this very code whose JSON predates fingerprints (or was copied without one). Stamping asserts
 that the model was trained on this code; the fingerprint then carries ``"stamped": true``.
+
+A model trained on an env id's earlier version (``-v0``: the filter's random numbers in one
+ordered stream) says so, with what its config's ``env_version_check`` records: whether it was
+compared on the current version against its earlier self and re-stamped, or not and why
+(issue 46).
 """
 
 from __future__ import annotations
@@ -31,6 +36,30 @@ def add_parser(subparsers) -> None:
                         "trained on this code)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     p.set_defaults(run=run)
+
+
+def env_version_lines(config: dict) -> tuple[list[str], dict]:
+    """What the model's env version is, against the current one, and what was done about it."""
+    from slam_gym.envs import env_version, system_env_id
+
+    env_id = config.get("env_id") or "SlamGym/HybridSLAM-v0"
+    trained = env_version(env_id)
+    current_id = env_id.rpartition("-v")[0] + "-v1"
+    check = config.get("env_version_check")
+    version = {"env_id": env_id, "trained_on_version": trained, "current_id": current_id,
+               "check": check}
+    if trained >= 1:
+        return [f"  env {env_id}: the current version"], version
+    lines = [f"  env {env_id}: trained on v{trained} (the filter's random numbers in one ordered "
+             f"stream); the current version is {current_id} (synchronised numbers)"]
+    if not isinstance(check, dict):
+        lines.append("  not compared on the current version: benchmark it with "
+                     f"`--env {system_env_id(env_id)}` to play it as trained, or retrain it on "
+                     f"{current_id}")
+        return lines, version
+    lines.append(f"  on {check.get('checked_on', current_id)}: {check.get('outcome', '?')} - "
+                 f"{check.get('why', '')}")
+    return lines, version
 
 
 def run(args) -> int:
@@ -76,6 +105,8 @@ def run(args) -> int:
     else:
         lines = [f"{path}: does NOT match the code (trained on a different system):",
                  *(f"  - {d}" for d in differences)]
+    version_lines, version = env_version_lines(config)
     emit(args, {"model": str(path), "matches": matches, "differences": differences,
-                "fingerprint": current, "saved_fingerprint": saved}, lines)
+                "fingerprint": current, "saved_fingerprint": saved, "env_version": version},
+         lines + version_lines)
     return 0 if matches else 1

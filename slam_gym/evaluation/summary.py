@@ -161,11 +161,24 @@ def per_world(rows: Sequence[Mapping[str, Any]], key: str) -> list[float]:
     that an interval over worlds treats the draws of one world as the one observation they are
     (a cluster); with one draw per world, the values themselves."""
     by_world: dict[Any, list[float]] = {}
-    for row in rows:
+    for i, row in enumerate(rows):
         values = metric_values([row], key)
-        if values:
-            by_world.setdefault(row.get("seed"), []).append(values[0])
+        if values:  # a row that names no world is a world of its own
+            world = row["seed"] if row.get("seed") is not None else ("run", i)
+            by_world.setdefault(world, []).append(values[0])
     return [sum(v) / len(v) for v in by_world.values()]
+
+
+def draw_discordance(rows: Sequence[Mapping[str, Any]]) -> tuple[int, int]:
+    """(worlds run with more than one draw, those of them whose success differs between their
+    draws): how often the filter's random numbers alone change a world's outcome."""
+    outcomes: dict[Any, list[bool]] = {}
+    for i, row in enumerate(rows):
+        if row.get("success") is not None:
+            world = row["seed"] if row.get("seed") is not None else ("run", i)
+            outcomes.setdefault(world, []).append(bool(row["success"]))
+    several = [v for v in outcomes.values() if len(v) > 1]
+    return len(several), sum(len(set(v)) > 1 for v in several)
 
 
 def _mean(values: list[float]) -> float | None:
@@ -223,8 +236,10 @@ def summarise(
         judged = [r for r in ok if r.get("success") is not None]
         n_success = sum(1 for r in judged if r.get("success") is True)
         ci = list(wilson_interval(n_success, len(judged))) if judged else None
-        n_worlds = len({r.get("seed") for r in members})
-        if judged and len(judged) > len({r.get("seed") for r in judged}):
+        n_worlds = len({r["seed"] if r.get("seed") is not None else ("run", i)
+                        for i, r in enumerate(members)})
+        several, varies = draw_discordance(judged)
+        if several:
             # several draws per world: the world is the unit (draws are not independent runs)
             boot = bootstrap_interval(per_world(judged, "success"))
             ci = None if boot is None else list(boot)
@@ -244,6 +259,11 @@ def summarise(
             "success_rate": n_success / len(judged) if judged else None,
             "success_ci95": ci,
         }
+        if several:
+            # the noise floor of a success comparison: worlds whose outcome the filter's draws
+            # alone change (issue 46; formerly scripts/results/filter_noise.py)
+            group["worlds_with_draws"] = several
+            group["worlds_outcome_varies"] = varies
         for key in _MEAN_KEYS:
             group[key] = _mean(metric_values(ok, key))
         for key in _MEAN_MEDIAN_KEYS:
@@ -451,9 +471,22 @@ def markdown_table(
         return "| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |"
 
     align = ["---"] + ["---:"] * (len(header) - 1)
-    footnote = provenance_footnote(_groups(summary))
+    notes = [n for n in (provenance_footnote(_groups(summary)),
+                         draws_footnote(_groups(summary))) if n]
     return "\n".join([line(header), "|" + "|".join(align) + "|", *map(line, body)]
-                     + (["", footnote] if footnote else [])) + "\n"
+                     + [x for n in notes for x in ("", n)]) + "\n"
+
+
+def draws_footnote(groups: Sequence[Mapping[str, Any]]) -> str | None:
+    """With several filter draws per world: per group, the worlds whose success differed
+    between draws, out of those run with several (None without draws)."""
+    parts = [f"{g.get('policy') or g.get('system')} at clutter {g.get('clutter_level')}: "
+             f"{g['worlds_outcome_varies']} of {g['worlds_with_draws']}"
+             for g in groups if g.get("worlds_with_draws")]
+    if not parts:
+        return None
+    return ("Worlds whose success differs between filter draws (the noise floor of a paired "
+            "success comparison): " + "; ".join(parts) + ".")
 
 
 def format_table(

@@ -60,8 +60,12 @@ SIGNIFICANT_DIGITS = 4
 CHUNK_DECISIONS = 20
 """Decisions per chunk digest."""
 
-DEFAULT_ENV_ID = "SlamGym/HybridSLAM-v1"
-"""The env id of a model whose config names none."""
+DEFAULT_ENV_ID = "SlamGym/HybridSLAM-v0"
+"""The env id of a model whose config names none (such configs predate ``-v1``)."""
+
+PRE_STREAMS_OPTIONS = {"random_streams": "ordered"}
+"""What a fingerprint that names no ``random_streams`` was made with: every fingerprint before
+the synchronised streams of ``-v1`` (issue 46) was made on the ordered stream."""
 
 IGNORED_OPTIONS = ("n_steps", "max_decisions", "features", "info_compute_time")
 """Env options the fingerprint sets itself (the rollout's length) or that do not change the
@@ -250,6 +254,8 @@ def compare_fingerprints(saved: Mapping[str, Any] | None,
         if saved.get(key) != current.get(key):
             out.append(f"rollout {key}: {saved.get(key)} (model) != {current.get(key)} (code)")
     saved_options, current_options = saved.get("env_options") or {}, current.get("env_options")
+    if "random_streams" not in saved_options and "random_streams" in (current_options or {}):
+        saved_options = PRE_STREAMS_OPTIONS | dict(saved_options)
     if saved_options != current_options:
         keys = sorted(set(saved_options) | set(current_options or {}))
         diff = [f"{k}={saved_options.get(k)!r} -> {(current_options or {}).get(k)!r}"

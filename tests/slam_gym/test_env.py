@@ -502,7 +502,7 @@ def test_map_score_from_means_only_equals_the_score_of_the_full_landmarks():
     from slam_gym.metrics import score_map
 
     env = make("SlamGym/HybridSLAM-v1")
-    env.reset(seed=3)
+    env.reset(seed=5)
     ep = env.unwrapped.episode
     for k in range(40):
         _, _, terminated, truncated, _ = env.step(np.array([int(k % 10 == 9), 0]))
@@ -510,9 +510,9 @@ def test_map_score_from_means_only_equals_the_score_of_the_full_landmarks():
         full = score_map(lm.ids, lm.means, ep.feature_truth, ep.stream.landmarks_true,
                          ep.detected_landmarks)
         assert repr(ep.map_score()) == repr(full)  # exact, NaN included
-        if terminated or truncated:  # this world fails at its 8th decision
+        if terminated or truncated:  # this world ends at its 14th decision, after a fusion
             break
-    assert k >= 7
+    assert k >= 12
 
 
 def test_an_env_on_a_remembered_world_repeats_the_fresh_rollout():

@@ -20,7 +20,7 @@ from slam_gym.training.provenance import (
     system_options,
 )
 
-CHEAP = {"n_particles": 5}
+CHEAP = {"n_particles": 50}  # the v1 rollout on world 5 fails early below ~50
 """Env options of a cheap rollout (the fingerprint is a function of the options)."""
 
 
@@ -63,7 +63,7 @@ def test_the_fingerprint_repeats_and_exercises_fusion_and_the_optimiser():
 def test_the_cache_holds_one_fingerprint_per_system(fresh_cache):
     a = system_fingerprint("SlamGym/HybridSLAM-v1", CHEAP)
     # the same system by another id, and options the rollout sets itself: one computation
-    b = system_fingerprint("SlamGym/HybridSLAM-Light-v1", {"n_particles": 5, "n_steps": 50,
+    b = system_fingerprint("SlamGym/HybridSLAM-Light-v1", {"n_particles": 50, "n_steps": 50,
                                                            "features": ["ess_ratio"]})
     assert len(provenance._CACHE) == 1 and a["digest"] == b["digest"]
     a["summary"]["return"] = 0.0  # callers get their own copy
@@ -94,8 +94,8 @@ def test_a_behaviour_change_changes_the_fingerprint_and_is_named(fresh_cache, mo
 
 
 @pytest.mark.parametrize("options, named", [
-    ({"n_particles": 6}, "n_particles"),
-    ({"n_particles": 5, "w_map": 2.0}, "w_map"),
+    ({"n_particles": 51}, "n_particles"),
+    ({"n_particles": 50, "w_map": 2.0}, "w_map"),
 ])
 def test_another_system_has_another_fingerprint(options, named):
     base = system_fingerprint("SlamGym/HybridSLAM-v1", CHEAP)
@@ -339,3 +339,22 @@ def test_ship_model_refuses_a_model_of_another_system(stale_zip, tmp_path, monke
     assert ship.main(["--force", str(out)]) == 0
     assert ship.TARGET.is_file()
     assert np.isfinite(json.loads(ship.TARGET.with_suffix(".json").read_text())["timesteps"])
+
+
+def test_fingerprint_says_which_env_version_a_model_was_trained_on_and_what_was_done():
+    from slam_gym.commands.fingerprint import env_version_lines
+
+    lines, version = env_version_lines({"env_id": "SlamGym/HybridSLAM-Interval-v0"})
+    assert version["trained_on_version"] == 0
+    assert version["current_id"] == "SlamGym/HybridSLAM-Interval-v1"
+    assert "trained on v0" in lines[0] and "not compared" in lines[1]
+    assert "--env SlamGym/HybridSLAM-v0" in lines[1]  # the system the wrapper runs
+    check = {"checked_on": "SlamGym/HybridSLAM-Interval-v1", "outcome": "not re-stamped",
+             "why": "undecided at 40 worlds"}
+    lines, _ = env_version_lines({"env_id": "SlamGym/HybridSLAM-Interval-v0",
+                                  "env_version_check": check})
+    assert "not re-stamped - undecided at 40 worlds" in lines[1]
+    lines, version = env_version_lines({"env_id": "SlamGym/HybridSLAM-v1"})
+    assert version["trained_on_version"] == 1 and "the current version" in lines[0]
+    with pytest.raises(ValueError, match="env_id="):
+        env_version_lines({"env_id": "SlamGym/HybridSLAM"})

@@ -1,0 +1,184 @@
+"""``slam-gym compare A B``: is B better than, not worse than, or worse than A? Paired by world
+on common random numbers, with a sequential test (:mod:`slam_gym.evaluation.compare`)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+from slam_gym.commands.common import emit, to_jsonable
+from slam_gym.commands.runs import (
+    add_run_options,
+    check_run_options,
+    errors_exit_code,
+    int_list,
+    run_options,
+)
+
+EPILOG = """examples:
+  slam-gym compare fixed-10s-optimise fixed-10s --metric success --margin 5 --max-worlds 96
+  slam-gym compare fixed-10s-optimise my_rules:Rule --metric map_error_m --margin 0.15 \\
+      --max-worlds 200 --seed-start 5000
+  slam-gym compare fixed-10s-optimise out/train/model.zip --seeds 10        (fixed design)
+  slam-gym compare fixed-10s-optimise fixed-10s --metric success --margin 5 --plan
+"""
+
+
+def add_parser(subparsers) -> None:
+    import argparse
+
+    p = subparsers.add_parser(
+        "compare",
+        help="a paired, sequential comparison of two policies",
+        description="Run policies A and B on the same worlds and filter draws (common random "
+        "numbers) and compare them world by world: success, the fraction of pose NEES inside "
+        "its 95 %% band, ANEES, map error, interface CPU and return, each with a paired 95 %% "
+        "interval stratified by clutter level. With --metric and --margin it answers whether B "
+        "is better, not worse (by more than the margin) or worse than A; with --max-worlds it "
+        "runs worlds in batches until that is decided, under an anytime-valid confidence "
+        "sequence.",
+        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("a", metavar="A", help="the reference policy: a name (policies.available()), "
+                   "a package.module:attribute reference, or a learned model's .zip")
+    p.add_argument("b", metavar="B", help="the policy compared with A (same forms)")
+    p.add_argument("--metric", default=None,
+                   choices=["success", "nees_in_band_fraction", "map_error_m", "interface_cpu_s",
+                            "return"],
+                   help="the metric of the question (needs --margin or asks superiority)")
+    p.add_argument("--margin", type=float, default=None,
+                   help="non-inferiority margin in the metric's unit: percentage points for "
+                   "success and nees_in_band_fraction, metres for map_error_m, seconds for "
+                   "interface_cpu_s (0: superiority either way)")
+    p.add_argument("--max-worlds", type=int, default=None, metavar="N",
+                   help="sequential design: batches of worlds until decided or N worlds")
+    p.add_argument("--batch-seeds", type=int, default=2, metavar="S",
+                   help="seeds per batch of the sequential design, each at every clutter level "
+                   "(default 2: 8 worlds a batch over levels 0-3)")
+    p.add_argument("--seeds", dest="trials", type=int, default=None, metavar="N",
+                   help="fixed design: N seeds at every clutter level (default 10; the pilot "
+                   "of --plan: default one batch)")
+    p.add_argument("--seed-start", type=int, default=0, help="first seed (default 0)")
+    p.add_argument("--draws", type=int, default=2, metavar="K",
+                   help="filter draws per world for both policies (default 2)")
+    p.add_argument("--alpha", type=float, default=0.05,
+                   help="error rate of the intervals and the decision (default 0.05)")
+    p.add_argument("--plan", action="store_true",
+                   help="run a pilot (--seeds, default one batch) and print the worlds needed "
+                   "to decide --metric at --margin with 80 %% power, sequential and fixed")
+    p.add_argument("--env", default=None, metavar="ID",
+                   help="a registered simulated env id whose front-end, back-end and random "
+                   "streams to use (default SlamGym/HybridSLAM-v1)")
+    p.add_argument("--clutter-levels", default="0,1,2,3", help="clutter levels (strata)")
+    p.add_argument("--scenario", default="brooks-bailey", help="simulated scenario")
+    p.add_argument("--particles", type=int, default=500, help="FastSLAM particles")
+    p.add_argument("--n-steps", type=int, default=None, metavar="N",
+                   help="cut every path to N steps (quick looks, tests)")
+    p.add_argument("--w-compute", type=float, default=None,
+                   help="the reward's price of compute (/s; default the env's)")
+    p.add_argument("--compute-clip-s", type=float, default=None,
+                   help="the reward's compute clip (s; default the env's)")
+    add_run_options(p, default_out="out/compare", trials_flag=None)
+    p.set_defaults(run=run)
+
+
+def check_options(args) -> None:
+    """Every option before any run (``ValueError`` naming it as typed: exit 2)."""
+    if args.margin is not None and args.metric is None:
+        raise ValueError(f"--margin {args.margin:g} is invalid without --metric: name the "
+                         "metric the margin is a distance in")
+    if args.margin is not None and not (math.isfinite(args.margin) and args.margin >= 0):
+        raise ValueError(f"--margin {args.margin} is invalid: must be a number >= 0")
+    if args.draws < 1:
+        raise ValueError(f"--draws {args.draws} is invalid: must be >= 1")
+    if args.batch_seeds < 1:
+        raise ValueError(f"--batch-seeds {args.batch_seeds} is invalid: must be >= 1")
+    levels = int_list(args.clutter_levels)
+    batch_worlds = args.batch_seeds * max(len(levels), 1)
+    if args.max_worlds is not None:
+        if args.metric is None:
+            raise ValueError(f"--max-worlds {args.max_worlds} is invalid without --metric: the "
+                             "sequential design stops when its question is decided")
+        if args.max_worlds < batch_worlds:
+            raise ValueError(f"--max-worlds {args.max_worlds} is invalid: must be at least one "
+                             f"batch, {batch_worlds} worlds (--batch-seeds {args.batch_seeds} x "
+                             f"{len(levels)} clutter levels)")
+        if args.trials is not None:
+            raise ValueError("--seeds is invalid with --max-worlds: the sequential design "
+                             "chooses how many worlds it runs")
+    if args.trials is not None and args.trials < 2:
+        raise ValueError(f"--seeds {args.trials} is invalid: must be >= 2")
+    if args.plan and (args.metric is None or args.max_worlds is not None):
+        raise ValueError("--plan is invalid without --metric or with --max-worlds: it plans "
+                         "the worlds of a question from a pilot")
+    if not 0 < args.alpha < 1:
+        raise ValueError(f"--alpha {args.alpha} is invalid: must be in (0, 1)")
+    if args.seed_start < 0 or args.seed_start >= 2**31:
+        raise ValueError(f"--seed-start {args.seed_start} is invalid: must be in [0, 2**31)")
+
+
+def _num(value, digits=2, signed=False) -> str:
+    if value is None:
+        return "-"
+    return f"{value:+.{digits}f}" if signed else f"{value:.{digits}f}"
+
+
+def text_report(result) -> list[str]:
+    """The human summary: one line per metric and the question's answer."""
+    lines = [f"{result.b} against {result.a}: {result.worlds} worlds x {result.draws} draws "
+             "(paired by world; 95 % intervals of B - A)"]
+    width = max(len(m) for m in result.metrics)
+    for name, m in result.metrics.items():
+        unit = f" {m['unit']}" if m["unit"] else ""
+        ci = "-" if m["ci"] is None else f"[{m['ci'][0]:+.2f}, {m['ci'][1]:+.2f}]"
+        left = f", {m['left_out']} worlds left out" if m["left_out"] else ""
+        lines.append(f"  {name:<{width}}  A {_num(m['a'])}  B {_num(m['b'])}  "
+                     f"B - A {_num(m['difference'], signed=True)}{unit} {ci}{left}")
+    q = result.question
+    if q is not None:
+        ci = q["oriented_ci"]
+        better = "higher" if q["higher_is_better"] else "lower"
+        where = ("" if ci is None else f"; interval of the gain ({better} is better) "
+                 f"[{ci[0]:+.2f}, {ci[1]:+.2f}] {q['unit']}")
+        design = (f"sequential, stopped at {result.worlds} of at most {q['max_worlds']} worlds"
+                  if q["design"] == "sequential" else "fixed design")
+        lines.append(f"question: is {result.b} not worse than {result.a} by {q['margin']:g} "
+                     f"{q['unit']} on {q['metric']}? {result.decision} ({design}{where})")
+    return lines
+
+
+def run(args) -> int:
+    from slam_gym.evaluation.compare import compare, plan
+
+    check_options(args)
+    check_run_options(args)
+    common = dict(
+        clutter_levels=int_list(args.clutter_levels), draws=args.draws,
+        seed_start=args.seed_start, alpha=args.alpha, scenario=args.scenario, env=args.env,
+        n_particles=args.particles, n_steps=args.n_steps, w_compute=args.w_compute,
+        compute_clip_s=args.compute_clip_s, out=args.out, **run_options(args))
+    if args.plan:
+        pilot_seeds = args.trials or max(args.batch_seeds, 2)
+        result = compare(args.a, args.b, seeds=pilot_seeds, **common)
+        half = len(result.rows) // 2
+        rows_a, rows_b = result.rows[:half], result.rows[half:]
+        levels = len(int_list(args.clutter_levels))
+        planned = plan(rows_a, rows_b, args.metric, args.margin or 0.0, alpha=args.alpha,
+                       batch_worlds=args.batch_seeds * levels)
+        emit(args, {"plan": planned, "pilot": result.as_dict()},
+             text_report(result) + [
+                 f"plan for {args.metric} at margin {args.margin or 0:g}: "
+                 f"{planned['sequential']['worlds']} worlds sequential (--max-worlds), "
+                 f"{planned['fixed']['worlds']} fixed, for 80 % power if the true difference is "
+                 f"0 (pilot: {planned['pilot_worlds']} worlds, per-world SD "
+                 f"{planned['sequential']['sd']:.3g})"])
+        return errors_exit_code(args, result.rows)
+    result = compare(args.a, args.b, metric=args.metric, margin=args.margin,
+                     seeds=args.trials, max_worlds=args.max_worlds,
+                     batch_seeds=args.batch_seeds, **common)
+    doc = to_jsonable(result.as_dict())
+    (result.out / "compare.json").write_text(json.dumps(doc, indent=2, sort_keys=True) + "\n")
+    lines = text_report(result)
+    (result.out / "compare.md").write_text("\n".join(lines) + "\n")
+    emit(args, doc, lines + [f"wrote {result.out / 'compare.json'} and compare.md"])
+    return errors_exit_code(args, result.rows)

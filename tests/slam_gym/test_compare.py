@@ -1,0 +1,92 @@
+"""``slam-gym compare A B``: paired by world on common random numbers, sequential, resumable."""
+
+import json
+
+import pytest
+
+from slam_gym.cli import main
+from slam_gym.evaluation.compare import compare
+
+TINY = ["--particles", "15", "--n-steps", "120", "--clutter-levels", "1,2",
+        "--executor", "serial", "--quiet"]
+
+
+def run_cli(capsys, *argv):
+    code = main(["compare", *argv])
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def test_a_policy_against_itself_is_not_worse_and_runs_once(tmp_path):
+    result = compare("fixed-10s", "fixed-10s", metric="success", margin=40, draws=2,
+                     max_worlds=40, batch_seeds=2, clutter_levels=[1, 2], n_particles=15,
+                     n_steps=120, executor="serial", out=tmp_path / "c")
+    assert result.decision == "not worse"
+    assert result.worlds < 40  # decided before the last batch
+    for name, m in result.metrics.items():  # the same runs on both sides: no difference
+        if m["difference"] is not None:
+            assert m["difference"] == 0.0, name
+    lines = (tmp_path / "c" / "results.jsonl").read_text().splitlines()
+    assert len(lines) == result.worlds * 2  # one arm's runs (2 draws a world), not two
+    assert {json.loads(line)["draw"] for line in lines} == {0, 1}
+
+
+def test_json_names_the_decision_worlds_draws_and_each_metric(tmp_path, capsys):
+    code, out, _ = run_cli(capsys, "fixed-10s", "always", "--metric", "map_error_m", "--margin",
+                           "0.5", "--seeds", "2", "--draws", "2", "--json", "--out",
+                           str(tmp_path / "j"), *TINY)
+    assert code == 0
+    doc = json.loads(out)
+    assert doc["decision"] in ("better", "not worse", "worse", "undecided")
+    assert doc["worlds"] == 4 and doc["draws"] == 2
+    for name in ("success", "nees_in_band_fraction", "anees", "map_error_m", "interface_cpu_s",
+                 "return"):
+        m = doc["metrics"][name]
+        assert set(m) >= {"a", "b", "difference", "ci"}
+    cpu = doc["metrics"]["interface_cpu_s"]
+    assert cpu["difference"] == pytest.approx(cpu["b"] - cpu["a"])
+    assert cpu["b"] > cpu["a"]  # fusing at every decision costs more than every 10 s
+    assert (tmp_path / "j" / "compare.json").is_file()
+
+
+def test_a_killed_comparison_resumes_without_rerunning_finished_worlds(tmp_path, capsys):
+    out = tmp_path / "r"
+    argv = ["fixed-10s", "fixed-10s-optimise", "--seeds", "2", "--draws", "1", "--out",
+            str(out), *TINY]
+    assert run_cli(capsys, *argv)[0] == 0
+    path = out / "results.jsonl"
+    lines = path.read_text().splitlines()
+    assert len(lines) == 8  # 2 seeds x 2 levels x 2 policies
+    path.write_text("\n".join(lines[:3]) + "\n" + lines[3][:20])  # killed while writing
+    assert run_cli(capsys, *argv)[0] == 0
+    again = path.read_text().splitlines()
+    assert again[:3] == lines[:3]  # kept as they were (their times too): not rerun
+    assert len(again) == 8
+    assert sorted(json.loads(x)["key"] for x in again) == sorted(json.loads(x)["key"]
+                                                                for x in lines)
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["fixed-10s", "no-such-rule"], "no-such-rule"),
+    (["fixed-10s", "always", "--margin", "5"], "--margin"),
+    (["fixed-10s", "always", "--draws", "0"], "--draws"),
+    (["fixed-10s", "always", "--metric", "success", "--margin", "5", "--max-worlds", "3"],
+     "--max-worlds"),
+    (["fixed-10s", "always", "--metric", "success", "--margin", "-1"], "--margin"),
+    (["fixed-10s", "always", "--seeds", "1"], "--seeds"),
+])
+def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, argv, says):
+    code, out, err = run_cli(capsys, *argv, "--out", str(tmp_path / "bad"), *TINY)
+    assert code == 2
+    assert says in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "bad" / "results.jsonl").exists()  # checked before any run
+
+
+def test_plan_prints_the_worlds_a_margin_needs(tmp_path, capsys):
+    code, out, _ = run_cli(capsys, "fixed-10s", "fixed-10s-optimise", "--metric", "success",
+                           "--margin", "10", "--plan", "--seeds", "2", "--json", "--out",
+                           str(tmp_path / "p"), *TINY)
+    assert code == 0
+    plan = json.loads(out)["plan"]
+    assert plan["pilot_worlds"] == 4
+    assert plan["sequential"]["worlds"] >= plan["fixed"]["worlds"] >= 2
