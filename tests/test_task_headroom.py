@@ -16,26 +16,34 @@ def _row(policy, level, seed, success, map_error=1.0, draw=0, ret=-100.0):
             "compute_term_s": 1.0, "fusion_cpu_s": 0.1, "optimise_cpu_s": 0.1}
 
 
-def test_agresti_min_is_valid_for_paired_zero_one_data():
-    # no discordant pair: the difference is 0 and the interval is not degenerate
-    d, lo, hi = headroom.agresti_min([(1, 1)] * 30 + [(0, 0)] * 10)
+def test_success_interval_is_agresti_min_and_valid_for_paired_zero_one_data():
+    def rate(pairs):
+        return headroom.paired_interval({(0, i): float(a - b) for i, (a, b) in enumerate(pairs)},
+                                        rate=True)
+
+    # no discordant world: the difference is 0 and the interval is not degenerate
+    d, lo, hi = rate([(1, 1)] * 30 + [(0, 0)] * 10)
     assert d == 0 and lo < 0 < hi
-    # 8 worlds won, none lost, of 40: a clear gain
-    d, lo, hi = headroom.agresti_min([(1, 0)] * 8 + [(1, 1)] * 32)
-    assert d == pytest.approx(0.2) and 0 < lo < d < hi <= 1
+    # 8 worlds won, none lost, of 40: a clear gain; Agresti-Min by the 2x2 formula
+    d, lo, hi = rate([(1, 0)] * 8 + [(1, 1)] * 32)
+    m10, m01, m = 8.5, 0.5, 42.0
+    centre = (m10 - m01) / m
+    se = math.sqrt(((m10 + m01) - (m10 - m01) ** 2 / m) / m**2)
+    assert d == pytest.approx(0.2)
+    assert (lo, hi) == pytest.approx((centre - 1.959964 * se, centre + 1.959964 * se), abs=1e-5)
     # one world won of 40: not distinguishable from 0
-    d, lo, hi = headroom.agresti_min([(1, 0)] + [(1, 1)] * 39)
+    d, lo, hi = rate([(1, 0)] + [(1, 1)] * 39)
     assert lo < 0 < hi
 
 
-def test_paired_bootstrap_resamples_worlds_within_levels():
+def test_continuous_interval_resamples_worlds_within_levels():
     diffs = {(level, seed): float(level) for level in range(4) for seed in range(10)}
-    mean, lo, hi = headroom.paired_bootstrap(diffs)
+    mean, lo, hi = headroom.paired_interval(diffs)
     # stratified: each level keeps its 10 worlds, so a constant per level gives no spread
     assert mean == pytest.approx(1.5) and lo == pytest.approx(1.5) and hi == pytest.approx(1.5)
     rng = np.random.default_rng(1)
     noisy = {(0, s): float(v) for s, v in enumerate(rng.normal(1.0, 1.0, 40))}
-    mean, lo, hi = headroom.paired_bootstrap(noisy)
+    mean, lo, hi = headroom.paired_interval(noisy)
     assert lo < mean < hi and lo > 0
 
 

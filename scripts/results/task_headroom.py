@@ -15,13 +15,14 @@ training-time worlds), the chosen threshold rule as ``best-threshold``. The **be
 the threshold family's rule chosen there (the family includes its ends ``fixed-10s`` and
 ``fixed-10s-optimise``; the chosen one by mean return at ``--price``), else ``--best-rule``.
 
-Statistics (kept small until ``slam-gym compare`` lands; issue 46): every run is paired with
-the best rule's run on the same world and draw (common random numbers); the per-world
-difference is the mean over the world's draws; the interval is a percentile bootstrap over
-worlds, resampled within clutter level (:func:`paired_bootstrap`). For success with one draw
-per world it is Agresti and Min's interval for a difference of paired proportions
-(:func:`agresti_min`: Agresti & Min, Biometrics 61, 2005, add 0.5 to each cell). Normalised
-headroom: ``(lookahead - best) / (bound - best)``, reported only where the bound's interval
+Statistics (``slam_gym.evaluation.paired``, the library of ``slam-gym compare``, issue 46):
+every run is paired with the best rule's run on the same world and draw (common random numbers);
+the per-world difference is the mean over the world's draws (draws as a factor nested in their
+world); continuous measures get the stratified cluster bootstrap interval over worlds
+(:func:`~slam_gym.evaluation.paired.stratified_bootstrap_interval`, strata the clutter levels),
+success the matched-rate interval of Agresti & Min (Biometrics 61, 2005; ``pseudo_weight`` 1/2,
+as declared; :func:`~slam_gym.evaluation.paired.matched_rate_interval`). Normalised headroom:
+``(lookahead - best) / (bound - best)``, reported only where the bound's interval
 excludes 0. Writes ``OUT/headroom.json`` and ``OUT/headroom.md``. ``--report-only`` recomputes
 them from the rows without running anything.
 """
@@ -45,8 +46,6 @@ BOUND = "lookahead-privileged"
 METRICS = ("success", "nees_in_band_fraction", "anees", "map_error_m", "interface_cpu_s",
            "return")
 """The paired measures of the table (``return`` at ``--price``)."""
-N_BOOTSTRAP = 10_000
-Z95 = 1.959963984540054
 
 
 def value(row: Mapping, metric: str, price: float) -> float | None:
@@ -82,54 +81,24 @@ def per_world_differences(rows: Sequence[Mapping], reference: Sequence[Mapping],
     return {w: float(np.mean(d)) for w, d in diffs.items()}
 
 
-def paired_bootstrap(diffs: Mapping[tuple[int, int], float], *, n: int = N_BOOTSTRAP,
-                     seed: int = 0) -> tuple[float, float, float]:
-    """Mean of the per-world differences and its percentile 95 % bootstrap interval, worlds
-    resampled with replacement within their clutter level (stratified)."""
-    if not diffs:
+def paired_interval(diffs: Mapping[tuple[int, int], float], *, rate: bool = False
+                   ) -> tuple[float, float, float]:
+    """Mean of the per-world differences (``(level, seed) -> d``) and its 95 % interval: the
+    matched-rate interval (Agresti-Min) for success rates, else the stratified bootstrap."""
+    from slam_gym.evaluation.paired import (
+        matched_rate_interval,
+        stratified_bootstrap_interval,
+    )
+
+    if len(diffs) < 2:
         return math.nan, math.nan, math.nan
-    by_level: dict[int, list[float]] = defaultdict(list)
-    for (level, _), d in sorted(diffs.items()):
-        by_level[level].append(d)
-    rng = np.random.default_rng(seed)
-    total = sum(len(v) for v in by_level.values())
-    means = np.zeros(n)
-    for values in by_level.values():
-        v = np.asarray(values)
-        picks = rng.integers(0, len(v), size=(n, len(v)))
-        means += v[picks].sum(axis=1)
-    means /= total
-    mean = float(np.mean(list(diffs.values())))
-    lo, hi = np.percentile(means, [2.5, 97.5])
-    return mean, float(lo), float(hi)
-
-
-def agresti_min(pairs: Sequence[tuple[int, int]]) -> tuple[float, float, float]:
-    """Difference of two paired proportions (first minus second) with Agresti and Min's 95 %
-    interval (Biometrics 61, 2005: the Wald interval after adding 0.5 to each of the four
-    cells), valid for 0/1 data and never degenerate at 0 discordant pairs."""
-    n = len(pairs)
-    if n == 0:
-        return math.nan, math.nan, math.nan
-    n10 = sum(1 for a, b in pairs if a and not b)
-    n01 = sum(1 for a, b in pairs if b and not a)
-    diff = (n10 - n01) / n
-    m10, m01, m = n10 + 0.5, n01 + 0.5, n + 2.0
-    d = (m10 - m01) / m
-    se = math.sqrt(((m10 + m01) - (m10 - m01) ** 2 / m) / m**2)
-    return diff, max(-1.0, d - Z95 * se), min(1.0, d + Z95 * se)
-
-
-def success_interval(rows, reference) -> tuple[float, float, float]:
-    """Success difference: Agresti-Min with one draw per world, else the bootstrap."""
-    ref = {(int(r["clutter_level"]), int(r["seed"]), int(r.get("draw", 0))): r
-           for r in reference}
-    keys = [(int(r["clutter_level"]), int(r["seed"]), int(r.get("draw", 0))) for r in rows]
-    paired = [(r, ref[k]) for r, k in zip(rows, keys, strict=True) if k in ref]
-    if len({k[:2] for k in keys}) == len(paired):  # one draw per world
-        return agresti_min([(int(bool(a["success"])), int(bool(b["success"])))
-                            for a, b in paired])
-    return paired_bootstrap(per_world_differences(rows, reference, "success", 0.0))
+    worlds = sorted(diffs)
+    d = np.array([diffs[w] for w in worlds])
+    if rate:
+        out = matched_rate_interval(d, pseudo_weight=0.5)
+        return float(np.mean(d)), float(out.lo), float(out.hi)
+    out = stratified_bootstrap_interval(d, np.array([w[0] for w in worlds]), rng=0)
+    return float(out.estimate), float(out.lo), float(out.hi)
 
 
 def summarise(rows: Sequence[Mapping], best: str, price: float) -> dict:
@@ -150,9 +119,9 @@ def summarise(rows: Sequence[Mapping], best: str, price: float) -> dict:
             entry[metric] = float(np.mean(vals)) if vals else None
             if name == best:
                 continue
-            entry[f"{metric}_diff"] = (success_interval(group, reference) if metric == "success"
-                                       else paired_bootstrap(per_world_differences(
-                                           group, reference, metric, price)))
+            entry[f"{metric}_diff"] = paired_interval(
+                per_world_differences(group, reference, metric, price),
+                rate=metric == "success")
         for extra in ("planning_cpu_s", "deviations_from_base", "n_fusions", "n_optimisations"):
             vals = [float(r[extra]) for r in group if r.get(extra) is not None]
             entry[extra] = float(np.mean(vals)) if vals else None
