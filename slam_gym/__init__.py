@@ -16,7 +16,7 @@ from typing import Any
 
 from policies.learned import set_provenance_check
 from slam_gym.datasets import load_mrclam, load_victoria_park
-from slam_gym.envs import ENV_VARIANTS, register_envs
+from slam_gym.envs import ENV_VARIANTS, TASK_ENV_VARIANTS, register_envs
 from slam_gym.envs.hybrid_slam import HybridSLAMConfig, HybridSLAMEnv
 from slam_gym.envs.mrclam import MRCLAMEnv, default_mrclam_dir
 from slam_gym.envs.wrappers import DiscreteActions
@@ -29,6 +29,7 @@ set_provenance_check(check_model_provenance)
 
 __all__ = [
     "ENV_VARIANTS",
+    "TASK_ENV_VARIANTS",
     "BenchmarkEvalCallback",
     "DiscreteActions",
     "HybridSLAMConfig",

@@ -28,6 +28,14 @@ different seeds at every decision and in every world. ``privileged=True`` is the
 reported as an upper bound and never as a policy: one future, the episode's own (its scans and
 the filter's draws as they will come, as far as the alternative leaves them unchanged).
 
+Fusing where the rule would not (issue 48 item 3): with ``early_fusion_from_s`` set, a decision
+where the base rule waits but the local map is at least that old is planned too, with the
+alternatives fuse+optimise and fuse against the rule's wait. The planner can then fuse at any
+decision from that age on, not only at the rule's clock; it still cannot optimise without
+fusing. Off by default (None): the planner of issue 39, and every row measured with it, are
+unchanged. Its cost: at BB's 10 s clock and 1 s decisions, ``early_fusion_from_s = 5`` plans
+six decisions a cycle instead of one, so about three times the planning.
+
 Cost: at a planned decision, ``3 x n_futures`` copies each run ``horizon_decisions`` decisions;
 ``planning_cpu_s`` and ``simulated_decisions`` say what an episode spent, and the evaluation
 records them in each row (:meth:`episode_fields`).
@@ -71,8 +79,9 @@ class LookaheadPolicy(Policy):
     Options: ``base`` (a policy name, default ``fixed-10s-optimise``), ``horizon_decisions``
     (H >= 1), ``n_futures`` (M >= 1; 1 when ``privileged``), ``min_gain`` and ``z_gain`` (the
     gain that makes it leave the base rule), ``privileged`` (the episode's own future: an upper
-    bound, not a policy) and ``seed`` (the futures' seeds, with the world's seed and the
-    decision's index).
+    bound, not a policy), ``seed`` (the futures' seeds, with the world's seed and the
+    decision's index) and ``early_fusion_from_s`` (None, or the local-map age from which the
+    decisions where the rule waits are planned too: fusing where the rule would not).
     """
 
     name = "lookahead"
@@ -81,7 +90,7 @@ class LookaheadPolicy(Policy):
                  horizon_decisions: int = DEFAULT_HORIZON_DECISIONS,
                  n_futures: int = DEFAULT_N_FUTURES, min_gain: float = DEFAULT_MIN_GAIN,
                  z_gain: float = DEFAULT_Z_GAIN, privileged: bool = False,
-                 seed: int = 0) -> None:
+                 seed: int = 0, early_fusion_from_s: float | None = None) -> None:
         super().__init__()
         require(isinstance(base, str), "base", base, "a policy name")
         try:
@@ -96,6 +105,8 @@ class LookaheadPolicy(Policy):
         require(isinstance(privileged, bool), "privileged", privileged, "True or False")
         require(not privileged or n_futures == 1, "n_futures", n_futures,
                 "1 when privileged (there is one own future)")
+        self.early_fusion_from_s = (None if early_fusion_from_s is None else check_range(
+            "early_fusion_from_s", early_fusion_from_s, 0.0, 1e6))
         self.min_gain = check_range("min_gain", min_gain, 0.0, 1e9)
         self.z_gain = check_range("z_gain", z_gain, 0.0, 1e3)
         self.horizon_decisions = int(horizon_decisions)
@@ -106,6 +117,8 @@ class LookaheadPolicy(Policy):
         self.options = {"base": base, "horizon_decisions": self.horizon_decisions,
                         "n_futures": self.n_futures, "min_gain": self.min_gain,
                         "z_gain": self.z_gain, "privileged": privileged, "seed": self.seed}
+        if self.early_fusion_from_s is not None:  # absent when off: issue 39's rows match
+            self.options["early_fusion_from_s"] = self.early_fusion_from_s
         self._env = None
         self.reset()
 
@@ -134,7 +147,7 @@ class LookaheadPolicy(Policy):
 
     def act(self, obs: Any, info: Mapping[str, Any]) -> np.ndarray:
         base_action = np.asarray(self.base.act(obs, info), dtype=np.int64)
-        if not base_action[0]:
+        if not base_action[0] and not self._plans_early(info):
             return base_action
         if self._env is None:
             raise RuntimeError("lookahead needs the env it acts in: call policy.bind_env(env) "
@@ -148,14 +161,23 @@ class LookaheadPolicy(Policy):
             self.deviations += 1
         return make_action(*choice)
 
+    def _plans_early(self, info: Mapping[str, Any]) -> bool:
+        """Whether a decision where the base rule does not fuse is planned (module docstring:
+        ``early_fusion_from_s``)."""
+        if self.early_fusion_from_s is None:
+            return False
+        age = float(info["features"]["local_map_age_s"])
+        return age + 1e-4 >= self.early_fusion_from_s
+
     def action_returns(self, base_action: np.ndarray) -> dict[tuple[int, int], np.ndarray]:
         """The horizon's return of each alternative in each future (the base action's first),
         from the env's current state."""
         env = self._env
         base = tuple(int(v) for v in base_action)
         seeds = self._future_seeds(env)
+        alternatives = ALTERNATIVES if base[0] else ALTERNATIVES[:2]  # waiting is the base's
         return {alternative: np.array([self._rollout(env, alternative, s) for s in seeds])
-                for alternative in (base, *(a for a in ALTERNATIVES if a != base))}
+                for alternative in (base, *(a for a in alternatives if a != base))}
 
     def choose(self, returns: Mapping[tuple[int, int], np.ndarray],
                base: tuple[int, int]) -> tuple[int, int]:
@@ -198,6 +220,8 @@ class PrivilegedLookahead(LookaheadPolicy):
 
     def __init__(self, *, base: str = "fixed-10s-optimise",
                  horizon_decisions: int = DEFAULT_HORIZON_DECISIONS,
-                 min_gain: float = DEFAULT_MIN_GAIN, seed: int = 0) -> None:
+                 min_gain: float = DEFAULT_MIN_GAIN, seed: int = 0,
+                 early_fusion_from_s: float | None = None) -> None:
         super().__init__(base=base, horizon_decisions=horizon_decisions, n_futures=1,
-                         min_gain=min_gain, privileged=True, seed=seed)
+                         min_gain=min_gain, privileged=True, seed=seed,
+                         early_fusion_from_s=early_fusion_from_s)

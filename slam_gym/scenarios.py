@@ -12,6 +12,12 @@ measurement every iteration.
 (``path_perturbation_m``, the one scalar that sets the path's turning) fitted to BB Table 1's
 EKF cell at clutter level 0: 0.625 m instead of 5 m, ~10 rad of turning instead of ~26; the same
 landmarks and start turn per seed. Not the default (docs/RESULTS.md says why).
+``brooks-bailey-zones`` (issue 48): ``brooks-bailey`` with zones along the loop, drawn per world
+and never observed: feature-poor corridors, clutter bursts, dense landmark patches
+(:data:`ZONES_OVERRIDES`; :func:`slam_gym.world.draw_zones`). The base world of seed ``s`` (its
+landmarks before the zones, its path, its odometry) is ``brooks-bailey``'s world ``s``.
+``long-mission`` (issue 48): BB's density, sensor and odometry on a 200 m world, a 450 m loop
+driven 3.3 times (:data:`LONG_MISSION_OVERRIDES`).
 ``conte-martinelli-1`` / ``-2`` (CM IV.A): 110 m x 110 m, 0.02 landmarks per m^2, differential
 drive with Chong-Kleeman wheel odometry (CM (14), K = 1e-5 m) at 100 Hz, 360-degree sensor of 12 m
 range with std 1 cm and 1 deg at 0.2 Hz (the first scan at the start pose), no clutter (CM
@@ -129,6 +135,15 @@ class Scenario:
     scan_at_start: bool = False
     initial_heading_spread_rad: float = 0.0
     n_steps: int | None = None
+    zone_sectors: int = 0
+    corridor_zones: int = 0
+    burst_zones: int = 0
+    patch_zones: int = 0
+    corridor_clearance_m: float = 15.0
+    burst_beta: float = 0.5
+    burst_radius_m: float = 10.0
+    patch_landmarks: int = 10
+    patch_radius_m: float = 10.0
 
     def __post_init__(self):
         require(isinstance(self.name, str) and self.name != "", "name", self.name, "a string")
@@ -199,6 +214,28 @@ class Scenario:
                 isinstance(self.n_steps, (int, np.integer)) and self.n_steps >= 1,
                 "n_steps", self.n_steps, "a positive integer or None",
             )
+        for field in ("zone_sectors", "corridor_zones", "burst_zones", "patch_zones",
+                      "patch_landmarks"):
+            value = getattr(self, field)
+            require(isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+                    and 0 <= value <= 1000, field, value, "an integer in [0, 1000]")
+        n_zones = self.corridor_zones + self.burst_zones + self.patch_zones
+        require(
+            n_zones == 0 or n_zones <= self.zone_sectors - 2,
+            "zone_sectors", self.zone_sectors,
+            f"at least corridor_zones + burst_zones + patch_zones + 2 = {n_zones + 2} (the "
+            "loop's first and last sectors, where it starts and closes, carry no zone)",
+        )
+        check_range("corridor_clearance_m", self.corridor_clearance_m, 0.0, self.world_size_m)
+        check_range("burst_beta", self.burst_beta, 0.0, 1.0, high_open=True)
+        check_range("burst_radius_m", self.burst_radius_m, 0.0, self.world_size_m)
+        check_range("patch_radius_m", self.patch_radius_m, 0.0, self.world_size_m,
+                    low_open=True)
+
+    @property
+    def has_zones(self) -> bool:
+        """Whether the world has zones along its path (:func:`slam_gym.world.draw_zones`)."""
+        return self.corridor_zones + self.burst_zones + self.patch_zones > 0
 
     @property
     def loop_side_m(self) -> float:
@@ -252,6 +289,28 @@ SQUARE_LOOP_OVERRIDES: dict = {
 """Overrides that give ``brooks-bailey`` its path before #14 (a square loop, no first turn)."""
 
 
+ZONES_OVERRIDES: dict = {
+    "zone_sectors": 8, "corridor_zones": 2, "burst_zones": 2, "patch_zones": 2,
+    "corridor_clearance_m": 15.0, "burst_beta": 0.5, "burst_radius_m": 10.0,
+    "patch_landmarks": 10, "patch_radius_m": 10.0,
+}
+"""``brooks-bailey-zones`` (issue 48, docs/RESULTS.md "Tasks where the interface decision
+matters"): BB's world whose loop is cut into 8 sectors of ~50 m; the six inner sectors hold, in
+an order drawn per world, two feature-poor corridors (no landmark within 15 m of the sector's
+nominal path), two clutter bursts (each visible landmark triggers a false alarm with
+probability 0.5 while the robot is within 10 m of the sector's path) and two dense patches (10
+more landmarks in a 10 m disc on the sector's midpoint)."""
+
+LONG_MISSION_OVERRIDES: dict = {
+    "world_size_m": 200.0, "n_landmarks": 97, "path_length_m": 1500.0, "loop_fraction": 0.3,
+}
+"""``long-mission`` (issue 48): BB's landmark density (35 per 120 m x 120 m, so 97 in 200 m x
+200 m), sensor, odometry and path generator, on a loop of ~450 m (side 0.3 x 1500 / 4 =
+112.5 m) driven three and a third times: ~1500 s, ~150 of BB's 10 s sub-maps, a loop closure at
+each return over the start, and a global map and an optimiser whose cost grow with the sub-maps
+stored."""
+
+
 def _presets() -> dict[str, Scenario]:
     bb = Scenario(
         name="brooks-bailey",
@@ -285,6 +344,8 @@ def _presets() -> dict[str, Scenario]:
         "brooks-bailey-compass": bb.replace(
             name="brooks-bailey-compass", compass_std_rad=BB_COMPASS_STD_RAD
         ),
+        "brooks-bailey-zones": bb.replace(name="brooks-bailey-zones", **ZONES_OVERRIDES),
+        "long-mission": bb.replace(name="long-mission", **LONG_MISSION_OVERRIDES),
         "conte-martinelli-1": cm,
         "conte-martinelli-2": cm.replace(
             name="conte-martinelli-2",

@@ -115,6 +115,95 @@ def route(scenario: Scenario, waypoints: np.ndarray) -> np.ndarray:
     return polyline[: min(last, len(polyline) - 1) + 1]
 
 
+ZONE_KINDS: tuple[str, ...] = ("normal", "corridor", "burst", "patch")
+"""What a sector of a zoned world's loop holds (:func:`draw_zones`)."""
+
+ZONE_SAMPLE_SPACING_M = 0.5
+"""Spacing of the points that stand for a sector's nominal path in distance tests (a distance
+to the path is then exact to within a quarter of it)."""
+
+
+def nominal_loop(scenario: Scenario) -> np.ndarray:
+    """The corners of the unperturbed loop (the square :func:`loop_waypoints` perturbs), from
+    its start in the middle of the bottom edge, counter-clockwise, back to the start."""
+    side = scenario.loop_side_m
+    centre = 0.5 * scenario.world_size_m
+    lo, hi = centre - 0.5 * side, centre + 0.5 * side
+    return np.array([[centre, lo], [hi, lo], [hi, hi], [lo, hi], [lo, lo], [centre, lo]])
+
+
+def sector_paths(scenario: Scenario) -> list[np.ndarray]:
+    """Points every :data:`ZONE_SAMPLE_SPACING_M` along each of the ``zone_sectors`` sectors of
+    equal length of the nominal loop, in the order the robot drives them."""
+    corners = nominal_loop(scenario)
+    along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(corners, axis=0), axis=1))])
+    n = scenario.zone_sectors
+    sectors = []
+    for k in range(n):
+        a, b = along[-1] * k / n, along[-1] * (k + 1) / n
+        s = np.linspace(a, b, max(2, int(math.ceil((b - a) / ZONE_SAMPLE_SPACING_M)) + 1))
+        sectors.append(np.column_stack([np.interp(s, along, corners[:, 0]),
+                                        np.interp(s, along, corners[:, 1])]))
+    return sectors
+
+
+def draw_zones(scenario: Scenario, rng: np.random.Generator) -> tuple[str, ...]:
+    """The kind of each sector (:data:`ZONE_KINDS`): the first and last sectors (the start,
+    where the loop closes) are normal; the inner ones get the scenario's corridors, bursts and
+    patches in an order drawn from ``rng`` (a uniform permutation), the rest normal."""
+    kinds = ["normal"] * scenario.zone_sectors
+    if not scenario.has_zones:
+        return tuple(kinds)
+    inner = 1 + rng.permutation(scenario.zone_sectors - 2)
+    drawn = (["corridor"] * scenario.corridor_zones + ["burst"] * scenario.burst_zones
+             + ["patch"] * scenario.patch_zones)
+    for sector, kind in zip(inner, drawn, strict=False):
+        kinds[int(sector)] = kind
+    return tuple(kinds)
+
+
+def _distance_to(points: np.ndarray, path: np.ndarray) -> np.ndarray:
+    """Distance of each of ``points`` (n, 2) to the nearest point of ``path`` (m, 2)."""
+    if len(points) == 0:
+        return np.zeros(0)
+    d2 = ((points[:, None, :2] - path[None, :, :]) ** 2).sum(axis=-1)
+    return np.sqrt(d2.min(axis=1))
+
+
+def zoned_landmarks(scenario: Scenario, kinds, landmarks: np.ndarray,
+                    rng: np.random.Generator) -> np.ndarray:
+    """``landmarks`` with each patch sector's ``patch_landmarks`` added (uniform in a disc of
+    ``patch_radius_m`` on the sector's midpoint, drawn from ``rng``), then every landmark within
+    ``corridor_clearance_m`` of a corridor sector's nominal path removed."""
+    sectors = sector_paths(scenario)
+    added = []
+    for kind, path in zip(kinds, sectors, strict=True):
+        if kind == "patch":
+            centre = path[len(path) // 2]
+            radius = scenario.patch_radius_m * np.sqrt(rng.random(scenario.patch_landmarks))
+            angle = rng.uniform(-np.pi, np.pi, scenario.patch_landmarks)
+            added.append(centre + np.column_stack([radius * np.cos(angle),
+                                                   radius * np.sin(angle)]))
+    out = np.vstack([landmarks, *added]) if added else landmarks
+    keep = np.ones(len(out), dtype=bool)
+    for kind, path in zip(kinds, sectors, strict=True):
+        if kind == "corridor":
+            keep &= _distance_to(out, path) > scenario.corridor_clearance_m
+    return out[keep]
+
+
+def scan_clutter(scenario: Scenario, kinds, poses: np.ndarray) -> np.ndarray:
+    """(n, 2): the (alpha, beta) of a scan from each true pose of ``poses`` (n, 3): the
+    scenario's, with beta raised to ``burst_beta`` within ``burst_radius_m`` of a burst sector's
+    nominal path."""
+    out = np.tile(np.array([scenario.alpha, scenario.beta], dtype=float), (len(poses), 1))
+    for kind, path in zip(kinds, sector_paths(scenario), strict=True):
+        if kind == "burst":
+            inside = _distance_to(np.asarray(poses)[:, :2], path) <= scenario.burst_radius_m
+            out[inside, 1] = max(scenario.beta, scenario.burst_beta)
+    return out
+
+
 def drive(
     scenario: Scenario, waypoints: np.ndarray, rng: np.random.Generator,
     heading_offset_rad: float = 0.0,
@@ -226,8 +315,10 @@ def _detect_block(z_true, in_view, alpha, beta, range_std_m, bearing_std_rad, ma
     draws from ``rng`` in the same order and the same arithmetic, element by element.
 
     ``z_true`` (S, L, 2) and ``in_view`` (S, L): the true observations of every landmark and
-    which are visible, per scan. Returns the scans' observations (N, 2), truth ids (N,) and
-    visible ids (V,) one after the other, and the offsets (S + 1,) of each scan in the first two
+    which are visible, per scan; ``alpha`` and ``beta`` (S,): each scan's reliability (the
+    same value for every scan but where a world has clutter bursts, :func:`scan_clutter`).
+    Returns the scans' observations (N, 2), truth ids (N,) and visible ids (V,) one after the
+    other, and the offsets (S + 1,) of each scan in the first two
     and in the third (:func:`_detect_scans` splits them). numba's ``Generator`` methods draw from
     the caller's bit generator exactly as numpy's do (``tests/slam_gym/test_world.py`` compares
     the two paths array for array).
@@ -257,7 +348,7 @@ def _detect_block(z_true, in_view, alpha, beta, range_std_m, bearing_std_rad, ma
         u = rng.random(n_visible)
         n_det = 0
         for v in range(n_visible):
-            if u[v] < alpha:
+            if u[v] < alpha[i]:
                 detected[n_det] = visible[v]
                 n_det += 1
         noise = rng.standard_normal((n_det, 2))
@@ -268,7 +359,7 @@ def _detect_block(z_true, in_view, alpha, beta, range_std_m, bearing_std_rad, ma
         u = rng.random(n_visible)
         n_false = 0
         for v in range(n_visible):
-            if u[v] < beta:
+            if u[v] < beta[i]:
                 n_false += 1
         ranges = rng.uniform(0.0, max_range_m, n_false)
         bearings = rng.uniform(-half_fov, half_fov, n_false)
@@ -297,21 +388,26 @@ def _detect_block(z_true, in_view, alpha, beta, range_std_m, bearing_std_rad, ma
 
 
 def _detect_scans(poses: np.ndarray, landmarks: np.ndarray, sensor: RangeBearingSensor,
-                  clutter: ClutterModel, rng: np.random.Generator):
+                  clutter: ClutterModel, rng: np.random.Generator, reliability=None):
     """The scans (z, truth ids, visible ids) from each pose of ``poses`` (n, 3), drawn one after
     the other from ``rng``: what :func:`_detect` called once per pose in turn returns, bit for
-    bit, in compiled blocks (:func:`_detect_block`; the simulator's costliest loop)."""
+    bit, in compiled blocks (:func:`_detect_block`; the simulator's costliest loop).
+    ``reliability`` (n, 2): each scan's (alpha, beta) where they vary along the path (None:
+    ``clutter``'s for every scan)."""
+    reliability = _reliability(clutter, len(poses), reliability)
     scans = []
     if len(landmarks) == 0:
-        for _ in range(len(poses)):
+        for a, b in reliability:
             scans.append(_detect(np.zeros((0, 2)), np.zeros(0, dtype=np.int64), sensor,
-                                 clutter, rng))
+                                 ClutterModel(alpha=float(a), beta=float(b)), rng))
         return scans
     block = max(1, OBSERVED_BLOCK_ELEMENTS // len(landmarks))
     for begin in range(0, len(poses), block):
         z_true = observe(poses[begin:begin + block, None, :], landmarks[None, :, :])
+        here = reliability[begin:begin + block]
         z, ids, visible, z_start, visible_start = _detect_block(
-            z_true, sensor.in_view(z_true), float(clutter.alpha), float(clutter.beta),
+            z_true, sensor.in_view(z_true), np.ascontiguousarray(here[:, 0]),
+            np.ascontiguousarray(here[:, 1]),
             float(sensor.range_std_m), float(sensor.bearing_std_rad), float(sensor.max_range_m),
             float(sensor.fov_rad), rng,
         )
@@ -319,6 +415,16 @@ def _detect_scans(poses: np.ndarray, landmarks: np.ndarray, sensor: RangeBearing
             a, b = z_start[i], z_start[i + 1]
             scans.append((z[a:b], ids[a:b], visible[visible_start[i]:visible_start[i + 1]]))
     return scans
+
+
+def _reliability(clutter: ClutterModel, n: int, reliability=None) -> np.ndarray:
+    """(n, 2) float array of each scan's (alpha, beta): ``reliability``, or ``clutter``'s."""
+    if reliability is None:
+        return np.tile(np.array([clutter.alpha, clutter.beta], dtype=float), (n, 1))
+    reliability = np.asarray(reliability, dtype=float).reshape(-1, 2)
+    if len(reliability) != n:
+        raise ValueError(f"reliability has {len(reliability)} rows: must have one per scan ({n})")
+    return reliability
 
 
 OBSERVED_BLOCK_ELEMENTS = 1 << 16
@@ -415,8 +521,10 @@ def make_stream(name: str | Scenario, seed: int, **overrides) -> Stream:
 def simulate(scenario: Scenario, seed: int) -> Stream:
     """Simulate ``scenario`` for ``seed`` (a non-negative integer)."""
     _check_seed(seed)
-    world_rng, odometry_rng, sensor_rng = (
-        np.random.default_rng(s) for s in np.random.SeedSequence(int(seed)).spawn(3)
+    # a fourth child for the zones: the first three are the children spawn(3) gives, so a
+    # zoned world's base (landmarks before its zones, path, odometry) is its unzoned world's
+    world_rng, odometry_rng, sensor_rng, zone_rng = (
+        np.random.default_rng(s) for s in np.random.SeedSequence(int(seed)).spawn(4)
     )
     landmarks = landmark_field(scenario, world_rng)
     waypoints = loop_waypoints(scenario, world_rng)
@@ -425,6 +533,9 @@ def simulate(scenario: Scenario, seed: int) -> Stream:
     poses, commands, true_velocities = drive(
         scenario, route(scenario, waypoints), odometry_rng, heading_offset_rad=offset
     )
+    zones = draw_zones(scenario, zone_rng) if scenario.has_zones else None
+    if zones is not None:
+        landmarks = zoned_landmarks(scenario, zones, landmarks, zone_rng)
     odometry = measured_odometry(scenario, commands, true_velocities, odometry_rng)
     sensor = sensor_of(scenario)
     clutter = ClutterModel(alpha=scenario.alpha, beta=scenario.beta)
@@ -438,18 +549,28 @@ def simulate(scenario: Scenario, seed: int) -> Stream:
     empty_z, empty_ids = np.zeros((0, 2)), np.zeros(0, dtype=np.int64)
     steps = []
     scan_indices = [0] * first + [k + 1 for k in range(n_moving) if (k + 1) % every == 0]
+    # each step's (alpha, beta): the scenario's, but in a clutter burst
+    # (step j's true pose is poses[j + 1 - first]; a redrawn future reads them per step)
+    step_reliability = (scan_clutter(scenario, zones, poses[1 - first:1 - first + n_steps])
+                        if zones is not None else None)
+    reliability = (scan_clutter(scenario, zones, poses[scan_indices])
+                   if zones is not None else None)
     if scenario.compass_std_rad is None:
         # no compass draws between the scans: every scan's draws in one compiled pass
-        scans = iter(_detect_scans(poses[scan_indices], landmarks, sensor, clutter, sensor_rng))
+        scans = iter(_detect_scans(poses[scan_indices], landmarks, sensor, clutter, sensor_rng,
+                                   reliability))
 
         def scan_at_next_pose():
             return next(scans)
     else:
         views = _true_views(poses[scan_indices], landmarks, sensor)
+        reliabilities = iter(_reliability(clutter, len(scan_indices), reliability))
 
         def scan_at_next_pose():
             z_true, visible = next(views)
-            return _detect(z_true, visible, sensor, clutter, sensor_rng)
+            a, b = next(reliabilities)
+            return _detect(z_true, visible, sensor, ClutterModel(alpha=float(a), beta=float(b)),
+                           sensor_rng)
 
     def compass_at(pose):
         if scenario.compass_std_rad is None:
@@ -504,6 +625,8 @@ def simulate(scenario: Scenario, seed: int) -> Stream:
             "seed": int(seed),
             "waypoints": waypoints,
             "true_poses": poses[: n_moving + 1],
+            **({"zones": zones, "step_reliability": step_reliability}
+               if zones is not None else {}),
         },
     )
 
@@ -548,6 +671,8 @@ class RedrawnFuture:
         self.sensor = stream.sensor
         self.clutter = stream.clutter
         self.compass_std_rad = stream.compass_std_rad
+        #: each step's (alpha, beta) in a world with clutter bursts (None: the stream's clutter)
+        self.step_reliability = stream.metadata.get("step_reliability")
         self.rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(start)]))
         self.next_index = int(start)
         self._buffer: list[Step] = []
@@ -568,20 +693,28 @@ class RedrawnFuture:
     def _draw(self, begin: int, end: int) -> list[Step]:
         block = self.source[begin:end]
         scanned = [s for s in block if s.scanned]
+        reliability = None
+        if self.step_reliability is not None:
+            reliability = np.asarray(self.step_reliability[begin:end])[
+                [s.scanned for s in block]]
         if self.compass_std_rad is None:
             poses = np.array([s.truth.pose for s in scanned]).reshape(-1, 3)
             scans = iter(_detect_scans(poses, self.landmarks, self.sensor, self.clutter,
-                                       self.rng))
+                                       self.rng, reliability))
         out = []
-        for step in block:
+        for position, step in enumerate(block, start=begin):
             compass = step.compass_rad
             z, ids, visible = step.z, step.truth.landmark_ids, step.truth.visible_ids
             if step.scanned:
                 if self.compass_std_rad is None:
                     z, ids, visible = next(scans)
                 else:
+                    clutter = self.clutter
+                    if self.step_reliability is not None:
+                        a, b = self.step_reliability[position]
+                        clutter = ClutterModel(alpha=float(a), beta=float(b))
                     z, ids, visible = scan(step.truth.pose, self.landmarks, self.sensor,
-                                           self.clutter, self.rng)
+                                           clutter, self.rng)
             if compass is not None and self.compass_std_rad is not None:
                 compass = float(wrap_angle(step.truth.pose[2]
                                            + self.compass_std_rad * self.rng.normal()))

@@ -81,6 +81,12 @@ def add_parser(subparsers) -> None:
                    help="the regression check (<= 60 s): HYBRID at 500 particles, the four "
                    "env schedules on a few hundred decisions, optimise() at 10/20/40 sub-maps on "
                    "one world; writes speed_record.json")
+    p.add_argument("--tasks", default="",
+                   help="issue 48's task ids (comma-separated, 'all' for every one of "
+                   "TASK_ENV_VARIANTS) to time over one whole episode each under "
+                   "fixed-10s-optimise's schedule on training-time world 900000: decisions/s, "
+                   "the episode's CPU, and the CPU per decision by third of the episode against "
+                   "the stored sub-maps; recorded in speed_record.json with --quick")
     p.add_argument("--compare", metavar="BASELINE", default=None,
                    help="a speed record to compare with: prints every figure's speed ratio "
                    "and exits 1 when one falls below half of the baseline's")
@@ -134,6 +140,53 @@ def _schedule_action(schedule: str, iteration: int) -> np.ndarray:
         "optimise-every-decision": (at_fusion, 1),
         "fuse-optimise-every-decision": (1, 1),
     }[schedule])
+
+
+TASK_SEED = 900000
+"""The training-time world :func:`measure_task` times each task on."""
+
+
+def measure_task(env_id: str, seed: int = TASK_SEED, schedule: str = "fixed-10s-optimise",
+                 **config) -> dict:
+    """One whole episode of an issue-48 task (an id of ``TASK_ENV_VARIANTS``, its defaults
+    unless ``config`` says otherwise) on world ``seed`` under ``schedule``
+    (:data:`ENV_SCHEDULES`): decisions per CPU second (the reset included), the episode's CPU,
+    and per third of the episode the mean CPU per decision and the stored sub-maps and global
+    features at its end, so a cost per decision that grows faster than the map shows."""
+    import gymnasium as gym
+
+    from slam_gym.envs import TASK_ENV_VARIANTS
+
+    if env_id not in TASK_ENV_VARIANTS:
+        raise ValueError(f"env_id={env_id!r} is invalid: must be one of "
+                         f"{sorted(TASK_ENV_VARIANTS)}")
+    env = gym.make(f"slam_gym:{env_id}", **config).unwrapped
+    start = time.process_time()
+    env.reset(seed=int(seed), options={"world_seed": int(seed)})
+    reset_s = time.process_time() - start
+    step_s, submaps, features = [], [], []
+    while True:
+        t0 = time.process_time()
+        _, _, terminated, truncated, info = env.step(
+            _schedule_action(schedule, env.episode.iteration))
+        step_s.append(time.process_time() - t0)
+        submaps.append(info["features"]["stored_submaps"])
+        features.append(len(env.system.landmarks().ids))
+        if terminated or truncated:
+            break
+    cpu_s = reset_s + float(np.sum(step_s))
+    n = len(step_s)
+    thirds = []
+    for k in range(3):
+        part = slice(k * n // 3, (k + 1) * n // 3)
+        if part.stop > part.start:
+            thirds.append({"ms_per_decision": 1e3 * float(np.mean(step_s[part])),
+                           "stored_submaps_at_end": int(submaps[part.stop - 1]),
+                           "global_features_at_end": int(features[part.stop - 1])})
+    return {"env": env_id, "schedule": schedule, "seed": int(seed),
+            "n_particles": env.config.n_particles, "clutter_level": env.config.clutter_level,
+            "decisions": n, "failed": bool(env.episode.failure.failed), "reset_cpu_s": reset_s,
+            "episode_cpu_s": cpu_s, "decisions_per_s": n / cpu_s, "thirds": thirds}
 
 
 def measure_env(decisions, seed, schedule: str = "fixed-10s", **config):
@@ -487,6 +540,10 @@ def record_figures(result) -> dict:
             out["optimise_last_full_path_ms"] = figure(e["last_optimisation_ms"], "ms", False)
     for r in result.get("optimise", []):
         out[f"optimise_{r['stored_submaps']}_submaps_ms"] = figure(r["median_ms"], "ms", False)
+    for t in result.get("tasks", []):
+        key = "task_" + t["env"].split("/")[-1].replace("-", "_").lower()
+        out[f"{key}_decisions_per_s"] = figure(t["decisions_per_s"], "decisions/s", True)
+        out[f"{key}_episode_cpu_s"] = figure(t["episode_cpu_s"], "s", False)
     if result.get("optimise"):
         out["optimise_redundant_us"] = figure(
             float(np.median([r["redundant_median_us"] for r in result["optimise"]])), "us", False)
@@ -578,6 +635,17 @@ def run(args) -> int:
     if counts:
         result["optimise"] = measure_optimise(int_list(args.optimise_seeds, "optimise_seeds"),
                                               counts, n_steps=optimise_steps)
+    if args.tasks:
+        from slam_gym.envs import TASK_ENV_VARIANTS
+
+        tasks = sorted(TASK_ENV_VARIANTS) if args.tasks == "all" else name_list(args.tasks)
+        bad = [t for t in tasks if t not in TASK_ENV_VARIANTS]
+        if bad:
+            logger.error("--tasks=%s is invalid: must be among %s or 'all'", ",".join(bad),
+                         ", ".join(sorted(TASK_ENV_VARIANTS)))
+            return 2
+        result["tasks"] = [measure_task(t) for t in tqdm(tasks, desc="tasks",
+                                                         disable=args.quiet or args.json)]
     if not args.skip_first_reset:
         result["env_first_reset"] = measure_first_reset(args.seed)
     if args.env_decisions > 0 and not args.skip_paper_episode:
@@ -621,6 +689,14 @@ def run(args) -> int:
                      f"{r['median_ms']:.1f} ms (max {r['max_ms']:.1f}, {r['optimisations']} "
                      f"optimisations, {r['median_iterations']:.0f} iterations); redundant "
                      f"{r['redundant_median_us']:.0f} us")
+    for t in result.get("tasks", []):
+        lines.append(f"task {t['env']} ({t['n_particles']} particles, level "
+                     f"{t['clutter_level']}, world {t['seed']}, {t['schedule']}): "
+                     f"{t['decisions_per_s']:.0f} decisions/s, one episode of {t['decisions']} "
+                     f"decisions {t['episode_cpu_s']:.1f} s CPU; ms per decision by third: "
+                     + ", ".join(f"{p['ms_per_decision']:.1f} (to {p['stored_submaps_at_end']}"
+                                 f" sub-maps, {p['global_features_at_end']} features)"
+                                 for p in t["thirds"]))
     if "env_first_reset" in result:
         e = result["env_first_reset"]
         lines.append(f"env in a fresh process: import {e['import_cpu_s']:.2f} s, first reset "

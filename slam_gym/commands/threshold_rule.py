@@ -69,6 +69,9 @@ def add_parser(subparsers) -> None:
                    help="comma-separated clutter levels 0-3, distinct (default 0,1,2,3)")
     p.add_argument("--particles", type=int, default=500, metavar="P",
                    help="FastSLAM particles (default 500)")
+    p.add_argument("--scenario", default="brooks-bailey",
+                   help="the scenario whose training-time worlds choose the rule (issue 48's "
+                        "tasks: brooks-bailey-zones, long-mission)")
     p.add_argument("--n-steps", type=int, default=None, help="cut every path (quick looks)")
     add_run_options(p, default_out="out/threshold-rule", trials_flag=None)
     p.set_defaults(run=run)
@@ -169,7 +172,7 @@ def run(args) -> int:
     rules = candidates()
     levels = int_list(args.clutter_levels, "clutter_levels")
     result = benchmark(rules, clutter_levels=levels, seeds=seeds,
-                       n_particles=args.particles, n_steps=args.n_steps,
+                       scenario=args.scenario, n_particles=args.particles, n_steps=args.n_steps,
                        w_compute=args.run_price, compute_clip_s=args.compute_clip_s,
                        baselines=[], figures=False, out=out, **run_options(args))
     table = score(result.rows, prices)
@@ -177,7 +180,8 @@ def run(args) -> int:
     table.sort(key=lambda r: list(rules).index(r["rule"]))
     chosen = choose(table, prices, rules)
     (Path(out) / "candidates.md").write_text(markdown(table, prices))
-    doc = {"prices": prices, "run_price": args.run_price, "compute_clip_s": args.compute_clip_s,
+    doc = {"scenario": args.scenario, "particles": args.particles,
+           "prices": prices, "run_price": args.run_price, "compute_clip_s": args.compute_clip_s,
            "seeds": seeds, "clutter_levels": levels, "chosen": chosen,
            "candidates": table, "not_scored": failed}
     (Path(out) / "chosen.json").write_text(json.dumps(doc, indent=2) + "\n")

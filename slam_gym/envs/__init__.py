@@ -92,6 +92,19 @@ def max_episode_steps(kwargs: dict) -> int:
     return math.ceil(1.5 * steps / config.decision_interval)
 
 
+#: the tasks of issue 48 (slam_gym.envs.tasks), only at -v1: id -> (entry point, default
+#: keyword arguments)
+TASK_ENV_VARIANTS: dict[str, tuple[str, dict]] = {
+    "SlamGym/HybridSLAM-Zones-v1": ("slam_gym.envs.tasks:ZonesEnv",
+                                    {"scenario": "brooks-bailey-zones"}),
+    "SlamGym/HybridSLAM-ZonesStarved-v1": ("slam_gym.envs.tasks:ZonesStarvedEnv",
+                                           {"scenario": "brooks-bailey-zones",
+                                            "n_particles": 150}),
+    "SlamGym/HybridSLAM-LongMission-v1": ("slam_gym.envs.tasks:LongMissionEnv",
+                                          {"scenario": "long-mission"}),
+}
+
+
 def register_envs() -> list[str]:
     """Register every variant that is not registered yet; returns the simulated ids."""
     for env_id, kwargs in ENV_VARIANTS.items():
@@ -99,6 +112,10 @@ def register_envs() -> list[str]:
             gym.register(id=env_id, entry_point=ENTRY_POINT, kwargs=dict(kwargs),
                          max_episode_steps=max_episode_steps(kwargs))
     for env_id, (entry_point, kwargs) in WRAPPED_ENV_VARIANTS.items():
+        if env_id not in gym.registry:
+            gym.register(id=env_id, entry_point=entry_point, kwargs=dict(kwargs),
+                         max_episode_steps=max_episode_steps(kwargs))
+    for env_id, (entry_point, kwargs) in TASK_ENV_VARIANTS.items():
         if env_id not in gym.registry:
             gym.register(id=env_id, entry_point=entry_point, kwargs=dict(kwargs),
                          max_episode_steps=max_episode_steps(kwargs))

@@ -180,6 +180,20 @@ def test_speed_times_exactly_one_whole_env_episode():
     assert e["cpu_time_s"] > 0 and e["n_particles"] == 10
 
 
+def test_speed_times_a_task_episode_by_thirds_and_records_it():
+    from slam_gym.commands.speed import measure_task, record_figures
+
+    t = measure_task("SlamGym/HybridSLAM-LongMission-v1", n_particles=100, n_steps=350)
+    assert not t["failed"] and t["decisions"] == 34 and len(t["thirds"]) == 3
+    assert t["episode_cpu_s"] > 0
+    sub = [p["stored_submaps_at_end"] for p in t["thirds"]]
+    assert sub == sorted(sub) and sub[-1] >= 1  # fused every 10 s
+    figures = record_figures({"tasks": [t]})
+    assert figures["task_hybridslam_longmission_v1_decisions_per_s"]["higher_is_better"]
+    with pytest.raises(ValueError, match="env_id"):
+        measure_task("SlamGym/HybridSLAM-v1")
+
+
 def test_speed_full_path_figures_leave_failed_episodes_out():
     from slam_gym.commands.speed import measure_full_path, record_figures
     from slam_gym.commands.speed_record import figure

@@ -176,6 +176,34 @@ def test_lookahead_is_deterministic_and_plans_only_where_the_rule_fuses():
     assert fields["simulated_decisions"] <= fields["planned_decisions"] * 3 * 2 * 4
 
 
+def test_early_fusion_plans_where_the_rule_waits_and_can_fuse_there():
+    """With early_fusion_from_s the planner also plans decisions where the rule waits (local map
+    old enough): fuse+optimise and fuse against waiting. With no gate it fuses before the rule's
+    10 s wherever a rollout says so; off (None), the options and decisions are issue 39's."""
+    options = dict(n_particles=60, n_steps=400, w_compute=10.0, compute_clip_s=0.2)
+    actions, ages = [], []
+    policy = LookaheadPolicy(horizon_decisions=3, n_futures=1, privileged=True, min_gain=0.0,
+                             z_gain=0.0, early_fusion_from_s=6.0)
+
+    def seen(action, info):
+        actions.append(action.tolist())
+        ages.append(info["features"]["local_map_age_s"])
+
+    run_policy_object(policy, "brooks-bailey", 2, 8, on_step=seen, **options)
+    fusions = sum(a[0] for a in actions)
+    assert policy.planned_decisions > fusions  # decisions where the rule waited were planned
+    # the fusion at the first planned decision: the age the observation showed before it
+    observed = [None] + ages[:-1]
+    early = [a for a, age in zip(actions, observed, strict=True)
+             if a[0] and age is not None and age + 1e-4 < 10.0]
+    assert early, "no fusion before the rule's 10 s although every rollout gain passes"
+    assert all(age is None or age + 1e-4 >= 6.0
+               for a, age in zip(actions, observed, strict=True) if a[0])
+    assert "early_fusion_from_s" not in LookaheadPolicy().options
+    with pytest.raises(ValueError, match="early_fusion_from_s"):
+        LookaheadPolicy(early_fusion_from_s=-1.0)
+
+
 def test_the_gate_leaves_the_rule_only_for_a_clear_paired_gain():
     policy = LookaheadPolicy(min_gain=10.0, z_gain=2.0)
     base = (1, 1)

@@ -34,3 +34,16 @@ def test_every_rule_runs_once_and_the_best_is_chosen_per_price(tmp_path):
 def test_training_worlds_are_refused(tmp_path, capsys):
     assert main(["threshold-rule", "--seeds", "1000000", "--quiet", "--out", str(tmp_path)]) == 2
     assert "seeds" in capsys.readouterr().err
+
+
+def test_the_rule_is_chosen_on_the_named_scenarios_worlds(tmp_path):
+    """Issue 48: a task's best rule is chosen on its own scenario's training-time worlds."""
+    out = tmp_path / "tr"
+    code = main(["threshold-rule", "--scenario", "brooks-bailey-zones", "--seeds", "3",
+                 "--clutter-levels", "0", "--n-steps", "200", "--particles", "30",
+                 "--workers", "1", "--prices", "10", "--quiet", "--out", str(out)])
+    assert code == 0
+    doc = json.loads((out / "chosen.json").read_text())
+    assert doc["scenario"] == "brooks-bailey-zones" and doc["particles"] == 30
+    rows = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()]
+    assert rows and all(r["scenario"] == "brooks-bailey-zones" for r in rows)

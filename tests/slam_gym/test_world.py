@@ -230,7 +230,7 @@ def test_unknown_scenario_and_bad_seed():
 def test_scenario_presets():
     assert set(scenario_names()) == {
         "brooks-bailey", "brooks-bailey-calibrated", "brooks-bailey-compass",
-        "conte-martinelli-1", "conte-martinelli-2",
+        "brooks-bailey-zones", "long-mission", "conte-martinelli-1", "conte-martinelli-2",
     }
     calibrated = get_scenario("brooks-bailey-calibrated")
     assert calibrated == get_scenario("brooks-bailey", path_perturbation_m=0.625).replace(
@@ -494,3 +494,82 @@ def test_turning_rises_with_the_waypoint_jitter():
         turning = [turning_statistics(make_stream(small_bb(path_perturbation_m=j), seed=seed))[
             "total_turning_rad"] for j in (0.0, 1.5, 3.0)]
         assert turning[0] < turning[1] < turning[2], (seed, turning)
+
+
+# ---------------------------------------------------------------------------- zones (issue 48)
+def test_zoned_world_is_its_base_world_with_zones_drawn_per_world():
+    """A zoned world keeps its unzoned world's path, odometry and base landmarks (the zones
+    draw from a fourth child of the seed); the zones differ between worlds."""
+    from slam_gym.world import sector_paths
+
+    base = make_stream("brooks-bailey", 3, clutter_level=1)
+    zoned = make_stream("brooks-bailey-zones", 3, clutter_level=1)
+    assert np.array_equal(base.metadata["true_poses"], zoned.metadata["true_poses"])
+    assert np.array_equal([s.odometry for s in base], [s.odometry for s in zoned])
+    kinds = zoned.metadata["zones"]
+    scenario = zoned.metadata["scenario"]
+    assert kinds[0] == kinds[-1] == "normal"
+    assert sorted(k for k in kinds if k != "normal") == ["burst"] * 2 + ["corridor"] * 2 + \
+        ["patch"] * 2
+    assert any(make_stream("brooks-bailey-zones", s, clutter_level=1).metadata["zones"] != kinds
+               for s in (4, 5, 6))
+    paths = sector_paths(scenario)
+    lm = zoned.landmarks_true
+    for kind, path in zip(kinds, paths, strict=True):
+        d = np.sqrt(((lm[:, None, :] - path[None]) ** 2).sum(-1)).min(axis=1)
+        if kind == "corridor":  # no landmark near a corridor
+            assert d.min() > scenario.corridor_clearance_m
+        if kind == "patch":  # a patch's landmarks are there (unless a corridor took them)
+            centre = path[len(path) // 2]
+            near = np.linalg.norm(lm - centre, axis=1) <= scenario.patch_radius_m + 1e-9
+            assert near.sum() >= 1
+    # every base landmark not in a corridor is kept, in order, before the patches' ones
+    kept = [p for p in base.landmarks_true
+            if all(np.sqrt(((p - path) ** 2).sum(-1)).min() > scenario.corridor_clearance_m
+                   for kind, path in zip(kinds, paths, strict=True) if kind == "corridor")]
+    assert np.array_equal(np.array(kept), lm[:len(kept)])
+
+
+def test_clutter_bursts_raise_false_alarms_where_declared_only():
+    zoned = make_stream("brooks-bailey-zones", 3, clutter_level=0)  # no clutter outside bursts
+    reliability = zoned.metadata["step_reliability"]
+    assert reliability.shape == (len(zoned), 2)
+    in_burst = reliability[:, 1] > 0
+    assert 0.1 < in_burst.mean() < 0.5
+    false_alarms = np.array([np.sum(s.truth.landmark_ids < 0) for s in zoned])
+    assert false_alarms[~in_burst].sum() == 0 and false_alarms[in_burst].sum() > 100
+
+
+def test_redrawn_future_of_a_zoned_world_keeps_its_bursts():
+    from slam_gym.world import RedrawnFuture
+
+    zoned = make_stream("brooks-bailey-zones", 3, clutter_level=0)
+    reliability = zoned.metadata["step_reliability"]
+    future = list(RedrawnFuture(zoned, 100, seed=7))
+    assert len(future) == len(zoned) - 100
+    false_alarms = np.array([np.sum(s.truth.landmark_ids < 0) for s in future])
+    in_burst = reliability[100:, 1] > 0
+    assert false_alarms[~in_burst].sum() == 0 and false_alarms[in_burst].sum() > 50
+    original = [s.z for s in list(zoned)[100:]]
+    assert any(len(a) != len(b) or not np.array_equal(a, b)
+               for a, b in zip(original, (s.z for s in future), strict=True))
+
+
+def test_zone_options_are_validated_naming_the_field():
+    with pytest.raises(ValueError, match="zone_sectors"):
+        get_scenario("brooks-bailey", zone_sectors=4, corridor_zones=3)
+    with pytest.raises(ValueError, match="burst_beta"):
+        get_scenario("brooks-bailey-zones", burst_beta=1.0)
+    with pytest.raises(ValueError, match="patch_landmarks"):
+        get_scenario("brooks-bailey-zones", patch_landmarks=-1)
+
+
+def test_long_mission_drives_its_loop_several_times():
+    stream = make_stream("long-mission", 0, clutter_level=0, n_steps=None)
+    scenario = stream.metadata["scenario"]
+    assert scenario.loop_side_m == pytest.approx(112.5)
+    assert 1300 < len(stream) * stream.dt_s < 1700
+    start = stream.metadata["true_poses"][0, :2]
+    d = np.linalg.norm(stream.metadata["true_poses"][:, :2] - start, axis=1)
+    returns = np.sum((d[1:] < 5.0) & (d[:-1] >= 5.0))  # passes over the start
+    assert returns >= 3

@@ -1,0 +1,245 @@
+"""The headroom of an issue-48 task: its rules, its best threshold rule and the lookahead's
+bound (and the lookahead where the bound shows room), paired world by world with the best rule.
+
+Supports docs/RESULTS.md, "Tasks where the interface decision matters (issue 48)". The declared
+runs (one worker; resumable: a rerun with the same ``--out`` keeps the finished rows)::
+
+    python scripts/results/task_headroom.py --task SlamGym/HybridSLAM-ZonesStarved-v1 \
+        --seeds 10 --seed-start 4800 --threshold-rule out/tr48-starved/chosen.json \
+        --out out/headroom48-starved
+
+``--task`` is one of the ids of :data:`slam_gym.envs.TASK_ENV_VARIANTS` (its scenario and
+particles). Policies: ``--policies`` (default the three rules and ``lookahead-privileged``) and,
+with ``--threshold-rule`` (the ``chosen.json`` of ``slam-gym threshold-rule`` on the task's
+training-time worlds), the chosen threshold rule as ``best-threshold``. The **best rule** is
+the threshold family's rule chosen there (the family includes its ends ``fixed-10s`` and
+``fixed-10s-optimise``; the chosen one by mean return at ``--price``), else ``--best-rule``.
+
+Statistics (``slam_gym.evaluation.paired``, the library of ``slam-gym compare``, issue 46):
+every run is paired with the best rule's run on the same world and draw (common random numbers);
+the per-world difference is the mean over the world's draws (draws as a factor nested in their
+world); continuous measures get the stratified cluster bootstrap interval over worlds
+(:func:`~slam_gym.evaluation.paired.stratified_bootstrap_interval`, strata the clutter levels),
+success the matched-rate interval of Agresti & Min (Biometrics 61, 2005; ``pseudo_weight`` 1/2,
+as declared; :func:`~slam_gym.evaluation.paired.matched_rate_interval`). Normalised headroom:
+``(lookahead - best) / (bound - best)``, reported only where the bound's interval
+excludes 0. Writes ``OUT/headroom.json`` and ``OUT/headroom.md``. ``--report-only`` recomputes
+them from the rows without running anything.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+from collections import defaultdict
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+logger = logging.getLogger("task_headroom")
+
+RULES = ("fixed-10s", "fixed-10s-optimise", "esdf-innovation")
+BOUND = "lookahead-privileged"
+METRICS = ("success", "nees_in_band_fraction", "anees", "map_error_m", "interface_cpu_s",
+           "return")
+"""The paired measures of the table (``return`` at ``--price``)."""
+
+
+def value(row: Mapping, metric: str, price: float) -> float | None:
+    from slam_gym.evaluation.front import interface_cpu_s, return_at_price
+
+    if metric == "success":
+        return float(bool(row["success"]))
+    if metric == "interface_cpu_s":
+        return interface_cpu_s(row)
+    if metric == "return":
+        return return_at_price(row, price)
+    v = row.get(metric)
+    return None if v is None or (isinstance(v, float) and math.isnan(v)) else float(v)
+
+
+def per_world_differences(rows: Sequence[Mapping], reference: Sequence[Mapping], metric: str,
+                          price: float) -> dict[tuple[int, int], float]:
+    """(level, seed) -> the mean over the world's draws of ``rows`` minus ``reference`` (draws
+    where either value is undefined, e.g. a map error after a failure, are left out; a world
+    with none left is left out)."""
+    ref = {(int(r["clutter_level"]), int(r["seed"]), int(r.get("draw", 0))): r
+           for r in reference}
+    diffs: dict[tuple[int, int], list[float]] = defaultdict(list)
+    for r in rows:
+        key = (int(r["clutter_level"]), int(r["seed"]), int(r.get("draw", 0)))
+        if key not in ref:
+            continue
+        if metric == "map_error_m" and not (r["success"] and ref[key]["success"]):
+            continue  # map error where both survived (as slam_gym.evaluation.front.compare)
+        a, b = value(r, metric, price), value(ref[key], metric, price)
+        if a is not None and b is not None:
+            diffs[key[:2]].append(a - b)
+    return {w: float(np.mean(d)) for w, d in diffs.items()}
+
+
+def paired_interval(diffs: Mapping[tuple[int, int], float], *, rate: bool = False
+                   ) -> tuple[float, float, float]:
+    """Mean of the per-world differences (``(level, seed) -> d``) and its 95 % interval: the
+    matched-rate interval (Agresti-Min) for success rates, else the stratified bootstrap."""
+    from slam_gym.evaluation.paired import (
+        matched_rate_interval,
+        stratified_bootstrap_interval,
+    )
+
+    if len(diffs) < 2:
+        return math.nan, math.nan, math.nan
+    worlds = sorted(diffs)
+    d = np.array([diffs[w] for w in worlds])
+    if rate:
+        out = matched_rate_interval(d, pseudo_weight=0.5)
+        return float(np.mean(d)), float(out.lo), float(out.hi)
+    out = stratified_bootstrap_interval(d, np.array([w[0] for w in worlds]), rng=0)
+    return float(out.estimate), float(out.lo), float(out.hi)
+
+
+def summarise(rows: Sequence[Mapping], best: str, price: float) -> dict:
+    """Per policy: means and paired differences with ``best`` (module docstring)."""
+    by_policy: dict[str, list[Mapping]] = defaultdict(list)
+    for r in rows:
+        if r.get("status") == "ok":
+            by_policy[r["policy"]].append(r)
+    reference = by_policy[best]
+    out: dict = {"best_rule": best, "price": price, "policies": {}}
+    for name, group in by_policy.items():
+        entry: dict = {"n_runs": len(group),
+                       "n_worlds": len({(r["clutter_level"], r["seed"]) for r in group})}
+        for metric in METRICS:
+            vals = [value(r, metric, price) for r in group
+                    if metric != "map_error_m" or r["success"]]
+            vals = [v for v in vals if v is not None]
+            entry[metric] = float(np.mean(vals)) if vals else None
+            if name == best:
+                continue
+            entry[f"{metric}_diff"] = paired_interval(
+                per_world_differences(group, reference, metric, price),
+                rate=metric == "success")
+        for extra in ("planning_cpu_s", "deviations_from_base", "n_fusions", "n_optimisations"):
+            vals = [float(r[extra]) for r in group if r.get(extra) is not None]
+            entry[extra] = float(np.mean(vals)) if vals else None
+        out["policies"][name] = entry
+    bound, look = out["policies"].get(BOUND), out["policies"].get("lookahead")
+    out["normalised_headroom"] = {}
+    if bound and look:
+        for metric in METRICS:
+            b, lk = bound[f"{metric}_diff"], look[f"{metric}_diff"]
+            room = not (b[1] <= 0.0 <= b[2])
+            out["normalised_headroom"][metric] = (lk[0] / b[0]) if room and b[0] else None
+    return out
+
+
+def markdown(doc: Mapping) -> str:
+    head = ["policy", "worlds", "success", "vs best (pp)", "NEES in band", "vs best (pp)",
+            "ANEES", "vs best", "map error (m)", "vs best (m)", "interface CPU (s)",
+            "vs best (s)", f"return @ {doc['price']:g} /s", "vs best", "planning CPU (s/ep)"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+
+    def cell(entry, metric, scale=1.0, digits=2):
+        mean = entry.get(metric)
+        return "-" if mean is None else f"{mean * scale:.{digits}f}"
+
+    def diff(entry, metric, scale=1.0, digits=2):
+        d = entry.get(f"{metric}_diff")
+        if d is None or any(math.isnan(x) for x in d):
+            return "-"
+        m, lo, hi = (x * scale for x in d)
+        return f"{m:+.{digits}f} [{lo:+.{digits}f}, {hi:+.{digits}f}]"
+
+    for name, e in doc["policies"].items():
+        label = f"**{name}** (best rule)" if name == doc["best_rule"] else name
+        lines.append("| " + " | ".join([
+            label, str(e["n_worlds"]), cell(e, "success", 100, 0) + " %",
+            diff(e, "success", 100, 0), cell(e, "nees_in_band_fraction", 100, 0) + " %",
+            diff(e, "nees_in_band_fraction", 100, 0), cell(e, "anees"), diff(e, "anees"),
+            cell(e, "map_error_m"), diff(e, "map_error_m"), cell(e, "interface_cpu_s", 1, 3),
+            diff(e, "interface_cpu_s", 1, 3), cell(e, "return", 1, 0), diff(e, "return", 1, 0),
+            "-" if e.get("planning_cpu_s") is None else f"{e['planning_cpu_s']:.0f}",
+        ]) + " |")
+    if doc.get("normalised_headroom"):
+        lines.append("")
+        lines.append("Normalised headroom (lookahead - best) / (bound - best), where the bound's "
+                     "interval excludes 0: " + ", ".join(
+                         f"{m} {v:.2f}" for m, v in doc["normalised_headroom"].items()
+                         if v is not None) or "none")
+    return "\n".join(lines) + "\n"
+
+
+def read_rows(path: Path) -> list[dict]:
+    rows = []
+    for line in Path(path).read_text().splitlines():
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError:  # a partial last line left by a kill
+            continue
+    return rows
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--task", required=True, help="an id of TASK_ENV_VARIANTS")
+    parser.add_argument("--seeds", type=int, default=10, help="worlds per clutter level")
+    parser.add_argument("--seed-start", type=int, default=4800)
+    parser.add_argument("--clutter-levels", default="0,1,2,3")
+    parser.add_argument("--draws", type=int, default=1)
+    parser.add_argument("--price", type=float, default=10.0, help="w_compute (/s)")
+    parser.add_argument("--compute-clip-s", type=float, default=0.2)
+    parser.add_argument("--policies", default=",".join((*RULES, BOUND)))
+    parser.add_argument("--threshold-rule", default=None,
+                        help="chosen.json of slam-gym threshold-rule (adds best-threshold)")
+    parser.add_argument("--best-rule", default=None,
+                        help="the best rule's name (else --threshold-rule's choice)")
+    parser.add_argument("--report-only", action="store_true")
+    parser.add_argument("--out", required=True)
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+
+    import policies
+    from slam_gym.envs import TASK_ENV_VARIANTS
+    from slam_gym.evaluation import benchmark
+
+    if args.task not in TASK_ENV_VARIANTS:
+        parser.error(f"--task must be one of {sorted(TASK_ENV_VARIANTS)}")
+    _, kwargs = TASK_ENV_VARIANTS[args.task]
+    names = [n.strip() for n in args.policies.split(",") if n.strip()]
+    specs: dict = {n: policies.make(n) for n in names}
+    best = args.best_rule or "fixed-10s-optimise"
+    if args.threshold_rule:
+        chosen = json.loads(Path(args.threshold_rule).read_text())["chosen"][f"{args.price:g}"]
+        if chosen["feature"] is None:  # an end of the family: already a named rule
+            best = args.best_rule or chosen["rule"]
+            specs.setdefault(chosen["rule"], policies.make(chosen["rule"]))
+        else:
+            specs["best-threshold"] = policies.make(
+                "threshold-optimise", feature=chosen["feature"], threshold=chosen["threshold"])
+            best = args.best_rule or "best-threshold"
+        logger.info("the threshold family's best rule: %s (%s)", chosen["rule"], best)
+    out = Path(args.out)
+    if args.report_only:
+        rows = read_rows(out / "results.jsonl")
+    else:
+        rows = benchmark(
+            specs, scenario=kwargs["scenario"], n_particles=kwargs.get("n_particles", 500),
+            clutter_levels=[int(v) for v in args.clutter_levels.split(",")], seeds=args.seeds,
+            seed_start=args.seed_start, draws=args.draws, w_compute=args.price,
+            compute_clip_s=args.compute_clip_s, baselines=[], out=out, workers=1,
+            executor="serial", figures=False, progress=True,
+        ).rows
+    doc = summarise(rows, best, args.price) | {"task": args.task, "seeds": args.seeds,
+                                                "seed_start": args.seed_start,
+                                                "draws": args.draws}
+    (out / "headroom.json").write_text(json.dumps(doc, indent=2) + "\n")
+    (out / "headroom.md").write_text(markdown(doc))
+    print(markdown(doc))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,75 @@
+"""scripts/results/task_headroom.py: the paired intervals of issue 48's headroom table."""
+
+import math
+
+import numpy as np
+import pytest
+from script_loader import load_script
+
+headroom = load_script("results/task_headroom.py")
+
+
+def _row(policy, level, seed, success, map_error=1.0, draw=0, ret=-100.0):
+    return {"policy": policy, "clutter_level": level, "seed": seed, "draw": draw,
+            "status": "ok", "success": success, "map_error_m": map_error, "anees": 3.0,
+            "nees_in_band_fraction": 0.9, "return": ret, "w_compute": 10.0,
+            "compute_term_s": 1.0, "fusion_cpu_s": 0.1, "optimise_cpu_s": 0.1}
+
+
+def test_success_interval_is_agresti_min_and_valid_for_paired_zero_one_data():
+    def rate(pairs):
+        return headroom.paired_interval({(0, i): float(a - b) for i, (a, b) in enumerate(pairs)},
+                                        rate=True)
+
+    # no discordant world: the difference is 0 and the interval is not degenerate
+    d, lo, hi = rate([(1, 1)] * 30 + [(0, 0)] * 10)
+    assert d == 0 and lo < 0 < hi
+    # 8 worlds won, none lost, of 40: a clear gain; Agresti-Min by the 2x2 formula
+    d, lo, hi = rate([(1, 0)] * 8 + [(1, 1)] * 32)
+    m10, m01, m = 8.5, 0.5, 42.0
+    centre = (m10 - m01) / m
+    se = math.sqrt(((m10 + m01) - (m10 - m01) ** 2 / m) / m**2)
+    assert d == pytest.approx(0.2)
+    assert (lo, hi) == pytest.approx((centre - 1.959964 * se, centre + 1.959964 * se), abs=1e-5)
+    # one world won of 40: not distinguishable from 0
+    d, lo, hi = rate([(1, 0)] + [(1, 1)] * 39)
+    assert lo < 0 < hi
+
+
+def test_continuous_interval_resamples_worlds_within_levels():
+    diffs = {(level, seed): float(level) for level in range(4) for seed in range(10)}
+    mean, lo, hi = headroom.paired_interval(diffs)
+    # stratified: each level keeps its 10 worlds, so a constant per level gives no spread
+    assert mean == pytest.approx(1.5) and lo == pytest.approx(1.5) and hi == pytest.approx(1.5)
+    rng = np.random.default_rng(1)
+    noisy = {(0, s): float(v) for s, v in enumerate(rng.normal(1.0, 1.0, 40))}
+    mean, lo, hi = headroom.paired_interval(noisy)
+    assert lo < mean < hi and lo > 0
+
+
+def test_draws_are_averaged_per_world_before_pairing():
+    best = [_row("rule", 0, s, True, 2.0, d) for s in range(5) for d in range(3)]
+    other = [_row("bound", 0, s, True, 2.0 - 0.1 * d, d) for s in range(5) for d in range(3)]
+    diffs = headroom.per_world_differences(other, best, "map_error_m", 10.0)
+    assert set(diffs) == {(0, s) for s in range(5)}
+    assert all(v == pytest.approx(-0.1) for v in diffs.values())
+    # a map error where either failed is not paired
+    other[0]["success"] = False
+    diffs = headroom.per_world_differences(other, best, "map_error_m", 10.0)
+    assert diffs[(0, 0)] == pytest.approx(-0.15)
+
+
+def test_summary_pairs_with_the_best_rule_and_normalises_only_where_the_bound_has_room():
+    rows = []
+    for s in range(40):
+        rows.append(_row("fixed-10s-optimise", s % 4, s, s % 5 != 0, ret=-100.0))
+        rows.append(_row("lookahead-privileged", s % 4, s, True, ret=-50.0))
+        rows.append(_row("lookahead", s % 4, s, s % 10 != 0, ret=-75.0 + (s % 3)))
+    doc = headroom.summarise(rows, "fixed-10s-optimise", 10.0)
+    bound = doc["policies"]["lookahead-privileged"]
+    assert bound["success_diff"][0] == pytest.approx(0.2) and bound["success_diff"][1] > 0
+    assert doc["normalised_headroom"]["success"] == pytest.approx(0.5)
+    assert doc["normalised_headroom"]["return"] == pytest.approx(
+        doc["policies"]["lookahead"]["return_diff"][0] / 50.0)
+    assert doc["normalised_headroom"]["map_error_m"] is None  # no room: equal map errors
+    assert "best rule" in headroom.markdown(doc) and not math.isnan(bound["return_diff"][1])
