@@ -160,15 +160,15 @@ from filters.fastslam_kernel import (
     FilterModel,
     ParticleState,
     ScanDraws,
-    draw_poses,
+    call_draw_poses,
+    call_local_pose,
+    call_propagate,
+    call_systematic_resample,
+    call_update_iteration,
     grow_state,
-    local_pose,
     new_outputs,
     new_state,
     normalise_weights,
-    propagate,
-    systematic_resample,
-    update_iteration,
 )
 from filters.geometry import wrap_angle
 from filters.models import ClutterModel, RangeBearingSensor
@@ -465,7 +465,7 @@ class FastSLAM2:
             self._sample_pending()
             self._maybe_resample("resample_after_pending")
         Q = np.ascontiguousarray(self.odometry_noise.covariance(u, dt), dtype=float)
-        propagate(self._state, float(u[0]), float(u[1]), dt, Q)
+        call_propagate(self._state, float(u[0]), float(u[1]), dt, Q)
         self._pending = True
         self._age_s += dt
         self._distance_m += abs(float(u[0])) * dt
@@ -475,7 +475,7 @@ class FastSLAM2:
     def _sample_pending(self):
         """Draw every particle's pose from its proposal N(x, P) (FS2)."""
         normals = self.draws.generator("pending_pose").standard_normal((self.n_particles, 3))
-        draw_poses(self._state, normals)
+        call_draw_poses(self._state, normals)
         self._pending = False
 
     def update_heading(self, theta, std_rad):
@@ -555,7 +555,7 @@ class FastSLAM2:
         # particle holds another feature with that id (clutter winning leaves modified features
         # their id and created ones without one: filters.conversion.assign_correspondence_ids),
         # culling every cull_interval_steps, the weights and the resampling
-        result = update_iteration(
+        result = call_update_iteration(
             state, z, known_cids, ScanDraws(uniforms, normals, offset), self._model,
             out, self.ids.next_id,
             (self._steps + 1) % self.cull_interval_steps == 0, weights, spare,
@@ -606,7 +606,7 @@ class FastSLAM2:
         if resample:
             spare = self._spare_state()
             offset = self.draws.generator(role).random()
-            systematic_resample(self._state, weights, offset, spare)
+            call_systematic_resample(self._state, weights, offset, spare)
             self._state = spare
             self._outputs = {}
         self._outputs["weights"] = weights
@@ -629,9 +629,9 @@ class FastSLAM2:
         if key not in self._outputs:
             # the compiled moments straight away: the filter's own arrays need no validation
             # (lineages are ancestor indices in [0, P)); pose_moments checks external input
-            self._outputs[key] = local_pose(self._state, self._weights(), self._pending,
-                                            self.lineage_correction,
-                                            self.small_sample_correction)
+            self._outputs[key] = call_local_pose(self._state, self._weights(), self._pending,
+                                                 self.lineage_correction,
+                                                 self.small_sample_correction)
         mean, cov = self._outputs[key]
         return mean.copy(), cov.copy()
 

@@ -191,22 +191,23 @@ def _innovation(zr, zb, pose, mx, my):
 
 
 @njit(cache=True, inline="always")
-def _observation_terms(zr, zb, pose, Pc, state, p, j, model):
-    """Innovation, ``S = G P G^T + H_m Sigma H_m^T + R`` and ``H_m`` of feature ``j`` of particle
-    ``p`` for the proposal ``N(pose, Pc)`` (FS2; module doc of filters.fastslam). Returns
-    ``(nu_r, nu_b, S00, S01, S11, det S, nu^T S^-1 nu, h00, h01, h10, h11)``."""
-    nu_r, nu_b, h00, h01, h10, h11 = _innovation(zr, zb, pose, state.mx[p, j], state.my[p, j])
-    m00 = state.sxx[p, j] + Pc[0, 0]
-    m01 = state.sxy[p, j] + Pc[0, 1]
-    m11 = state.syy[p, j] + Pc[1, 1]
+def _observation_terms(zr, zb, pose, Pc, mx, my, sxx, sxy, syy, r_var, b_var):
+    """Innovation, ``S = G P G^T + H_m Sigma H_m^T + R`` and ``H_m`` of the feature ``N((mx, my),
+    [[sxx, sxy], [sxy, syy]])`` for the proposal ``N(pose, Pc)`` (FS2; module doc of
+    filters.fastslam). Returns ``(nu_r, nu_b, S00, S01, S11, det S, nu^T S^-1 nu, h00, h01, h10,
+    h11)``."""
+    nu_r, nu_b, h00, h01, h10, h11 = _innovation(zr, zb, pose, mx, my)
+    m00 = sxx + Pc[0, 0]
+    m01 = sxy + Pc[0, 1]
+    m11 = syy + Pc[1, 1]
     t00 = h00 * m00 + h01 * m01
     t01 = h00 * m01 + h01 * m11
     t10 = h10 * m00 + h11 * m01
     t11 = h10 * m01 + h11 * m11
     c0, c1 = Pc[0, 2], Pc[1, 2]
-    S00 = h00 * t00 + h01 * t01 + model.r_var
+    S00 = h00 * t00 + h01 * t01 + r_var
     S01 = h10 * t00 + h11 * t01 + (h00 * c0 + h01 * c1)
-    S11 = h10 * t10 + h11 * t11 + 2.0 * (h10 * c0 + h11 * c1) + Pc[2, 2] + model.b_var
+    S11 = h10 * t10 + h11 * t11 + 2.0 * (h10 * c0 + h11 * c1) + Pc[2, 2] + b_var
     det = S00 * S11 - S01 * S01
     d2 = (S11 * nu_r * nu_r - 2.0 * S01 * nu_r * nu_b + S00 * nu_b * nu_b) / det
     return nu_r, nu_b, S00, S01, S11, det, d2, h00, h01, h10, h11
@@ -260,62 +261,57 @@ def _ldl_draw(cov, normals, out):
 
 
 @njit(cache=True, inline="always")
-def _feature_ekf(pose, state, p, j, zr, zb, model):
-    """EKF update of feature ``j`` of particle ``p`` from the known pose, in place: ``K = Sigma
-    H^T S^-1``, ``m += K nu``, ``Sigma -= K H Sigma`` (the FS2 map update at the sampled
-    pose)."""
-    sxx, sxy, syy = state.sxx[p, j], state.sxy[p, j], state.syy[p, j]
-    nu_r, nu_b, h00, h01, h10, h11 = _innovation(zr, zb, pose, state.mx[p, j], state.my[p, j])
+def _feature_ekf(pose, mx, my, sxx, sxy, syy, zr, zb, r_var, b_var):
+    """EKF update of one feature from a known pose: ``K = Sigma H^T S^-1``, ``m += K nu``,
+    ``Sigma -= K H Sigma`` (the FS2 map update at the sampled pose); returns the feature's new
+    ``(mx, my, sxx, sxy, syy)``."""
+    nu_r, nu_b, h00, h01, h10, h11 = _innovation(zr, zb, pose, mx, my)
     t00 = h00 * sxx + h01 * sxy
     t01 = h00 * sxy + h01 * syy
     t10 = h10 * sxx + h11 * sxy
     t11 = h10 * sxy + h11 * syy
-    S00 = h00 * t00 + h01 * t01 + model.r_var
+    S00 = h00 * t00 + h01 * t01 + r_var
     S01 = h10 * t00 + h11 * t01
-    S11 = h10 * t10 + h11 * t11 + model.b_var
+    S11 = h10 * t10 + h11 * t11 + b_var
     inv_det = 1.0 / (S00 * S11 - S01 * S01)
     K00 = (t00 * S11 - t10 * S01) * inv_det
     K01 = (t10 * S00 - t00 * S01) * inv_det
     K10 = (t01 * S11 - t11 * S01) * inv_det
     K11 = (t11 * S00 - t01 * S01) * inv_det
-    state.mx[p, j] += K00 * nu_r + K01 * nu_b
-    state.my[p, j] += K10 * nu_r + K11 * nu_b
-    state.sxx[p, j] = sxx - (K00 * t00 + K01 * t10)
-    state.sxy[p, j] = sxy - (K00 * t01 + K01 * t11)
-    state.syy[p, j] = syy - (K10 * t01 + K11 * t11)
+    return (
+        mx + K00 * nu_r + K01 * nu_b,
+        my + K10 * nu_r + K11 * nu_b,
+        sxx - (K00 * t00 + K01 * t10),
+        sxy - (K00 * t01 + K01 * t11),
+        syy - (K10 * t01 + K11 * t11),
+    )
 
 
 @njit(cache=True, inline="always")
-def _new_feature(pose, state, p, j, zr, zb, model):
-    """Feature ``j`` of particle ``p`` initialised from ``z`` at the known pose: ``m = g(pose,
-    z)`` and ``Sigma = G_z R G_z^T`` with ``G_z = [[c, -r s], [s, r c]]`` (FS2,
-    :func:`filters.models.inverse_observe`)."""
+def _new_feature(pose, zr, zb, r_var, b_var):
+    """A feature initialised from ``z`` at the known pose: ``m = g(pose, z)`` and ``Sigma = G_z
+    R G_z^T`` with ``G_z = [[c, -r s], [s, r c]]`` (FS2, :func:`filters.models.inverse_observe`);
+    returns ``(mx, my, sxx, sxy, syy)``."""
     c = math.cos(pose[2] + zb)
     s = math.sin(pose[2] + zb)
-    state.mx[p, j] = pose[0] + zr * c
-    state.my[p, j] = pose[1] + zr * s
-    rs2 = zr * zr * model.b_var
-    state.sxx[p, j] = c * c * model.r_var + s * s * rs2
-    state.sxy[p, j] = c * s * (model.r_var - rs2)
-    state.syy[p, j] = s * s * model.r_var + c * c * rs2
+    rs2 = zr * zr * b_var
+    return (pose[0] + zr * c, pose[1] + zr * s, c * c * r_var + s * s * rs2,
+            c * s * (r_var - rs2), s * s * r_var + c * c * rs2)
 
 
 @njit(cache=True)
-def _visibility(pose, Pc, state, p, j, max_range_m, fov_rad):
-    """Probability that feature ``j`` of particle ``p`` lies inside the sensor's range:
-    ``Phi((r_max - r) / sigma_r)`` with ``sigma_r^2`` the radial variance of feature and
-    proposal position; a limited field of view is a hard bearing test on the mean (module doc of
-    filters.fastslam)."""
-    dx = state.mx[p, j] - pose[0]
-    dy = state.my[p, j] - pose[1]
+def _visibility(pose, Pc, mx, my, sxx, sxy, syy, max_range_m, fov_rad):
+    """Probability that a feature lies inside the sensor's range: ``Phi((r_max - r) /
+    sigma_r)`` with ``sigma_r^2`` the radial variance of feature and proposal position; a
+    limited field of view is a hard bearing test on the mean (module doc of filters.fastslam)."""
+    dx = mx - pose[0]
+    dy = my - pose[1]
     q = max(dx * dx + dy * dy, 1e-12)
     r = math.sqrt(q)
     if fov_rad < _TWO_PI and abs(_wrap(math.atan2(dy, dx) - pose[2])) > 0.5 * fov_rad:
         return 0.0
     radial = (
-        dx * dx * (state.sxx[p, j] + Pc[0, 0])
-        + 2.0 * dx * dy * (state.sxy[p, j] + Pc[0, 1])
-        + dy * dy * (state.syy[p, j] + Pc[1, 1])
+        dx * dx * (sxx + Pc[0, 0]) + 2.0 * dx * dy * (sxy + Pc[0, 1]) + dy * dy * (syy + Pc[1, 1])
     ) / q
     sigma = math.sqrt(max(radial, 0.0)) + 1e-9
     margin = (max_range_m - r) / sigma
@@ -372,177 +368,9 @@ def draw_poses(state, normals):
 
 
 # --------------------------------------------------------------------------- the scan
-class _ScanWork(NamedTuple):
-    """Work space of :func:`scan_update`, allocated once per scan and reused per particle."""
-
-    p_vis: np.ndarray        # (n,) p_vis,j of each feature
-    ratio: np.ndarray        # (n,) alpha e_j p_vis,j / (1 - alpha e_j p_vis,j)
-    feature_std: np.ndarray  # (n,) sqrt(trace Sigma_j), for the Cartesian pre-gate
-    claimed: np.ndarray      # (n,) taken by an earlier observation of the scan
-    hyp_slot: np.ndarray     # (n + 2,) DAS hypotheses: slots, then NEW and CLUTTER
-    hyp_value: np.ndarray    # (n + 2,) their likelihoods L
-    hyp_terms: np.ndarray    # (n + 2, 11) the _observation_terms of each gated feature
-    gate_areas: np.ndarray   # (K,) the gate area of the feature each observation updated
-    new_existence: np.ndarray  # (K,) e_new of each observation
-    step: np.ndarray         # (3,) the pose draw
-    scratch: np.ndarray      # (4, 3) for _refine
-
-
-@njit(cache=True)
-def _scan_work(n, K):
-    return _ScanWork(np.empty(n), np.empty(n), np.empty(n), np.empty(n, dtype=np.bool_),
-                     np.empty(n + 2, dtype=np.int64), np.empty(n + 2), np.empty((n + 2, 11)),
-                     np.empty(K), np.empty(K), np.empty(3), np.empty((4, 3)))
-
-
-@njit(cache=True)
-def _missed_detections(state, p, K, model, work):
-    """The missed-detection product ``prod_j (1 - alpha e_j p_vis,j)`` into particle ``p``'s log
-    weight, ``p_vis`` and the detection ratios of its features; returns ``n_vis``, the larger of
-    ``sum_j e_j p_vis,j`` and the scan's own estimate ``K / (alpha + beta)``."""
-    pose, Pc = state.poses[p], state.prop_cov[p]
-    alpha = model.detection_probability
-    expected_visible = 0.0
-    for j in range(state.count[p]):
-        work.claimed[j] = False
-        if not state.active[p, j]:
-            work.p_vis[j] = 0.0
-            work.ratio[j] = 0.0
-            continue
-        work.feature_std[j] = math.sqrt(state.sxx[p, j] + state.syy[p, j])
-        work.p_vis[j] = _visibility(pose, Pc, state, p, j, model.max_range_m, model.fov_rad)
-        seen = alpha * state.ex[p, j] * work.p_vis[j]
-        state.logw[p] += math.log(1.0 - seen)
-        work.ratio[j] = seen / (1.0 - seen)
-        expected_visible += state.ex[p, j] * work.p_vis[j]
-    return max(expected_visible, K / (alpha + model.beta))
-
-
-@njit(cache=True)
-def _associate_known(state, p, k, zr, zb, target, l_new, work, model, out):
-    """Known association of observation ``k`` in particle ``p``: the feature of common id
-    ``target`` not yet claimed (weight ``ratio_j N(nu; 0, S)``), else a new feature (``L_new``);
-    a known false alarm changes nothing. Returns the slot chosen (-1: none), or CLUTTER."""
-    out.votes[k, p] = target
-    if target < 0:
-        out.slots[k, p] = CLUTTER
-        out.clutter_prob[k, p] = 1.0
-        return CLUTTER
-    for j in range(state.count[p]):
-        if state.active[p, j] and not work.claimed[j] and state.cid[p, j] == target:
-            t = _observation_terms(zr, zb, state.poses[p], state.prop_cov[p], state, p, j, model)
-            for i in range(11):
-                work.hyp_terms[0, i] = t[i]
-            lik = _gaussian_likelihood(t[6], t[5])
-            state.logw[p] += math.log(max(work.ratio[j] * lik, 1e-300))
-            return j
-    state.logw[p] += math.log(max(l_new, 1e-300))
-    out.slots[k, p] = NEW
-    out.clutter_prob[k, p] = 1.0 - work.new_existence[k]
-    return -1
-
-
-@njit(cache=True)
-def _associate_sampled(state, p, k, zr, zb, u, clutter_density, work, model, out):
-    """Data Association Sampling (FS2) of observation ``k`` in particle ``p`` with the uniform
-    ``u`` among the gated features (``L_j``), a new feature (``L_new``) and clutter; the weight
-    is multiplied by ``sum_j L_j + L_new + L_clutter``. Returns the hypothesis drawn: its index
-    into ``work.hyp_slot`` / ``work.hyp_terms``."""
-    pose, Pc = state.poses[p], state.prop_cov[p]
-    l_new = model.detection_probability * model.new_landmark_density * max(zr, model.range_std_m)
-    gate_scale = math.sqrt(model.gate_chi2)
-    sig_pos = math.sqrt(max(Pc[0, 0] + Pc[1, 1], 0.0))
-    sig_th = math.sqrt(max(Pc[2, 2], 0.0))
-    spread = sig_pos + zr * sig_th + model.range_std_m + zr * model.bearing_std_rad
-    angle = pose[2] + zb
-    px = pose[0] + zr * math.cos(angle)
-    py = pose[1] + zr * math.sin(angle)
-    n_hyp = 0
-    for j in range(state.count[p]):
-        if not state.active[p, j] or work.claimed[j]:
-            continue
-        # cheap Cartesian pre-gate: a sum of stds bounds the std of the sum
-        radius = gate_scale * (spread + work.feature_std[j]) + 0.5
-        ddx = state.mx[p, j] - px
-        ddy = state.my[p, j] - py
-        if ddx * ddx + ddy * ddy >= radius * radius:
-            continue
-        t = _observation_terms(zr, zb, pose, Pc, state, p, j, model)
-        if t[6] < model.gate_chi2:
-            like = work.ratio[j] * _gaussian_likelihood(t[6], t[5])
-            if like > 0.0:
-                work.hyp_slot[n_hyp] = j
-                work.hyp_value[n_hyp] = like
-                for i in range(11):
-                    work.hyp_terms[n_hyp, i] = t[i]
-                n_hyp += 1
-    work.hyp_slot[n_hyp] = NEW
-    work.hyp_slot[n_hyp + 1] = CLUTTER
-    if model.sample_clutter:  # the earlier rule: new feature and clutter drawn apart
-        work.hyp_value[n_hyp] = l_new
-        work.hyp_value[n_hyp + 1] = clutter_density
-    else:  # one Bernoulli hypothesis: a new feature that exists with e_new
-        work.hyp_value[n_hyp] = l_new + clutter_density
-        work.hyp_value[n_hyp + 1] = 0.0
-    total = 0.0
-    for i in range(n_hyp + 2):
-        total += work.hyp_value[i]
-    threshold = u * total
-    pick = n_hyp + 1
-    cumulative = 0.0
-    for i in range(n_hyp + 2):
-        cumulative += work.hyp_value[i]
-        if cumulative >= threshold:
-            pick = i
-            break
-    if work.hyp_value[pick] <= 0.0:  # only through round-off: step past it
-        pick = n_hyp
-    state.logw[p] += math.log(max(total, 1e-300))
-    chosen = work.hyp_slot[pick]
-    if chosen >= 0:
-        out.votes[k, p] = state.cid[p, chosen] if state.cid[p, chosen] >= 0 else NEW
-    else:
-        out.votes[k, p] = chosen
-        out.slots[k, p] = chosen
-        if chosen == CLUTTER:
-            out.clutter_prob[k, p] = 1.0
-        elif not model.sample_clutter:
-            out.clutter_prob[k, p] = 1.0 - work.new_existence[k]
-    return pick
-
-
-@njit(cache=True)
-def _update_map(state, p, z, n, n_vis, work, model, out):
-    """Particle ``p``'s existence and map at its drawn pose: the miss update of every feature it
-    did not associate (BB (11), ``P_fa`` of the smallest gate, R's alone), the detection update
-    and EKF of those it did, and the new features it created."""
-    pose = state.poses[p]
-    alpha = model.detection_probability
-    area_r = math.pi * model.gate_chi2 * math.sqrt(model.r_var * model.b_var)
-    p_fa_miss = existence_false_alarm_one(model.literal_beta, model.beta, n_vis, area_r,
-                                          model.max_range_m, model.fov_rad)
-    for j in range(n):
-        if not work.claimed[j] and work.p_vis[j] > 0.0:
-            state.ex[p, j] = miss_update_one(state.ex[p, j], alpha * work.p_vis[j], p_fa_miss)
-    for k in range(z.shape[0]):
-        j = out.slots[k, p]
-        zr, zb = z[k, 0], z[k, 1]
-        if j >= 0:
-            _feature_ekf(pose, state, p, j, zr, zb, model)
-            p_fa = existence_false_alarm_one(model.literal_beta, model.beta, n_vis,
-                                             work.gate_areas[k], model.max_range_m, model.fov_rad)
-            state.ex[p, j] = min(detection_update_one(state.ex[p, j], alpha, p_fa),
-                                 model.max_existence)
-        elif j == NEW:
-            j = state.count[p]
-            state.count[p] += 1
-            _new_feature(pose, state, p, j, zr, zb, model)
-            state.ex[p, j] = work.new_existence[k]
-            state.active[p, j] = True
-            state.cid[p, j] = -1
-            out.slots[k, p] = j
-
-
+# One function body: a helper that took the state (a tuple of arrays) and was called per particle
+# and observation counted a reference to every array of the tuple at each call, twice the scan's
+# time (measured, docs/PERFORMANCE.md); the scalar helpers above take their scalars.
 @njit(cache=True)
 def scan_update(state, z, known_cids, draws, model, out):
     """One scan ``z`` (K, 2) for every particle (module doc of filters.fastslam), in place.
@@ -550,48 +378,189 @@ def scan_update(state, z, known_cids, draws, model, out):
     ``state.count`` grows by the features created (the caller guarantees ``C >= count + K``).
     ``known_cids`` (K,): for known association, the common id each observation belongs to (-1:
     a known false alarm); empty (0,) for DAS. ``draws``: :class:`ScanDraws`; ``out``:
-    :class:`ScanOutputs`, written for every (k, p)."""
-    P = state.poses.shape[0]
+    :class:`ScanOutputs`, written for every (k, p). Per particle, in turn: the missed-detection
+    product; each observation's association (DAS among the gated features, a new feature and
+    clutter, or the known one), the weight's factor and the FS2 proposal refinement; the pose
+    drawn from the refined proposal; existence (BB (11)) and the map at the drawn pose.
+    """
+    poses, prop_cov, logw, count = state.poses, state.prop_cov, state.logw, state.count
+    mx, my, sxx, sxy, syy = state.mx, state.my, state.sxx, state.sxy, state.syy
+    ex, active, cid = state.ex, state.active, state.cid
+    votes, slots, logw_after, clutter_prob = out
+    uniforms, normals = draws.uniforms, draws.normals
+    r_var, b_var, alpha, beta = model.r_var, model.b_var, model.detection_probability, model.beta
+    gate_chi2, max_range_m, fov_rad = model.gate_chi2, model.max_range_m, model.fov_rad
+    range_std_m, bearing_std_rad = model.range_std_m, model.bearing_std_rad
+    sample_clutter, literal_beta = model.sample_clutter, model.literal_beta
+    P = poses.shape[0]
     K = z.shape[0]
     known = known_cids.shape[0] > 0
-    alpha = model.detection_probability
-    field = model.max_range_m * model.fov_rad
-    work = _scan_work(state.count.max(), K)
+    n_hi = count.max()
+    field = max_range_m * fov_rad
+    gate_scale = math.sqrt(gate_chi2)
+    area_r = math.pi * gate_chi2 * math.sqrt(r_var * b_var)  # the gate of R alone
+    p_vis = np.empty(n_hi)
+    ratio = np.empty(n_hi)  # alpha e_j p_vis,j / (1 - alpha e_j p_vis,j)
+    claimed = np.empty(n_hi, dtype=np.bool_)  # taken by an earlier observation of the scan
+    hyp_slot = np.empty(n_hi + 2, dtype=np.int64)  # DAS hypotheses: slots, NEW, CLUTTER
+    hyp_value = np.empty(n_hi + 2)  # their likelihoods L
+    hyp_terms = np.empty((n_hi + 2, 11))  # _observation_terms of each gated feature
+    feature_std = np.empty(n_hi)  # sqrt(trace) of each feature's covariance, for the pre-gate
+    gate_areas = np.empty(K)
+    new_existence = np.empty(K)
+    step = np.empty(3)
+    scratch = np.empty((4, 3))
     for p in range(P):
-        pose, Pc = state.poses[p], state.prop_cov[p]
-        n = state.count[p]
-        n_vis = _missed_detections(state, p, K, model, work)
-        clutter_density = model.beta * n_vis / field  # L_clutter (BB 5.1)
+        pose = poses[p]
+        Pc = prop_cov[p]
+        n = count[p]
+        # --- visibility and the missed-detection product prod_j (1 - alpha e_j p_vis,j)
+        expected_visible = 0.0
+        for j in range(n):
+            claimed[j] = False
+            if not active[p, j]:
+                p_vis[j] = 0.0
+                ratio[j] = 0.0
+                continue
+            feature_std[j] = math.sqrt(sxx[p, j] + syy[p, j])
+            p_vis[j] = _visibility(pose, Pc, mx[p, j], my[p, j], sxx[p, j], sxy[p, j], syy[p, j],
+                                   max_range_m, fov_rad)
+            seen = alpha * ex[p, j] * p_vis[j]
+            logw[p] += math.log(1.0 - seen)
+            ratio[j] = seen / (1.0 - seen)
+            expected_visible += ex[p, j] * p_vis[j]
+        n_vis = max(expected_visible, K / (alpha + beta))
+        clutter_density = beta * n_vis / field  # L_clutter (BB 5.1)
 
-        # observations in turn: association, weight, proposal refinement
+        # --- observations in turn: association, weight, proposal refinement
         for k in range(K):
             zr, zb = z[k, 0], z[k, 1]
-            l_new = alpha * model.new_landmark_density * max(zr, model.range_std_m)
-            work.new_existence[k] = min(l_new / (l_new + clutter_density), model.max_existence)
-            out.clutter_prob[k, p] = 0.0
+            l_new = alpha * model.new_landmark_density * max(zr, range_std_m)
+            new_existence[k] = min(l_new / (l_new + clutter_density), model.max_existence)
+            chosen = -1
+            clutter_prob[k, p] = 0.0
             if known:
-                chosen = _associate_known(state, p, k, zr, zb, known_cids[k], l_new, work, model,
-                                          out)
-                terms = work.hyp_terms[0]
+                target = known_cids[k]
+                votes[k, p] = target
+                if target < 0:  # a known false alarm
+                    slots[k, p] = CLUTTER
+                    clutter_prob[k, p] = 1.0
+                    logw_after[k, p] = logw[p]
+                    continue
+                for j in range(n):
+                    if active[p, j] and not claimed[j] and cid[p, j] == target:
+                        chosen = j
+                        break
+                if chosen >= 0:  # N(nu; 0, S) times the detection ratio
+                    t = _observation_terms(zr, zb, pose, Pc, mx[p, chosen], my[p, chosen],
+                                           sxx[p, chosen], sxy[p, chosen], syy[p, chosen],
+                                           r_var, b_var)
+                    lik = _gaussian_likelihood(t[6], t[5])
+                    logw[p] += math.log(max(ratio[chosen] * lik, 1e-300))
+                else:
+                    logw[p] += math.log(max(l_new, 1e-300))
+                    slots[k, p] = NEW
+                    clutter_prob[k, p] = 1.0 - new_existence[k]
             else:
-                pick = _associate_sampled(state, p, k, zr, zb, draws.uniforms[k, p],
-                                          clutter_density, work, model, out)
-                chosen = work.hyp_slot[pick]
-                terms = work.hyp_terms[pick]  # the terms the gate formed, at this proposal
+                # Data Association Sampling among the gated features, new feature and clutter
+                sig_pos = math.sqrt(max(Pc[0, 0] + Pc[1, 1], 0.0))
+                sig_th = math.sqrt(max(Pc[2, 2], 0.0))
+                spread = sig_pos + zr * sig_th + range_std_m + zr * bearing_std_rad
+                angle = pose[2] + zb
+                px = pose[0] + zr * math.cos(angle)
+                py = pose[1] + zr * math.sin(angle)
+                n_hyp = 0
+                for j in range(n):
+                    if not active[p, j] or claimed[j]:
+                        continue
+                    # cheap Cartesian pre-gate: a sum of stds bounds the std of the sum
+                    radius = gate_scale * (spread + feature_std[j]) + 0.5
+                    ddx = mx[p, j] - px
+                    ddy = my[p, j] - py
+                    if ddx * ddx + ddy * ddy >= radius * radius:
+                        continue
+                    t = _observation_terms(zr, zb, pose, Pc, mx[p, j], my[p, j], sxx[p, j],
+                                           sxy[p, j], syy[p, j], r_var, b_var)
+                    if t[6] < gate_chi2:  # L_j
+                        like = ratio[j] * _gaussian_likelihood(t[6], t[5])
+                        if like > 0.0:
+                            hyp_slot[n_hyp] = j
+                            hyp_value[n_hyp] = like
+                            for i in range(11):
+                                hyp_terms[n_hyp, i] = t[i]
+                            n_hyp += 1
+                hyp_slot[n_hyp] = NEW
+                hyp_slot[n_hyp + 1] = CLUTTER
+                if sample_clutter:  # the earlier rule: new feature and clutter drawn apart
+                    hyp_value[n_hyp] = l_new
+                    hyp_value[n_hyp + 1] = clutter_density
+                else:  # one Bernoulli hypothesis: a new feature that exists with e_new
+                    hyp_value[n_hyp] = l_new + clutter_density
+                    hyp_value[n_hyp + 1] = 0.0
+                total = 0.0
+                for i in range(n_hyp + 2):
+                    total += hyp_value[i]
+                threshold = uniforms[k, p] * total
+                pick = n_hyp + 1
+                cumulative = 0.0
+                for i in range(n_hyp + 2):
+                    cumulative += hyp_value[i]
+                    if cumulative >= threshold:
+                        pick = i
+                        break
+                if hyp_value[pick] <= 0.0:  # only through round-off: step past it
+                    pick = n_hyp
+                logw[p] += math.log(max(total, 1e-300))  # sum_j L_j + L_new + L_clutter
+                chosen = hyp_slot[pick]
+                if chosen >= 0:
+                    votes[k, p] = cid[p, chosen] if cid[p, chosen] >= 0 else NEW
+                    h = hyp_terms[pick]  # the terms the gate formed for it, at this proposal
+                    t = (h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7], h[8], h[9], h[10])
+                else:
+                    votes[k, p] = chosen
+                    slots[k, p] = chosen
+                    if chosen == CLUTTER:
+                        clutter_prob[k, p] = 1.0
+                    elif not sample_clutter:
+                        clutter_prob[k, p] = 1.0 - new_existence[k]
             if chosen >= 0:
-                _refine(pose, Pc, terms, work.scratch)
-                work.claimed[chosen] = True
-                work.gate_areas[k] = math.pi * model.gate_chi2 * math.sqrt(abs(terms[5]))
-                out.slots[k, p] = chosen
-            out.logw_after[k, p] = state.logw[p]
+                _refine(pose, Pc, t, scratch)
+                claimed[chosen] = True
+                gate_areas[k] = math.pi * gate_chi2 * math.sqrt(abs(t[5]))
+                slots[k, p] = chosen
+            logw_after[k, p] = logw[p]
 
-        # the pose drawn from the refined proposal, then existence and map at that pose
-        _ldl_draw(Pc, draws.normals[p], work.step)
-        pose[0] += work.step[0]
-        pose[1] += work.step[1]
-        pose[2] = _wrap(pose[2] + work.step[2])
+        # --- draw the pose from the refined proposal, then existence and map at that pose
+        _ldl_draw(Pc, normals[p], step)
+        pose[0] += step[0]
+        pose[1] += step[1]
+        pose[2] = _wrap(pose[2] + step[2])
         Pc[:, :] = 0.0
-        _update_map(state, p, z, n, n_vis, work, model, out)
+        p_fa_miss = existence_false_alarm_one(literal_beta, beta, n_vis, area_r, max_range_m,
+                                              fov_rad)
+        for j in range(n):  # the miss update of BB (11) for every feature not associated
+            if not claimed[j] and p_vis[j] > 0.0:
+                ex[p, j] = miss_update_one(ex[p, j], alpha * p_vis[j], p_fa_miss)
+        for k in range(K):
+            j = slots[k, p]
+            zr, zb = z[k, 0], z[k, 1]
+            if j >= 0:  # the EKF at the drawn pose and BB (11)'s detection update
+                mx[p, j], my[p, j], sxx[p, j], sxy[p, j], syy[p, j] = _feature_ekf(
+                    pose, mx[p, j], my[p, j], sxx[p, j], sxy[p, j], syy[p, j], zr, zb, r_var,
+                    b_var,
+                )
+                p_fa = existence_false_alarm_one(literal_beta, beta, n_vis, gate_areas[k],
+                                                 max_range_m, fov_rad)
+                ex[p, j] = min(detection_update_one(ex[p, j], alpha, p_fa), model.max_existence)
+            elif j == NEW:
+                j = count[p]
+                count[p] += 1
+                mx[p, j], my[p, j], sxx[p, j], sxy[p, j], syy[p, j] = _new_feature(
+                    pose, zr, zb, r_var, b_var)
+                ex[p, j] = new_existence[k]
+                active[p, j] = True
+                cid[p, j] = -1
+                slots[k, p] = j
 
 
 # --------------------------------------------------------------------------- after the scan
@@ -724,9 +693,14 @@ def normalise_weights(logw, w, threshold):
 
 @njit(cache=True)
 def _gather_rows(a, idx, out):
-    """``out[:] = a[idx]`` along the first axis."""
+    """``out[:] = a[idx]`` along the first axis (C-contiguous arrays; element by element: a
+    row slice's assignment costs more than the few elements it copies)."""
+    src = a.reshape((a.shape[0], -1))
+    dst = out.reshape((out.shape[0], -1))
     for p in range(idx.shape[0]):
-        out[p] = a[idx[p]]
+        q = idx[p]
+        for c in range(src.shape[1]):
+            dst[p, c] = src[q, c]
 
 
 @njit(cache=True)
@@ -768,14 +742,15 @@ def systematic_resample(state, w, start, spare):
 def update_iteration(state, z, known_cids, draws, model, out, next_id, cull, w, spare):
     """One scan's whole work in one compiled call: :func:`scan_update`, :func:`finish_scan`, the
     weights (into ``w``) and the resampling test, and the resampling into ``spare`` when the
-    test calls for it (the caller then takes ``spare`` as its state). Returns
-    :class:`ScanResult`."""
+    test calls for it (the caller then takes ``spare`` as its state). Returns the fields of
+    :class:`ScanResult`, in its order."""
     scan_update(state, z, known_cids, draws, model, out)
     winners, margins, n_new = finish_scan(state, out, known_cids, next_id, cull, model)
     resample, ess_ratio = normalise_weights(state.logw, w, model.resample_threshold)
     if resample:
         systematic_resample(state, w, draws.resample_offset, spare)
-    return ScanResult(winners, margins, n_new, resample, ess_ratio)
+    # the fields of ScanResult (a plain tuple: boxing a named tuple costs an unpickling a call)
+    return winners, margins, n_new, resample, ess_ratio
 
 
 # --------------------------------------------------------------------------- the local pose
@@ -788,3 +763,63 @@ def local_pose(state, w, pending, lineage_correction, small_sample):
     covs = state.prop_cov if pending else np.zeros((0, 3, 3))
     lineage = state.lineage if lineage_correction else np.zeros(0, dtype=np.int64)
     return pose_moments_unchecked(state.poses, w, covs, lineage, lineage.shape[0], small_sample)
+
+
+# --------------------------------------------------------------------------- called from Python
+# numba types a plain tuple of arrays by a fast path and a named tuple by a slow one (~20 us a
+# call for the state's 14 arrays against ~6 us, measured on this machine kind): the named tuples
+# cross into compiled code as plain tuples and are named again inside.
+@njit(cache=True)
+def _propagate_entry(state, v, omega, dt, Q):
+    propagate(ParticleState(*state), v, omega, dt, Q)
+
+
+@njit(cache=True)
+def _draw_poses_entry(state, normals):
+    draw_poses(ParticleState(*state), normals)
+
+
+@njit(cache=True)
+def _resample_entry(state, w, start, spare):
+    systematic_resample(ParticleState(*state), w, start, ParticleState(*spare))
+
+
+@njit(cache=True)
+def _local_pose_entry(state, w, pending, lineage_correction, small_sample):
+    return local_pose(ParticleState(*state), w, pending, lineage_correction, small_sample)
+
+
+@njit(cache=True)
+def _update_iteration_entry(state, z, known_cids, draws, model, out, next_id, cull, w, spare):
+    return update_iteration(ParticleState(*state), z, known_cids, ScanDraws(*draws),
+                            FilterModel(*model), ScanOutputs(*out), next_id, cull, w,
+                            ParticleState(*spare))
+
+
+def call_propagate(state: ParticleState, v, omega, dt, Q) -> None:
+    """:func:`propagate` from Python."""
+    _propagate_entry(tuple(state), v, omega, dt, Q)
+
+
+def call_draw_poses(state: ParticleState, normals) -> None:
+    """:func:`draw_poses` from Python."""
+    _draw_poses_entry(tuple(state), normals)
+
+
+def call_systematic_resample(state: ParticleState, w, start, spare: ParticleState) -> None:
+    """:func:`systematic_resample` from Python."""
+    _resample_entry(tuple(state), w, start, tuple(spare))
+
+
+def call_local_pose(state: ParticleState, w, pending, lineage_correction, small_sample):
+    """:func:`local_pose` from Python."""
+    return _local_pose_entry(tuple(state), w, pending, lineage_correction, small_sample)
+
+
+def call_update_iteration(state: ParticleState, z, known_cids, draws: ScanDraws,
+                          model: FilterModel, out: ScanOutputs, next_id, cull, w,
+                          spare: ParticleState) -> ScanResult:
+    """:func:`update_iteration` from Python."""
+    return ScanResult(*_update_iteration_entry(tuple(state), z, known_cids, tuple(draws),
+                                               tuple(model), tuple(out), next_id, cull, w,
+                                               tuple(spare)))

@@ -70,23 +70,6 @@ def run(f, stream, known=False, every=None):
 
 
 # --------------------------------------------------------------------------- building blocks
-def _one_feature(pose, m, sig):
-    """A one-particle state at ``pose`` holding one feature N(m, sig)."""
-    state = kernel.new_state(1, 1, pose)
-    state.mx[0, 0], state.my[0, 0] = m
-    state.sxx[0, 0], state.sxy[0, 0], state.syy[0, 0] = sig[0, 0], sig[0, 1], sig[1, 1]
-    state.active[0, 0], state.count[0] = True, 1
-    return state
-
-
-def _model(R, **options):
-    """A FilterModel with the measurement variances of R (the other fields as given, else 0)."""
-    fields = dict.fromkeys(kernel.FilterModel._fields, 0.0)
-    fields.update(r_var=float(R[0, 0]), b_var=float(R[1, 1]), literal_beta=False,
-                  sample_clutter=False, **options)
-    return kernel.FilterModel(**fields)
-
-
 def test_terms_and_refine_match_matrix_kalman_form():
     rng = np.random.default_rng(1)
     sensor = RangeBearingSensor()
@@ -99,8 +82,8 @@ def test_terms_and_refine_match_matrix_kalman_form():
         m = pose[:2] + rng.normal(size=2) * 5
         B = rng.normal(size=(2, 2))
         sig = B @ B.T * 0.1
-        t = kernel._observation_terms(zk[0], zk[1], pose, Pc, _one_feature(pose, m, sig), 0, 0,
-                                      _model(R))
+        t = kernel._observation_terms(zk[0], zk[1], pose, Pc, m[0], m[1], sig[0, 0], sig[0, 1],
+                                      sig[1, 1], R[0, 0], R[1, 1])
         nu_r, nu_b, S00, S01, S11, det, d2, h00, h01, h10, h11 = t
         G, Hm = observe_jacobians(pose, m)
         S = G @ Pc @ G.T + Hm @ sig @ Hm.T + R
@@ -129,9 +112,9 @@ def test_feature_ekf_matches_matrix_ekf():
         B = rng.normal(size=(2, 2))
         sig = B @ B.T * 0.2
         z = observe(pose, m) + rng.normal(size=2) * 0.05
-        state = _one_feature(pose, m, sig)
-        kernel._feature_ekf(pose, state, 0, 0, z[0], z[1], _model(R))
-        mx, my, sxx, sxy, syy = (a[0, 0] for a in state[3:8])
+        mx, my, sxx, sxy, syy = kernel._feature_ekf(
+            pose, m[0], m[1], sig[0, 0], sig[0, 1], sig[1, 1], z[0], z[1], R[0, 0], R[1, 1]
+        )
         _, H = observe_jacobians(pose, m)
         S = H @ sig @ H.T + R
         K = sig @ H.T @ np.linalg.inv(S)
@@ -554,9 +537,10 @@ def test_visibility_is_soft_at_the_range_limit():
     _place_features(f, [[(24.9, 0.0), (25.0, 0.0), (25.1, 0.0), (5.0, 0.0), (40.0, 0.0)]],
                     [[0, 1, 2, 3, 4]], var=0.01)
     Pc = np.zeros((3, 3))
+    s = f._state
     p_vis = [
-        kernel._visibility(np.zeros(3), Pc, f._state, 0, j, f.sensor.max_range_m,
-                           f.sensor.fov_rad)
+        kernel._visibility(np.zeros(3), Pc, s.mx[0, j], s.my[0, j], s.sxx[0, j], s.sxy[0, j],
+                           s.syy[0, j], f.sensor.max_range_m, f.sensor.fov_rad)
         for j in range(5)
     ]
     sigma = 0.1  # radial std of a feature with covariance 0.01 I, pose known
