@@ -130,16 +130,6 @@ def correspondence_vote(weights, votes) -> VoteResult:
     return VoteResult(int(options[top]), float(margin), options[:n].copy(), shares[:n].copy())
 
 
-def vote_all(log_weights, votes):
-    """BB 3.1 for the K observations of a scan at once (the filters' fast path).
-
-    ``log_weights`` (K, P): each particle's log weight after observation k; ``votes`` (K, P) as in
-    :func:`correspondence_vote`. Returns ``winners`` (K,), ``margins`` (K,) and the share of the
-    clutter vote (K,), exactly as K calls of :func:`correspondence_vote` would.
-    """
-    return _vote_all(np.asarray(log_weights, dtype=float), np.asarray(votes, dtype=np.int64))
-
-
 @njit(cache=True)
 def tally_votes(weights, votes, options, shares):
     """Distinct options in ascending order and their weight shares; returns their number."""
@@ -202,20 +192,29 @@ def vote_one_observation(log_weights, votes, weights, options, shares):
 
 
 @njit(cache=True)
-def _vote_all(log_weights, votes):
+def vote_scan(log_weights, votes, clutter_prob):
+    """BB 3.1 for the K observations of a scan: the one vote loop of the filters.
+
+    ``log_weights`` (K, P): each particle's log weight after observation k; ``votes`` (K, P) as
+    in :func:`correspondence_vote`; ``clutter_prob`` (K, P): the probability, under each
+    particle's hypothesis, that observation k is a false alarm. Returns per observation the
+    winner and its margin (as :func:`correspondence_vote` with the weights ``exp(log_weights[k]
+    - max)``) and the weighted probability that it is a false alarm, ``sum_p w_k^p c_k^p``."""
     K, P = votes.shape
     winners = np.empty(K, dtype=np.int64)
     margins = np.empty(K)
-    clutter_shares = np.zeros(K)
+    clutter_shares = np.empty(K)
     options = np.empty(P, dtype=np.int64)
     shares = np.empty(P)
     weights = np.empty(P)
     for k in range(K):
-        winners[k], margins[k], n = vote_one_observation(log_weights[k], votes[k], weights,
+        winners[k], margins[k], _ = vote_one_observation(log_weights[k], votes[k], weights,
                                                          options, shares)
-        for i in range(n):
-            if options[i] == CLUTTER_VOTE:
-                clutter_shares[k] = shares[i]
+        weighted, total = 0.0, 0.0
+        for p in range(P):
+            weighted += weights[p] * clutter_prob[k, p]
+            total += weights[p]
+        clutter_shares[k] = weighted / total
     return winners, margins, clutter_shares
 
 

@@ -4,17 +4,17 @@ References: Montemerlo, Thrun, Koller, Wegbreit, "FastSLAM 2.0" (IJCAI 2003) and
 Montemerlo et al., "FastSLAM: ... with unknown data association" (JMLR 2004), called FS2 below;
 Brooks & Bailey 2008 (BB) for correspondence voting, existence and the Gaussian conversion.
 
-State (padded arrays over P particles and a feature capacity C that doubles when needed):
-``poses`` (P, 3), ``weights`` (P,), feature ``means`` (P, C, 2), ``covs`` (P, C, 2, 2),
-``existence`` (P, C), ``active`` (P, C) and ``correspondence_ids`` (P, C) (BB (8); -1 = not yet a
-common feature). Each particle's active features are packed in slots ``0 .. count_p - 1``. No
-Python loop runs over particles: the per-particle sequence of a scan (each observation refines the
-proposal the next one is associated with), the motion prediction and, since issue 40, the
-bookkeeping that concerns all particles at once (votes, ids, clutter rate, culling, the weights,
-the resampling decision and the resampling) run compiled, in :mod:`filters.fastslam_kernel` (the
-reasons and the measured gains are given there and in docs/PERFORMANCE.md); what stays numpy is
-the weights' ``np.exp`` (numpy's rounding, which the compiled ``exp`` does not share) and the
-random draws, each from the generator of its purpose (:mod:`filters.draws`).
+State: one :class:`filters.fastslam_kernel.ParticleState` (issue 47), padded arrays over P
+particles and a feature capacity C that doubles when needed: ``poses`` (P, 3), log weights (P,),
+each feature component (mean x, y; covariance xx, xy, yy; existence; active; correspondence id,
+BB (8), -1 = not yet a common feature) one (P, C) array. Each particle's active features are
+packed in slots ``0 .. count_p - 1``. No Python loop runs over particles: the motion prediction
+and a scan's whole work (the per-particle sequence in which each observation refines the proposal
+the next one is associated with, then the votes, ids, clutter rate, culling, the weights, the
+resampling test and the resampling) run compiled, the scan in one call
+(:func:`filters.fastslam_kernel.update_iteration`; the reasons and the measured gains are given
+there and in docs/PERFORMANCE.md); the random draws come from the generator of each purpose
+(:mod:`filters.draws`) and are handed over in blocks.
 
 One filter iteration
 --------------------
@@ -101,7 +101,7 @@ has nothing to forget within BB's 10 s, and HYBRID builds it with :data:`LOCAL_M
 (1 - 1e-9, the float guard; BB gives no clip, and the EKF front-end of EKF sub-mapping has none).
 
 Correspondences (BB 3.1) are voted per observation, with the weights after that observation
-(:func:`filters.conversion.vote_all`); all features modified or created by the
+(:func:`filters.conversion.vote_scan`); all features modified or created by the
 observation get the winner's id (a new id from the shared :class:`filters.types.FeatureIds` when
 *new feature* wins), except where the particle already holds another feature with that id: ids
 stay unique within a particle (:func:`filters.conversion.assign_correspondence_ids`). When
@@ -153,19 +153,22 @@ from filters.conversion import (
     feature_moments,
     moment_match,
     pose_moments,
-    pose_moments_unchecked,
 )
 from filters.draws import as_draws
 from filters.existence import CONFIRMED_PROBABILITY, validate_existence_model
 from filters.fastslam_kernel import (
-    ScanModel,
-    clutter_shares,
-    draw_poses,
-    finish_scan,
+    FilterModel,
+    ParticleState,
+    ScanDraws,
+    call_draw_poses,
+    call_local_pose,
+    call_propagate,
+    call_systematic_resample,
+    call_update_iteration,
+    grow_state,
+    new_outputs,
+    new_state,
     normalise_weights,
-    propagate,
-    scan_update,
-    systematic_resample,
 )
 from filters.geometry import wrap_angle
 from filters.models import ClutterModel, RangeBearingSensor
@@ -185,14 +188,7 @@ BB_LANDMARK_DENSITY = 35.0 / (120.0 * 120.0)
 _TWO_PI = 2.0 * np.pi
 
 
-_FEATURE_FIELDS = ("_mx", "_my", "_sxx", "_sxy", "_syy", "_ex", "_active", "_cid")
-_FIELD_FILL = {"_active": False, "_cid": -1}
-
-
-_NO_LINEAGE = np.zeros(0, dtype=np.int64)
-_NO_POSE_COVS = np.zeros((0, 3, 3))
-_NO_LINEAGE.flags.writeable = False
-_NO_POSE_COVS.flags.writeable = False
+_NO_KNOWN_IDS = np.zeros(0, dtype=np.int64)  # DAS (writable: one compiled signature for both)
 
 
 _NOT_FINITE, _NEGATIVE_RANGE = 1, 2
@@ -210,14 +206,6 @@ def _scan_problem(z):
         if not z[k, 0] >= 0.0:
             return _NEGATIVE_RANGE
     return 0
-
-
-def clutter_share(log_weights, clutter_prob) -> np.ndarray:
-    """Per observation, the weighted probability that it is a false alarm: ``sum_p w_k^p c_k^p``
-    with ``w_k`` the normalised weights after observation k and ``c_k^p`` (K, P) the particle's
-    clutter probability (1 for clutter, ``1 - e_new`` for a new feature, 0 for an existing one)."""
-    return clutter_shares(np.asarray(log_weights, dtype=float),
-                          np.asarray(clutter_prob, dtype=float))
 
 
 class FastSLAM2:
@@ -355,7 +343,7 @@ class FastSLAM2:
         self.clutter_rate_memory = float(clutter_rate_memory)
         R = np.asarray(sensor.R, dtype=float)
         require(R[0, 1] == 0.0 and R[1, 0] == 0.0, "sensor", sensor, "a diagonal R")
-        self._scan_model = ScanModel(
+        self._model = FilterModel(
             r_var=float(R[0, 0]),
             b_var=float(R[1, 1]),
             detection_probability=float(self.detection_probability),
@@ -369,12 +357,14 @@ class FastSLAM2:
             max_existence=self.max_existence,
             literal_beta=validate_existence_model(existence_model) == "bb",
             sample_clutter=bool(sample_clutter),
+            clutter_decay=1.0 - 1.0 / self.clutter_rate_memory,
+            cull_threshold=self.cull_threshold,
+            resample_threshold=self.resample_threshold,
         )
         self.existence_model = existence_model
         self._initial_capacity = int(initial_capacity)
         self._capacity = self._initial_capacity
-        self._clutter_num = 0.0
-        self._clutter_den = 0.0
+        self._state = None
         self.lineage_correction = bool(lineage_correction)
         self.small_sample_correction = bool(small_sample_correction)
         self._reset(pose0)
@@ -382,16 +372,10 @@ class FastSLAM2:
     # ------------------------------------------------------------------ state
     def _reset(self, pose0):
         self._outputs = {}
-        P, C = self.n_particles, self._capacity
-        self._poses = np.tile(pose0, (P, 1))
-        self._logw = np.zeros(P)
-        for name in _FEATURE_FIELDS:
-            fill = _FIELD_FILL.get(name, 0.0)
-            dtype = bool if name == "_active" else np.int64 if name == "_cid" else float
-            setattr(self, name, np.full((P, C), fill, dtype=dtype))
-        self._count = np.zeros(P, dtype=np.int64)
-        self._lineage = np.arange(P)
-        self._prop_cov = np.zeros((P, 3, 3))
+        P = self.n_particles
+        # the clutter rate's sums belong to the filter and outlive the local maps
+        sums = np.zeros(2) if self._state is None else self._state.clutter_sums
+        self._state = new_state(P, self._capacity, pose0)._replace(clutter_sums=sums)
         self._pending = False
         self._steps = 0
         self._age_s = 0.0
@@ -412,11 +396,7 @@ class FastSLAM2:
         if C == self._capacity:
             return
         logger.debug("FastSLAM2: feature capacity %d -> %d", self._capacity, C)
-        pad = C - self._capacity
-        for name in _FEATURE_FIELDS:
-            a = getattr(self, name)
-            extra = np.full((self.n_particles, pad), _FIELD_FILL.get(name, 0.0), dtype=a.dtype)
-            setattr(self, name, np.concatenate([a, extra], axis=1))
+        self._state = grow_state(self._state, C)
         self._capacity = C
 
     @property
@@ -426,7 +406,7 @@ class FastSLAM2:
     @property
     def poses(self) -> np.ndarray:
         """Particle poses (P, 3) (proposal means between ``predict`` and ``update``)."""
-        return self._poses.copy()
+        return self._state.poses.copy()
 
     @property
     def weights(self) -> np.ndarray:
@@ -436,38 +416,40 @@ class FastSLAM2:
     def _weights(self) -> np.ndarray:
         """The normalised weights of the current state, computed once per state (read-only)."""
         if "weights" not in self._outputs:
-            w = np.exp(self._logw - self._logw.max())
-            self._outputs["weights"] = w / w.sum()
+            w = np.empty(self.n_particles)
+            normalise_weights(self._state.logw, w, 0.0)
+            self._outputs["weights"] = w
         return self._outputs["weights"]
 
     @property
     def means(self) -> np.ndarray:
         """Feature means (P, C, 2)."""
-        return np.stack([self._mx, self._my], axis=-1)
+        return np.stack([self._state.mx, self._state.my], axis=-1)
 
     @property
     def covs(self) -> np.ndarray:
         """Feature covariances (P, C, 2, 2)."""
-        row0 = np.stack([self._sxx, self._sxy], axis=-1)
-        row1 = np.stack([self._sxy, self._syy], axis=-1)
+        s = self._state
+        row0 = np.stack([s.sxx, s.sxy], axis=-1)
+        row1 = np.stack([s.sxy, s.syy], axis=-1)
         return np.stack([row0, row1], axis=-2)
 
     @property
     def existence(self) -> np.ndarray:
-        return self._ex.copy()
+        return self._state.ex.copy()
 
     @property
     def active(self) -> np.ndarray:
-        return self._active.copy()
+        return self._state.active.copy()
 
     @property
     def correspondence_ids(self) -> np.ndarray:
-        return self._cid.copy()
+        return self._state.cid.copy()
 
     @property
     def lineages(self) -> np.ndarray:
         """Each particle's ancestor at the last restart (or start): the index it had there."""
-        return self._lineage.copy()
+        return self._state.lineage.copy()
 
     # ------------------------------------------------------------------ prediction
     def predict(self, u, dt):
@@ -483,8 +465,7 @@ class FastSLAM2:
             self._sample_pending()
             self._maybe_resample("resample_after_pending")
         Q = np.ascontiguousarray(self.odometry_noise.covariance(u, dt), dtype=float)
-        self._prop_cov = np.empty((self.n_particles, 3, 3))
-        propagate(self._poses, self._prop_cov, float(u[0]), float(u[1]), dt, Q)
+        call_propagate(self._state, float(u[0]), float(u[1]), dt, Q)
         self._pending = True
         self._age_s += dt
         self._distance_m += abs(float(u[0])) * dt
@@ -494,8 +475,7 @@ class FastSLAM2:
     def _sample_pending(self):
         """Draw every particle's pose from its proposal N(x, P) (FS2)."""
         normals = self.draws.generator("pending_pose").standard_normal((self.n_particles, 3))
-        draw_poses(self._poses, self._prop_cov, normals)
-        self._prop_cov = np.zeros((self.n_particles, 3, 3))
+        call_draw_poses(self._state, normals)
         self._pending = False
 
     def update_heading(self, theta, std_rad):
@@ -509,20 +489,21 @@ class FastSLAM2:
         check_range("theta", theta, -1e3, 1e3)
         check_range("std_rad", std_rad, 0.0, 10.0, low_open=True)
         var = std_rad**2
-        nu = wrap_angle(theta - self._poses[:, 2])
+        state = self._state
+        nu = wrap_angle(theta - state.poses[:, 2])
         self._outputs = {}
         if self._pending:
-            Pc = self._prop_cov
+            Pc = state.prop_cov
             s = Pc[:, 2, 2] + var
             k = Pc[:, :, 2] / s[:, None]
-            self._poses = self._poses + k * nu[:, None]
-            self._poses[:, 2] = wrap_angle(self._poses[:, 2])
+            state.poses[:] += k * nu[:, None]
+            state.poses[:, 2] = wrap_angle(state.poses[:, 2])
             Pc = Pc - k[:, :, None] * Pc[:, None, 2, :]
-            self._prop_cov = 0.5 * (Pc + np.swapaxes(Pc, 1, 2))
+            state.prop_cov[:] = 0.5 * (Pc + np.swapaxes(Pc, 1, 2))
         else:
             s = np.full(self.n_particles, var)
-        self._logw += -0.5 * nu * nu / s - 0.5 * np.log(_TWO_PI * s)
-        self._logw -= self._logw.max()
+        state.logw[:] += -0.5 * nu * nu / s - 0.5 * np.log(_TWO_PI * s)
+        state.logw[:] -= state.logw.max()
         if not self._pending:
             self._maybe_resample("resample_after_heading")
 
@@ -537,63 +518,59 @@ class FastSLAM2:
         times the detection ratio of the feature (``L_new`` for a particle lacking it), after
         the missed-detection product (module docstring).
 
-        The per-particle work runs in :func:`filters.fastslam_kernel.scan_update`; the random
-        numbers (one uniform per observation and particle for DAS, three normals per particle
-        for the pose draw) come from :attr:`draws`, roles ``association`` and ``scan_pose``.
+        The work runs in one compiled call, :func:`filters.fastslam_kernel.update_iteration`;
+        the random numbers (one uniform per observation and particle for DAS, three normals per
+        particle for the pose draw, the resampling's uniform) come from :attr:`draws`, roles
+        ``association``, ``scan_pose`` and ``resample_after_scan`` (drawn whether or not the
+        weights call for resampling: the kernel decides).
         """
         z = np.asarray(z, dtype=float).reshape(-1, 2) if np.size(z) else np.zeros((0, 2))
         problem = _scan_problem(z)
         require(problem != _NOT_FINITE, "z", z, "finite range-bearing pairs (K, 2)")
         require(problem != _NEGATIVE_RANGE, "z", z, "ranges >= 0")
         K, P = len(z), self.n_particles
-        known_cids = None
+        known_cids = _NO_KNOWN_IDS
         if associations is not None:
             known = np.asarray(associations, dtype=np.int64).reshape(-1)
             require(len(known) == K, "associations", associations, f"length {K} like z")
             require(bool(np.all(known >= -1)), "associations", associations, "labels >= -1")
             known_cids = np.array([self._label_id(int(label)) for label in known], dtype=np.int64)
+        self._grow(int(self._state.count.max()) + K)
+        state = self._state
         if not self._pending:
-            self._prop_cov = np.zeros((P, 3, 3))
-        self._grow(int(self._count.max()) + K)
-        if known_cids is None:
+            state.prop_cov[:] = 0.0
+        if associations is None:
             uniforms = self.draws.generator("association").random((K, P))
         else:
-            uniforms = np.zeros((K, P))
+            uniforms = np.zeros((0, P))
         normals = self.draws.generator("scan_pose").standard_normal((P, 3))
-        votes = np.empty((K, P), dtype=np.int64)
-        slots = np.empty((K, P), dtype=np.int64)
-        logw_after = np.empty((K, P))
-        clutter_prob = np.empty((K, P))
-        scan_update(
-            self._poses, self._prop_cov, self._logw,
-            self._mx, self._my, self._sxx, self._sxy, self._syy, self._ex, self._active,
-            self._cid, self._count, z, uniforms, normals, known_cids, votes, slots, logw_after,
-            clutter_prob, *self._scan_model,
-        )
-        self._pending = False
-
-        # --- one compiled pass for the rest (filters.fastslam_kernel.finish_scan): the
+        offset = self.draws.generator("resample_after_scan").random()
+        weights = np.empty(P)
+        out = new_outputs(K, P)
+        spare = self._spare_state()
+        # one compiled call (filters.fastslam_kernel.update_iteration): the scan, then the
         # correspondence votes (BB 3.1), one per observation with the weights after it, fresh
         # ids in observation order for the observations *new feature* wins, the clutter rate,
         # every feature modified or created by an observation taking its winner's id unless its
         # particle holds another feature with that id (clutter winning leaves modified features
         # their id and created ones without one: filters.conversion.assign_correspondence_ids),
-        # culling every cull_interval_steps, the log weights shifted to a maximum of 0
-        winners, margins, n_new, self._clutter_num, self._clutter_den = finish_scan(
-            self._logw, logw_after, votes, slots, clutter_prob, known_cids, self.ids.next_id,
-            self._cid, self._active, self._count, self._mx, self._my, self._sxx, self._sxy,
-            self._syy, self._ex, self._clutter_num, self._clutter_den,
-            1.0 - 1.0 / self.clutter_rate_memory,
-            (self._steps + 1) % self.cull_interval_steps == 0, self.cull_threshold,
+        # culling every cull_interval_steps, the weights and the resampling
+        result = call_update_iteration(
+            state, z, known_cids, ScanDraws(uniforms, normals, offset), self._model,
+            out, self.ids.next_id,
+            (self._steps + 1) % self.cull_interval_steps == 0, weights, spare,
         )
-        if n_new:
-            self.ids.new(n_new)  # the ids finish_scan gave, now taken from the shared source
+        self._pending = False
+        if result.n_new_ids:
+            self.ids.new(result.n_new_ids)  # the ids the kernel gave, now taken from the source
         self._steps += 1
-        self._outputs = {}
-        self.last_associations = winners
-        self.last_votes = votes
-        self._vote_margins = margins
-        self._maybe_resample("resample_after_scan")
+        self._ess_ratio = float(result.ess_ratio)
+        if result.resampled:
+            self._state = spare
+        self._outputs = {"weights": weights}
+        self.last_associations = result.winners
+        self.last_votes = out.votes
+        self._vote_margins = result.margins
 
     @property
     def rng(self) -> np.random.Generator:
@@ -609,25 +586,28 @@ class FastSLAM2:
             self._label_cid[label] = int(self.ids.new(1)[0])
         return self._label_cid[label]
 
+    def _spare_state(self) -> ParticleState:
+        """A state of the current shapes for the resampling to gather into (it shares the
+        clutter sums, which belong to the filter, not to the particles)."""
+        state = self._state
+        return ParticleState(*(np.empty_like(a) for a in state))._replace(
+            clutter_sums=state.clutter_sums)
+
     def _maybe_resample(self, role: str):
         """Systematic resampling when N_eff < resample_threshold * P (compiled:
         :func:`filters.fastslam_kernel.normalise_weights` and
-        :func:`~filters.fastslam_kernel.systematic_resample`, the numpy code they replaced to
-        the bit, but for the weights' ``np.exp``, which stays numpy's). The uniform is drawn
-        here, not in compiled code: handing the generator to a compiled function costs
-        ~7 us a call, whether or not it draws. ``role``: the call site's role of
-        :mod:`filters.draws`."""
-        weights = np.exp(self._logw - self._logw.max())  # normalised in place below
-        resample, ess_ratio = normalise_weights(weights, self.resample_threshold)
+        :func:`~filters.fastslam_kernel.systematic_resample`), its uniform drawn from
+        :attr:`draws` with ``role`` only when it resamples (a scan's resampling runs inside
+        :func:`~filters.fastslam_kernel.update_iteration`)."""
+        weights = np.empty(self.n_particles)
+        resample, ess_ratio = normalise_weights(self._state.logw, weights,
+                                                self.resample_threshold)
         self._ess_ratio = float(ess_ratio)
         if resample:
-            state = (self._poses, self._prop_cov, self._mx, self._my, self._sxx, self._sxy,
-                     self._syy, self._ex, self._active, self._cid, self._count, self._lineage)
-            spare = tuple(np.empty_like(a) for a in state)
+            spare = self._spare_state()
             offset = self.draws.generator(role).random()
-            systematic_resample(weights, offset, self._logw, state, spare)
-            (self._poses, self._prop_cov, self._mx, self._my, self._sxx, self._sxy, self._syy,
-             self._ex, self._active, self._cid, self._count, self._lineage) = spare
+            call_systematic_resample(self._state, weights, offset, spare)
+            self._state = spare
             self._outputs = {}
         self._outputs["weights"] = weights
 
@@ -635,10 +615,11 @@ class FastSLAM2:
     def _pose_covs(self):
         if not self._pending:
             return None
-        return 0.5 * (self._prop_cov + np.swapaxes(self._prop_cov, 1, 2))
+        prop_cov = self._state.prop_cov
+        return 0.5 * (prop_cov + np.swapaxes(prop_cov, 1, 2))
 
     def _lineages(self):
-        return self._lineage if self.lineage_correction else None
+        return self._state.lineage if self.lineage_correction else None
 
     def pose(self):
         """Weighted mean (circular mean heading) and covariance of the particle poses (with the
@@ -648,18 +629,17 @@ class FastSLAM2:
         if key not in self._outputs:
             # the compiled moments straight away: the filter's own arrays need no validation
             # (lineages are ancestor indices in [0, P)); pose_moments checks external input
-            lineage = self._lineage if self.lineage_correction else _NO_LINEAGE
-            self._outputs[key] = pose_moments_unchecked(
-                self._poses, self._weights(), self._prop_cov if self._pending else _NO_POSE_COVS,
-                lineage, len(lineage), self.small_sample_correction,
-            )
+            self._outputs[key] = call_local_pose(self._state, self._weights(), self._pending,
+                                                 self.lineage_correction,
+                                                 self.small_sample_correction)
         mean, cov = self._outputs[key]
         return mean.copy(), cov.copy()
 
     def _common(self):
         if "common" not in self._outputs:
+            s = self._state
             self._outputs["common"] = common_features(
-                self.weights, self._cid, self._active, self._ex, tie_break=self._sxx + self._syy
+                self.weights, s.cid, s.active, s.ex, tie_break=s.sxx + s.syy
             )
         return self._outputs["common"]
 
@@ -693,7 +673,7 @@ class FastSLAM2:
         (:func:`filters.conversion.lineage_covariance`; module doc), and with
         ``small_sample_correction`` its pose block is scaled as :meth:`pose`'s is."""
         return moment_match(
-            self._poses,
+            self._state.poses,
             self.weights,
             self.means,
             self.covs,
@@ -720,7 +700,9 @@ class FastSLAM2:
         those of the cloud (BB (7)), without the lineage term of :meth:`pose`.
         """
         common = self._common()
-        _, cov = pose_moments(self._poses, self._weights(), self._pose_covs())  # the cloud itself
+        clutter_num, clutter_den = self._state.clutter_sums
+        # the cloud itself
+        _, cov = pose_moments(self._state.poses, self._weights(), self._pose_covs())
         n_features = len(common)
         return {
             "local_map_age_s": float(self._age_s),
@@ -731,8 +713,8 @@ class FastSLAM2:
             "local_feature_count": float(n_features),
             "local_confirmed_count": float(np.sum(common.existence > CONFIRMED_PROBABILITY)),
             "vote_margin": float(self._vote_margins.min()) if len(self._vote_margins) else 1.0,
-            "clutter_rate": float(self._clutter_num / self._clutter_den)
-            if self._clutter_den > 0.0
+            "clutter_rate": float(clutter_num / clutter_den)
+            if clutter_den > 0.0
             else 0.0,
             "local_map_budget_ratio": float(n_features / self.feature_budget),
         }

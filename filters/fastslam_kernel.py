@@ -1,25 +1,36 @@
-"""Compiled work of one FastSLAM 2.0 iteration (numba).
+"""Compiled work of one FastSLAM 2.0 iteration (numba), on one state structure.
 
-:class:`filters.fastslam.FastSLAM2` keeps its state in (P, C) arrays. What is sequential within
-one particle (the observations of a scan refine the particle's proposal one
-after the other) runs here, in one compiled pass over the particles: visibility and the
-missed-detection terms, Data Association Sampling, the FS2 proposal refinement, the pose draw,
-and the existence and map updates at the drawn pose. The equations are those of the
-:mod:`filters.fastslam` module docstring, which this module follows line by line. Since issue 40
-the bookkeeping after the scan that concerns all particles at once is compiled too
-(:func:`finish_scan`, :func:`normalise_weights`, :func:`systematic_resample`: below, with why
-each stops where it does).
+:class:`ParticleState` holds every particle and its features: the arrays of the
+:mod:`filters.fastslam` module docstring, one (P, C) array per feature component. Every kernel
+below takes that state, and at most the scan, the model, the draws and the outputs besides; the
+scalar helpers that each read as one equation take their scalars. The equations are those of the
+:mod:`filters.fastslam` module docstring (FS2: Montemerlo et al. 2003; BB: Brooks & Bailey 2008),
+which this module follows line by line:
 
-Why compiled: with numpy vectorised over the particles every observation costs some hundred
-array operations of a few microseconds each whatever the particle count, which capped the
-default training env at 60-65 decisions per second and HYBRID at 500 particles at 38x real
-time (docs/PERFORMANCE.md, issues #4 and #6). The random numbers are drawn by the caller with
-its own ``numpy.random.Generator`` and passed in, so the stream and the seeding are unchanged.
+* :func:`propagate`, :func:`draw_poses`: the motion prediction and the FS2 proposal prior, and
+  the pose draw of an iteration that ended without a scan;
+* :func:`scan_update`: one scan for every particle: the missed-detection product, Data
+  Association Sampling (or known association), the FS2 proposal refinement, the pose draw and
+  the map and existence updates at the drawn pose (BB (11));
+* :func:`finish_scan`: the correspondence votes (BB 3.1), the ids, the clutter rate and culling;
+* :func:`normalise_weights`, :func:`systematic_resample`: the weights, the resampling test and
+  the resampling;
+* :func:`update_iteration`: all of the scan's work above in one compiled call.
 
-The scalar measurement functions below are the ones of :mod:`filters.models` (``h``, its
-Jacobian w.r.t. the feature, the inverse observation ``g`` and its Jacobian w.r.t. ``z``)
-written out per element; ``tests/filters/test_fastslam_kernel.py`` checks them against the
-vectorised reference.
+Why compiled: vectorised over the particles with numpy, every observation cost some hundred
+array operations of a few microseconds each whatever the particle count (docs/PERFORMANCE.md,
+issues #4, #6, 40). The random numbers are drawn by the caller from the generator of each
+purpose (:mod:`filters.draws`) and handed over in blocks (:class:`ScanDraws`).
+
+Since issue 47 the results are no longer kept equal to the bit to an earlier numpy code: the
+weights' exponential is the compiled one (``math.exp``, the C library's), which rounds
+differently from numpy's SIMD ``np.exp`` in about 5 % of arguments. Equivalence is checked by
+distributions (docs/RESULTS.md) and each kernel against a plain numpy reference to rounding
+(``tests/filters/test_fastslam_kernel.py``).
+
+The scalar measurement functions below are those of :mod:`filters.models` (``h``, its Jacobian
+w.r.t. the feature, the inverse observation ``g`` and its Jacobian w.r.t. ``z``) written out per
+element; ``tests/filters/test_fastslam_kernel.py`` checks them against the vectorised reference.
 """
 
 from __future__ import annotations
@@ -34,7 +45,8 @@ from filters.conversion import CLUTTER_VOTE as CLUTTER
 from filters.conversion import NEW_VOTE as NEW
 from filters.conversion import (
     assign_correspondence_ids_unchecked,
-    vote_one_observation,
+    pose_moments_unchecked,
+    vote_scan,
 )
 from filters.existence import (
     detection_update_one,
@@ -47,42 +59,144 @@ _TWO_PI = 2.0 * math.pi
 _SQRT_HALF = math.sqrt(0.5)
 
 
-class ScanModel(NamedTuple):
-    """The constants of one scan update (sensor, clutter and filter options), in the order of
-    the last parameters of :func:`scan_update` (passed unpacked: numba types scalars faster than
-    a named tuple)."""
+class ParticleState(NamedTuple):
+    """Every particle of the filter and its features (P particles, C feature slots each; a
+    particle's active features are packed in slots ``0 .. count[p] - 1``)."""
 
-    r_var: float
-    b_var: float
-    detection_probability: float
-    beta: float
-    gate_chi2: float
+    poses: np.ndarray         # (P, 3) x, y, theta: the proposal's mean until the pose is drawn
+    prop_cov: np.ndarray      # (P, 3, 3) the FS2 proposal's covariance (zero once drawn)
+    logw: np.ndarray          # (P,) log weights, shifted to a maximum of 0 after each scan
+    mx: np.ndarray            # (P, C) feature means
+    my: np.ndarray
+    sxx: np.ndarray           # (P, C) feature covariances [[sxx, sxy], [sxy, syy]]
+    sxy: np.ndarray
+    syy: np.ndarray
+    ex: np.ndarray            # (P, C) existence probabilities (BB (11))
+    active: np.ndarray        # (P, C) bool: the slot holds a feature
+    cid: np.ndarray           # (P, C) int64 common ids (BB (8)); -1: not yet a common feature
+    count: np.ndarray         # (P,) int64 active features of each particle
+    lineage: np.ndarray       # (P,) int64 each particle's ancestor at the last restart
+    clutter_sums: np.ndarray  # (2,) the clutter rate's running numerator and denominator
+
+
+FEATURE_FIELDS = ("mx", "my", "sxx", "sxy", "syy", "ex", "active", "cid")
+"""The (P, C) fields of :class:`ParticleState`, which grow with the capacity."""
+FEATURE_FILL = {"active": False, "cid": -1}
+"""What an empty slot holds (0 in every other feature field)."""
+_FEATURE_DTYPE = {"active": np.bool_, "cid": np.int64}
+
+
+def new_state(n_particles: int, capacity: int, pose0) -> ParticleState:
+    """P particles at ``pose0`` with zero uncertainty, equal weights and no features."""
+    P, C = int(n_particles), int(capacity)
+    features = {name: np.full((P, C), FEATURE_FILL.get(name, 0.0),
+                              dtype=_FEATURE_DTYPE.get(name, np.float64))
+                for name in FEATURE_FIELDS}
+    return ParticleState(
+        poses=np.tile(np.asarray(pose0, dtype=float), (P, 1)),
+        prop_cov=np.zeros((P, 3, 3)),
+        logw=np.zeros(P),
+        count=np.zeros(P, dtype=np.int64),
+        lineage=np.arange(P, dtype=np.int64),
+        clutter_sums=np.zeros(2),
+        **features,
+    )
+
+
+def grow_state(state: ParticleState, capacity: int) -> ParticleState:
+    """The state with ``capacity`` feature slots per particle (empty slots appended)."""
+    P, C = state.mx.shape
+    extra = int(capacity) - C
+    if extra <= 0:
+        return state
+    grown = {}
+    for name in FEATURE_FIELDS:
+        a = getattr(state, name)
+        pad = np.full((P, extra), FEATURE_FILL.get(name, 0.0), dtype=a.dtype)
+        grown[name] = np.concatenate([a, pad], axis=1)
+    return state._replace(**grown)
+
+
+class FilterModel(NamedTuple):
+    """The constants of the filter's iteration: sensor, clutter and the filter's options."""
+
+    r_var: float                  # range variance of R (diagonal)
+    b_var: float                  # bearing variance of R
+    detection_probability: float  # alpha (clipped)
+    beta: float                   # false alarms per visible landmark (BB 5.1)
+    gate_chi2: float              # association gate on S
     max_range_m: float
     fov_rad: float
     range_std_m: float
     bearing_std_rad: float
-    new_landmark_density: float
+    new_landmark_density: float   # rho of L_new
     max_existence: float
-    literal_beta: bool
-    sample_clutter: bool
+    literal_beta: bool            # BB (11)'s P_fa read as beta itself ("bb")
+    sample_clutter: bool          # clutter and new feature drawn as two hypotheses
+    clutter_decay: float          # 1 - 1 / clutter_rate_memory
+    cull_threshold: float
+    resample_threshold: float     # resample when N_eff < threshold * P
 
 
+class ScanDraws(NamedTuple):
+    """The random numbers of one scan: ``uniforms`` (K, P) drive DAS (zeros under known
+    association), ``normals`` (P, 3) the pose draw, ``resample_offset`` the systematic
+    resampling's uniform (used only if the weights call for it)."""
+
+    uniforms: np.ndarray
+    normals: np.ndarray
+    resample_offset: float
+
+
+class ScanOutputs(NamedTuple):
+    """What :func:`scan_update` leaves per observation k and particle p, (K, P) each: ``votes``
+    (a common id, CLUTTER or NEW; a feature without id votes NEW), ``slots`` (the slot updated or
+    created, -1 for clutter), ``logw_after`` (the log weight after the observation, for voting)
+    and ``clutter_prob`` (the probability, under the particle's hypothesis, that the observation
+    is a false alarm: 1 for clutter, ``1 - e_new`` for a new feature, 0 for an existing one)."""
+
+    votes: np.ndarray
+    slots: np.ndarray
+    logw_after: np.ndarray
+    clutter_prob: np.ndarray
+
+
+def new_outputs(K: int, P: int) -> ScanOutputs:
+    return ScanOutputs(np.empty((K, P), dtype=np.int64), np.empty((K, P), dtype=np.int64),
+                       np.empty((K, P)), np.empty((K, P)))
+
+
+class ScanResult(NamedTuple):
+    """:func:`update_iteration`'s answer: the winning id of each observation (K,) and its vote
+    margin (K,), the number of fresh ids it took, whether it resampled, and ``N_eff / P``
+    before the resampling test."""
+
+    winners: np.ndarray
+    margins: np.ndarray
+    n_new_ids: int
+    resampled: bool
+    ess_ratio: float
+
+
+# --------------------------------------------------------------------------- scalar equations
 @njit(cache=True, inline="always")
-def _innovation(zr, zb, x, y, th, mx, my):
+def _innovation(zr, zb, pose, mx, my):
     """Innovation ``z - h(pose, m)`` (bearing wrapped) and ``H_m``, the Jacobian of ``h`` w.r.t.
     the feature (:func:`filters.models.observe_jacobians`; ``H_pose = [-H_m | (0, -1)^T]``)."""
-    dx = mx - x
-    dy = my - y
+    dx = mx - pose[0]
+    dy = my - pose[1]
     q = max(dx * dx + dy * dy, 1e-12)
     r = math.sqrt(q)
-    return zr - r, _wrap(zb - math.atan2(dy, dx) + th), dx / r, dy / r, -dy / q, dx / q
+    return zr - r, _wrap(zb - math.atan2(dy, dx) + pose[2]), dx / r, dy / r, -dy / q, dx / q
 
 
 @njit(cache=True, inline="always")
-def _observation_terms(zr, zb, x, y, th, Pc, mx, my, sxx, sxy, syy, r_var, b_var):
-    """Innovation, ``S = G P G^T + H_m Sigma H_m^T + R`` and ``H_m`` of one feature for one
-    particle with proposal ``(x, y, th)``, ``Pc`` (3, 3) (module doc of filters.fastslam)."""
-    nu_r, nu_b, h00, h01, h10, h11 = _innovation(zr, zb, x, y, th, mx, my)
+def _observation_terms(zr, zb, pose, Pc, mx, my, sxx, sxy, syy, r_var, b_var):
+    """Innovation, ``S = G P G^T + H_m Sigma H_m^T + R`` and ``H_m`` of the feature ``N((mx, my),
+    [[sxx, sxy], [sxy, syy]])`` for the proposal ``N(pose, Pc)`` (FS2; module doc of
+    filters.fastslam). Returns ``(nu_r, nu_b, S00, S01, S11, det S, nu^T S^-1 nu, h00, h01, h10,
+    h11)``."""
+    nu_r, nu_b, h00, h01, h10, h11 = _innovation(zr, zb, pose, mx, my)
     m00 = sxx + Pc[0, 0]
     m01 = sxy + Pc[0, 1]
     m11 = syy + Pc[1, 1]
@@ -100,10 +214,12 @@ def _observation_terms(zr, zb, x, y, th, Pc, mx, my, sxx, sxy, syy, r_var, b_var
 
 
 @njit(cache=True)
-def _refine(pose, Pc, nu_r, nu_b, S00, S01, S11, det, h00, h01, h10, h11, scratch):
+def _refine(pose, Pc, t, scratch):
     """FS2 proposal in Kalman form: ``x += P G^T S^-1 nu``, ``P -= P G^T S^-1 G P`` with
-    ``G = [-H_m | (0, -1)^T]`` (in place; well defined for a singular P). ``scratch`` (4, 3):
-    work space the caller allocates once (no allocation per observation)."""
+    ``G = [-H_m | (0, -1)^T]`` (in place; well defined for a singular P). ``t``: the
+    :func:`_observation_terms` of the chosen feature; ``scratch`` (4, 3): work space."""
+    nu_r, nu_b, S00, S01, S11, det = t[0], t[1], t[2], t[3], t[4], t[5]
+    h00, h01, h10, h11 = t[7], t[8], t[9], t[10]
     inv_det = 1.0 / det
     pg0 = scratch[0]
     pg1 = scratch[1]
@@ -144,45 +260,12 @@ def _ldl_draw(cov, normals, out):
     out[2] = l20 * y0 + l21 * y1 + y2
 
 
-@njit(cache=True)
-def draw_poses(poses, prop_cov, normals):
-    """Draw every particle's pose from its proposal ``N(x, P)`` (in place; FS2)."""
-    step = np.empty(3)
-    for p in range(poses.shape[0]):
-        _ldl_draw(prop_cov[p], normals[p], step)
-        poses[p, 0] += step[0]
-        poses[p, 1] += step[1]
-        poses[p, 2] = _wrap(poses[p, 2] + step[2])
-
-
-@njit(cache=True)
-def propagate(poses, prop_cov, v, omega, dt, Q):
-    """Motion prediction of every particle, in place: the pose through the unicycle mid-point
-    model (:func:`filters.models.motion`) and the FS2 proposal prior ``J_u Q J_u^T`` in
-    ``prop_cov`` (``J_u`` of :func:`filters.models.motion_jacobians`)."""
-    half_v_dt2 = 0.5 * v * dt * dt
-    J = np.zeros((3, 2))
-    J[2, 1] = dt
-    for p in range(poses.shape[0]):
-        heading = poses[p, 2] + 0.5 * omega * dt
-        c, s = math.cos(heading), math.sin(heading)
-        J[0, 0], J[0, 1] = dt * c, -half_v_dt2 * s
-        J[1, 0], J[1, 1] = dt * s, half_v_dt2 * c
-        for i in range(3):
-            jq0 = J[i, 0] * Q[0, 0] + J[i, 1] * Q[1, 0]
-            jq1 = J[i, 0] * Q[0, 1] + J[i, 1] * Q[1, 1]
-            for j in range(3):
-                prop_cov[p, i, j] = jq0 * J[j, 0] + jq1 * J[j, 1]
-        poses[p, 0] += v * dt * c
-        poses[p, 1] += v * dt * s
-        poses[p, 2] = _wrap(poses[p, 2] + omega * dt)
-
-
 @njit(cache=True, inline="always")
-def _feature_ekf(x, y, th, mx, my, sxx, sxy, syy, zr, zb, r_var, b_var):
+def _feature_ekf(pose, mx, my, sxx, sxy, syy, zr, zb, r_var, b_var):
     """EKF update of one feature from a known pose: ``K = Sigma H^T S^-1``, ``m += K nu``,
-    ``Sigma -= K H Sigma`` (the FS2 map update at the sampled pose)."""
-    nu_r, nu_b, h00, h01, h10, h11 = _innovation(zr, zb, x, y, th, mx, my)
+    ``Sigma -= K H Sigma`` (the FS2 map update at the sampled pose); returns the feature's new
+    ``(mx, my, sxx, sxy, syy)``."""
+    nu_r, nu_b, h00, h01, h10, h11 = _innovation(zr, zb, pose, mx, my)
     t00 = h00 * sxx + h01 * sxy
     t01 = h00 * sxy + h01 * syy
     t10 = h10 * sxx + h11 * sxy
@@ -204,16 +287,28 @@ def _feature_ekf(x, y, th, mx, my, sxx, sxy, syy, zr, zb, r_var, b_var):
     )
 
 
+@njit(cache=True, inline="always")
+def _new_feature(pose, zr, zb, r_var, b_var):
+    """A feature initialised from ``z`` at the known pose: ``m = g(pose, z)`` and ``Sigma = G_z
+    R G_z^T`` with ``G_z = [[c, -r s], [s, r c]]`` (FS2, :func:`filters.models.inverse_observe`);
+    returns ``(mx, my, sxx, sxy, syy)``."""
+    c = math.cos(pose[2] + zb)
+    s = math.sin(pose[2] + zb)
+    rs2 = zr * zr * b_var
+    return (pose[0] + zr * c, pose[1] + zr * s, c * c * r_var + s * s * rs2,
+            c * s * (r_var - rs2), s * s * r_var + c * c * rs2)
+
+
 @njit(cache=True)
-def _visibility(x, y, th, Pc, mx, my, sxx, sxy, syy, max_range_m, fov_rad):
-    """Probability that a feature lies inside the sensor's range: ``Phi((r_max - r) / sigma_r)``
-    with ``sigma_r^2`` the radial variance of feature and proposal position; a limited field of
-    view is a hard bearing test on the mean (module doc of filters.fastslam)."""
-    dx = mx - x
-    dy = my - y
+def _visibility(pose, Pc, mx, my, sxx, sxy, syy, max_range_m, fov_rad):
+    """Probability that a feature lies inside the sensor's range: ``Phi((r_max - r) /
+    sigma_r)`` with ``sigma_r^2`` the radial variance of feature and proposal position; a
+    limited field of view is a hard bearing test on the mean (module doc of filters.fastslam)."""
+    dx = mx - pose[0]
+    dy = my - pose[1]
     q = max(dx * dx + dy * dy, 1e-12)
     r = math.sqrt(q)
-    if fov_rad < _TWO_PI and abs(_wrap(math.atan2(dy, dx) - th)) > 0.5 * fov_rad:
+    if fov_rad < _TWO_PI and abs(_wrap(math.atan2(dy, dx) - pose[2])) > 0.5 * fov_rad:
         return 0.0
     radial = (
         dx * dx * (sxx + Pc[0, 0]) + 2.0 * dx * dy * (sxy + Pc[0, 1]) + dy * dy * (syy + Pc[1, 1])
@@ -227,68 +322,88 @@ def _visibility(x, y, th, Pc, mx, my, sxx, sxy, syy, max_range_m, fov_rad):
     return 0.5 * math.erfc(-margin * _SQRT_HALF)
 
 
-@njit(cache=True)
-def scan_update(
-    poses,
-    prop_cov,
-    logw,
-    mx,
-    my,
-    sxx,
-    sxy,
-    syy,
-    ex,
-    active,
-    cid,
-    count,
-    z,
-    uniforms,
-    normals,
-    known_cids,
-    votes,
-    slots,
-    logw_after,
-    clutter_prob,
-    r_var,
-    b_var,
-    detection_probability,
-    beta,
-    gate_chi2,
-    max_range_m,
-    fov_rad,
-    range_std_m,
-    bearing_std_rad,
-    new_landmark_density,
-    max_existence,
-    literal_beta,
-    sample_clutter,
-):
-    """One scan for every particle (module doc of filters.fastslam), in place.
+@njit(cache=True, inline="always")
+def _gaussian_likelihood(d2, det):
+    """``N(nu; 0, S)`` of a 2-vector from its Mahalanobis square ``d2`` and ``det S``."""
+    return math.exp(-0.5 * d2) / (_TWO_PI * math.sqrt(abs(det)))
 
-    State (P, ...) arrays are updated in place; ``count`` (P,) grows by the features created
-    (the caller guarantees ``C >= count + K``). ``uniforms`` (K, P) drive DAS, ``normals``
-    (P, 3) the pose draw. ``known_cids`` (K,) is None for DAS, else the common id each
-    observation belongs to (-1: a known false alarm). Outputs (K, P): ``votes`` (a common id,
-    CLUTTER or NEW; a feature without id votes NEW), ``slots`` (the slot updated or created,
-    -1 for clutter), ``logw_after`` (the log weight after each observation, for voting) and
-    ``clutter_prob`` (the probability, under the particle's hypothesis, that the observation is a
-    false alarm: 1 for clutter, ``1 - e_new`` for a new feature, 0 for an existing one). The
-    remaining parameters are the fields of :class:`ScanModel`.
+
+# --------------------------------------------------------------------------- prediction
+@njit(cache=True)
+def propagate(state, v, omega, dt, Q):
+    """Motion prediction of every particle, in place: the pose through the unicycle mid-point
+    model (:func:`filters.models.motion`) and the FS2 proposal prior ``J_u Q J_u^T`` in
+    ``state.prop_cov`` (``J_u`` of :func:`filters.models.motion_jacobians`)."""
+    poses, prop_cov = state.poses, state.prop_cov
+    half_v_dt2 = 0.5 * v * dt * dt
+    J = np.zeros((3, 2))
+    J[2, 1] = dt
+    for p in range(poses.shape[0]):
+        heading = poses[p, 2] + 0.5 * omega * dt
+        c, s = math.cos(heading), math.sin(heading)
+        J[0, 0], J[0, 1] = dt * c, -half_v_dt2 * s
+        J[1, 0], J[1, 1] = dt * s, half_v_dt2 * c
+        for i in range(3):
+            jq0 = J[i, 0] * Q[0, 0] + J[i, 1] * Q[1, 0]
+            jq1 = J[i, 0] * Q[0, 1] + J[i, 1] * Q[1, 1]
+            for j in range(3):
+                prop_cov[p, i, j] = jq0 * J[j, 0] + jq1 * J[j, 1]
+        poses[p, 0] += v * dt * c
+        poses[p, 1] += v * dt * s
+        poses[p, 2] = _wrap(poses[p, 2] + omega * dt)
+
+
+@njit(cache=True)
+def draw_poses(state, normals):
+    """Draw every particle's pose from its proposal ``N(x, P)`` and zero ``P`` (in place;
+    FS2)."""
+    step = np.empty(3)
+    for p in range(state.poses.shape[0]):
+        _ldl_draw(state.prop_cov[p], normals[p], step)
+        pose = state.poses[p]
+        pose[0] += step[0]
+        pose[1] += step[1]
+        pose[2] = _wrap(pose[2] + step[2])
+        state.prop_cov[p, :, :] = 0.0
+
+
+# --------------------------------------------------------------------------- the scan
+# One function body: a helper that took the state (a tuple of arrays) and was called per particle
+# and observation counted a reference to every array of the tuple at each call, twice the scan's
+# time (measured, docs/PERFORMANCE.md); the scalar helpers above take their scalars.
+@njit(cache=True)
+def scan_update(state, z, known_cids, draws, model, out):
+    """One scan ``z`` (K, 2) for every particle (module doc of filters.fastslam), in place.
+
+    ``state.count`` grows by the features created (the caller guarantees ``C >= count + K``).
+    ``known_cids`` (K,): for known association, the common id each observation belongs to (-1:
+    a known false alarm); empty (0,) for DAS. ``draws``: :class:`ScanDraws`; ``out``:
+    :class:`ScanOutputs`, written for every (k, p). Per particle, in turn: the missed-detection
+    product; each observation's association (DAS among the gated features, a new feature and
+    clutter, or the known one), the weight's factor and the FS2 proposal refinement; the pose
+    drawn from the refined proposal; existence (BB (11)) and the map at the drawn pose.
     """
+    poses, prop_cov, logw, count = state.poses, state.prop_cov, state.logw, state.count
+    mx, my, sxx, sxy, syy = state.mx, state.my, state.sxx, state.sxy, state.syy
+    ex, active, cid = state.ex, state.active, state.cid
+    votes, slots, logw_after, clutter_prob = out
+    uniforms, normals = draws.uniforms, draws.normals
+    r_var, b_var, alpha, beta = model.r_var, model.b_var, model.detection_probability, model.beta
+    gate_chi2, max_range_m, fov_rad = model.gate_chi2, model.max_range_m, model.fov_rad
+    range_std_m, bearing_std_rad = model.range_std_m, model.bearing_std_rad
+    sample_clutter, literal_beta = model.sample_clutter, model.literal_beta
     P = poses.shape[0]
     K = z.shape[0]
-    n_hi = 0
-    for p in range(P):
-        n_hi = max(n_hi, count[p])
-    alpha = detection_probability
+    known = known_cids.shape[0] > 0
+    n_hi = count.max()
     field = max_range_m * fov_rad
     gate_scale = math.sqrt(gate_chi2)
-    area_r = math.pi * gate_chi2 * math.sqrt(r_var * b_var)
+    area_r = math.pi * gate_chi2 * math.sqrt(r_var * b_var)  # the gate of R alone
     p_vis = np.empty(n_hi)
-    ratio = np.empty(n_hi)
-    claimed = np.empty(n_hi, dtype=np.bool_)
-    hyp_slot = np.empty(n_hi + 2, dtype=np.int64)
-    hyp_value = np.empty(n_hi + 2)
+    ratio = np.empty(n_hi)  # alpha e_j p_vis,j / (1 - alpha e_j p_vis,j)
+    claimed = np.empty(n_hi, dtype=np.bool_)  # taken by an earlier observation of the scan
+    hyp_slot = np.empty(n_hi + 2, dtype=np.int64)  # DAS hypotheses: slots, NEW, CLUTTER
+    hyp_value = np.empty(n_hi + 2)  # their likelihoods L
     hyp_terms = np.empty((n_hi + 2, 11))  # _observation_terms of each gated feature
     feature_std = np.empty(n_hi)  # sqrt(trace) of each feature's covariance, for the pre-gate
     gate_areas = np.empty(K)
@@ -308,28 +423,26 @@ def scan_update(
                 ratio[j] = 0.0
                 continue
             feature_std[j] = math.sqrt(sxx[p, j] + syy[p, j])
-            p_vis[j] = _visibility(
-                pose[0], pose[1], pose[2], Pc, mx[p, j], my[p, j],
-                sxx[p, j], sxy[p, j], syy[p, j], max_range_m, fov_rad,
-            )
+            p_vis[j] = _visibility(pose, Pc, mx[p, j], my[p, j], sxx[p, j], sxy[p, j], syy[p, j],
+                                   max_range_m, fov_rad)
             seen = alpha * ex[p, j] * p_vis[j]
             logw[p] += math.log(1.0 - seen)
             ratio[j] = seen / (1.0 - seen)
             expected_visible += ex[p, j] * p_vis[j]
         n_vis = max(expected_visible, K / (alpha + beta))
-        clutter_density = beta * n_vis / field
+        clutter_density = beta * n_vis / field  # L_clutter (BB 5.1)
 
         # --- observations in turn: association, weight, proposal refinement
         for k in range(K):
             zr, zb = z[k, 0], z[k, 1]
-            l_new = alpha * new_landmark_density * max(zr, range_std_m)
-            new_existence[k] = min(l_new / (l_new + clutter_density), max_existence)
+            l_new = alpha * model.new_landmark_density * max(zr, range_std_m)
+            new_existence[k] = min(l_new / (l_new + clutter_density), model.max_existence)
             chosen = -1
             clutter_prob[k, p] = 0.0
-            if known_cids is not None:
+            if known:
                 target = known_cids[k]
                 votes[k, p] = target
-                if target < 0:
+                if target < 0:  # a known false alarm
                     slots[k, p] = CLUTTER
                     clutter_prob[k, p] = 1.0
                     logw_after[k, p] = logw[p]
@@ -338,12 +451,11 @@ def scan_update(
                     if active[p, j] and not claimed[j] and cid[p, j] == target:
                         chosen = j
                         break
-                if chosen >= 0:
-                    t = _observation_terms(
-                        zr, zb, pose[0], pose[1], pose[2], Pc, mx[p, chosen], my[p, chosen],
-                        sxx[p, chosen], sxy[p, chosen], syy[p, chosen], r_var, b_var,
-                    )
-                    lik = math.exp(-0.5 * t[6]) / (_TWO_PI * math.sqrt(t[5]))
+                if chosen >= 0:  # N(nu; 0, S) times the detection ratio
+                    t = _observation_terms(zr, zb, pose, Pc, mx[p, chosen], my[p, chosen],
+                                           sxx[p, chosen], sxy[p, chosen], syy[p, chosen],
+                                           r_var, b_var)
+                    lik = _gaussian_likelihood(t[6], t[5])
                     logw[p] += math.log(max(ratio[chosen] * lik, 1e-300))
                 else:
                     logw[p] += math.log(max(l_new, 1e-300))
@@ -367,12 +479,10 @@ def scan_update(
                     ddy = my[p, j] - py
                     if ddx * ddx + ddy * ddy >= radius * radius:
                         continue
-                    t = _observation_terms(
-                        zr, zb, pose[0], pose[1], pose[2], Pc, mx[p, j], my[p, j],
-                        sxx[p, j], sxy[p, j], syy[p, j], r_var, b_var,
-                    )
-                    if t[6] < gate_chi2:
-                        like = ratio[j] * math.exp(-0.5 * t[6]) / (_TWO_PI * math.sqrt(abs(t[5])))
+                    t = _observation_terms(zr, zb, pose, Pc, mx[p, j], my[p, j], sxx[p, j],
+                                           sxy[p, j], syy[p, j], r_var, b_var)
+                    if t[6] < gate_chi2:  # L_j
+                        like = ratio[j] * _gaussian_likelihood(t[6], t[5])
                         if like > 0.0:
                             hyp_slot[n_hyp] = j
                             hyp_value[n_hyp] = like
@@ -400,7 +510,7 @@ def scan_update(
                         break
                 if hyp_value[pick] <= 0.0:  # only through round-off: step past it
                     pick = n_hyp
-                logw[p] += math.log(max(total, 1e-300))
+                logw[p] += math.log(max(total, 1e-300))  # sum_j L_j + L_new + L_clutter
                 chosen = hyp_slot[pick]
                 if chosen >= 0:
                     votes[k, p] = cid[p, chosen] if cid[p, chosen] >= 0 else NEW
@@ -414,8 +524,7 @@ def scan_update(
                     elif not sample_clutter:
                         clutter_prob[k, p] = 1.0 - new_existence[k]
             if chosen >= 0:
-                _refine(pose, Pc, t[0], t[1], t[2], t[3], t[4], t[5], t[7], t[8], t[9], t[10],
-                        scratch)
+                _refine(pose, Pc, t, scratch)
                 claimed[chosen] = True
                 gate_areas[k] = math.pi * gate_chi2 * math.sqrt(abs(t[5]))
                 slots[k, p] = chosen
@@ -427,42 +536,34 @@ def scan_update(
         pose[1] += step[1]
         pose[2] = _wrap(pose[2] + step[2])
         Pc[:, :] = 0.0
-        p_fa_miss = existence_false_alarm_one(
-            literal_beta, beta, n_vis, area_r, max_range_m, fov_rad
-        )
-        for j in range(n):
+        p_fa_miss = existence_false_alarm_one(literal_beta, beta, n_vis, area_r, max_range_m,
+                                              fov_rad)
+        for j in range(n):  # the miss update of BB (11) for every feature not associated
             if not claimed[j] and p_vis[j] > 0.0:
                 ex[p, j] = miss_update_one(ex[p, j], alpha * p_vis[j], p_fa_miss)
         for k in range(K):
             j = slots[k, p]
             zr, zb = z[k, 0], z[k, 1]
-            if j >= 0:
+            if j >= 0:  # the EKF at the drawn pose and BB (11)'s detection update
                 mx[p, j], my[p, j], sxx[p, j], sxy[p, j], syy[p, j] = _feature_ekf(
-                    pose[0], pose[1], pose[2], mx[p, j], my[p, j],
-                    sxx[p, j], sxy[p, j], syy[p, j], zr, zb, r_var, b_var,
+                    pose, mx[p, j], my[p, j], sxx[p, j], sxy[p, j], syy[p, j], zr, zb, r_var,
+                    b_var,
                 )
-                p_fa = existence_false_alarm_one(
-                    literal_beta, beta, n_vis, gate_areas[k], max_range_m, fov_rad
-                )
-                ex[p, j] = min(detection_update_one(ex[p, j], alpha, p_fa), max_existence)
+                p_fa = existence_false_alarm_one(literal_beta, beta, n_vis, gate_areas[k],
+                                                 max_range_m, fov_rad)
+                ex[p, j] = min(detection_update_one(ex[p, j], alpha, p_fa), model.max_existence)
             elif j == NEW:
                 j = count[p]
                 count[p] += 1
-                c = math.cos(pose[2] + zb)
-                s = math.sin(pose[2] + zb)
-                mx[p, j] = pose[0] + zr * c
-                my[p, j] = pose[1] + zr * s
-                # G_z diag(R) G_z^T with G_z = [[c, -r s], [s, r c]]
-                rs2 = zr * zr * b_var
-                sxx[p, j] = c * c * r_var + s * s * rs2
-                sxy[p, j] = c * s * (r_var - rs2)
-                syy[p, j] = s * s * r_var + c * c * rs2
+                mx[p, j], my[p, j], sxx[p, j], sxy[p, j], syy[p, j] = _new_feature(
+                    pose, zr, zb, r_var, b_var)
                 ex[p, j] = new_existence[k]
                 active[p, j] = True
                 cid[p, j] = -1
                 slots[k, p] = j
 
 
+# --------------------------------------------------------------------------- after the scan
 @njit(cache=True)
 def _permute_row(a, p, order, buffer):
     """``a[p] = a[p, order]`` through ``buffer``."""
@@ -474,11 +575,12 @@ def _permute_row(a, p, order, buffer):
 
 
 @njit(cache=True)
-def compact_features(active, mx, my, sxx, sxy, syy, ex, cid):
+def compact_features(state):
     """Move each particle's active features to its first slots, in place: active slots first,
     then the inactive ones, each in slot order (the permutation
     ``np.argsort(~active, axis=1, kind="stable")`` gives). Data movement only; a particle whose
-    active slots already come first (the permutation is the identity) is left as it is."""
+    active slots already come first is left as it is."""
+    active = state.active
     P, C = active.shape
     order = np.empty(C, dtype=np.int64)
     floats = np.empty(C)
@@ -501,152 +603,18 @@ def compact_features(active, mx, my, sxx, sxy, syy, ex, cid):
                 break
         if identity:
             continue
-        _permute_row(mx, p, order, floats)
-        _permute_row(my, p, order, floats)
-        _permute_row(sxx, p, order, floats)
-        _permute_row(sxy, p, order, floats)
-        _permute_row(syy, p, order, floats)
-        _permute_row(ex, p, order, floats)
-        _permute_row(cid, p, order, ints)
+        for a in (state.mx, state.my, state.sxx, state.sxy, state.syy, state.ex):
+            _permute_row(a, p, order, floats)
+        _permute_row(state.cid, p, order, ints)
         _permute_row(active, p, order, flags)
 
 
-# --------------------------------------------------------------------------- after the scan
-# What FastSLAM2.update did in numpy after scan_update (votes, ids, clutter rate, culling, the
-# weights' shift and normalisation, the resampling decision and the resampling), compiled
-# (issue 40 item 3). Every value is formed by the same operations in the same order as the numpy
-# code it replaces, so the results are equal to the bit; where numpy's order is not the plain one
-# (``np.sum``'s pairwise summation, ``np.searchsorted``'s binary search) it is written out
-# (:func:`numpy_sum`, :func:`_searchsorted_right`). Three things stay in Python, measured
-# (docs/PERFORMANCE.md): the weights' ``np.exp``, whose SIMD implementation rounds differently
-# from the C library's ``exp`` that compiled code calls (in about 5 % of arguments on this
-# machine kind); the resampling's uniform, since handing the ``Generator`` to a compiled function
-# costs ~7 us a call whether or not it draws; and the allocation of the resampled arrays (numpy's
-# allocator: arrays allocated here and returned made the gather twice as slow).
-
-
 @njit(cache=True)
-def _block_sum(a, start, n):
-    """numpy's sum of one block of at most 128 elements: plain below 8, else eight
-    accumulators combined pairwise, then the remainder."""
-    if n < 8:
-        res = 0.0
-        for i in range(start, start + n):
-            res += a[i]
-        return res
-    r0, r1, r2, r3 = a[start], a[start + 1], a[start + 2], a[start + 3]
-    r4, r5, r6, r7 = a[start + 4], a[start + 5], a[start + 6], a[start + 7]
-    i = 8
-    stop = n - n % 8
-    while i < stop:
-        b = start + i
-        r0 += a[b]
-        r1 += a[b + 1]
-        r2 += a[b + 2]
-        r3 += a[b + 3]
-        r4 += a[b + 4]
-        r5 += a[b + 5]
-        r6 += a[b + 6]
-        r7 += a[b + 7]
-        i += 8
-    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
-    while i < n:
-        res += a[start + i]
-        i += 1
-    return res
-
-
-@njit(cache=True)
-def _pairwise_sum(a, start, n):
-    """numpy's pairwise summation of ``a[start:start + n]`` (``pairwise_sum`` of its ``add``
-    reduction for a contiguous float64 array): blocks of at most 128 (:func:`_block_sum`), a
-    longer range split in two halves (the first a multiple of 8) and their sums added, so the
-    sum is numpy's to the bit. numpy recurses; this walks the same tree with a stack (numba's
-    cache does not reload a recursive function safely)."""
-    if n <= 128:
-        return _block_sum(a, start, n)
-    starts = np.empty(64, dtype=np.int64)  # the tree's depth is log2(n / 128) < 64
-    sizes = np.empty(64, dtype=np.int64)
-    stage = np.zeros(64, dtype=np.int64)  # 0: left half next, 1: right half next, 2: add
-    values = np.empty(64)
-    starts[0], sizes[0] = start, n
-    top, n_values = 0, 0
-    while top >= 0:
-        m = sizes[top]
-        if m <= 128:
-            values[n_values] = _block_sum(a, starts[top], m)
-            n_values += 1
-            top -= 1
-            continue
-        half = m // 2
-        half -= half % 8
-        if stage[top] == 2:
-            values[n_values - 2] = values[n_values - 2] + values[n_values - 1]
-            n_values -= 1
-            top -= 1
-            continue
-        first = stage[top] == 0
-        stage[top] += 1
-        top += 1
-        starts[top] = starts[top - 1] if first else starts[top - 1] + half
-        sizes[top] = half if first else m - half
-        stage[top] = 0
-    return values[0]
-
-
-@njit(cache=True)
-def numpy_sum(a):
-    """``np.sum(a)`` of a contiguous float64 vector, to the bit (:func:`_pairwise_sum`; numpy
-    starts its ``add`` reduction from the identity 0.0, which changes no sum)."""
-    return 0.0 + _pairwise_sum(a, 0, a.shape[0])
-
-
-@njit(cache=True)
-def clutter_shares(log_weights, clutter_prob):
-    """Per observation, the weighted probability that it is a false alarm (the loop of
-    :func:`filters.fastslam.clutter_share`)."""
-    K, P = log_weights.shape
-    out = np.empty(K)
-    for k in range(K):
-        top = log_weights[k].max()
-        weighted, total = 0.0, 0.0
-        for p in range(P):
-            w = np.exp(log_weights[k, p] - top)
-            weighted += w * clutter_prob[k, p]
-            total += w
-        out[k] = weighted / total
-    return out
-
-
-@njit(cache=True)
-def _votes_and_clutter_shares(log_weights, votes, clutter_prob):
-    """:func:`filters.conversion.vote_all`'s winners and margins (the same
-    :func:`~filters.conversion.vote_one_observation` per observation) and
-    :func:`clutter_shares` from one pass: each observation's weights ``exp(logw - max)`` are
-    formed once for both (the same values each formed on its own, so the same results)."""
-    K, P = votes.shape
-    winners = np.empty(K, dtype=np.int64)
-    margins = np.empty(K)
-    shares = np.empty(K)
-    options = np.empty(P, dtype=np.int64)
-    option_shares = np.empty(P)
-    weights = np.empty(P)
-    for k in range(K):
-        winners[k], margins[k], _ = vote_one_observation(log_weights[k], votes[k], weights,
-                                                         options, option_shares)
-        weighted, total = 0.0, 0.0
-        for p in range(P):
-            weighted += weights[p] * clutter_prob[k, p]
-            total += weights[p]
-        shares[k] = weighted / total
-    return winners, margins, shares
-
-
-@njit(cache=True)
-def cull_features(active, mx, my, sxx, sxy, syy, ex, cid, count, threshold):
+def cull_features(state, threshold):
     """Remove the features whose existence is below ``threshold`` and re-pack each particle's
-    slots (:meth:`filters.fastslam.FastSLAM2._cull`), in place; ``count`` (P,) is rewritten.
-    Returns whether any feature was removed (else nothing changes)."""
+    slots, in place (``state.count`` rewritten). Returns whether any feature was removed (else
+    nothing changes)."""
+    active, ex = state.active, state.ex
     P, C = active.shape
     any_dead = False
     for p in range(P):
@@ -656,7 +624,7 @@ def cull_features(active, mx, my, sxx, sxy, syy, ex, cid, count, threshold):
                 active[p, c] = False
     if not any_dead:
         return False
-    compact_features(active, mx, my, sxx, sxy, syy, ex, cid)
+    compact_features(state)
     for p in range(P):
         n = 0
         for c in range(C):
@@ -664,149 +632,194 @@ def cull_features(active, mx, my, sxx, sxy, syy, ex, cid, count, threshold):
                 n += 1
             else:
                 ex[p, c] = 0.0
-                cid[p, c] = -1
-        count[p] = n
+                state.cid[p, c] = -1
+        state.count[p] = n
     return True
 
 
 @njit(cache=True)
-def finish_scan(logw, logw_after, votes, slots, clutter_prob, known_cids, next_id, cid, active,
-                count, mx, my, sxx, sxy, syy, ex, clutter_num, clutter_den, clutter_decay, cull,
-                cull_threshold):
+def finish_scan(state, out, known_cids, next_id, cull, model):
     """The bookkeeping of one scan after :func:`scan_update`, in place (module doc of
     :mod:`filters.fastslam`, "Correspondences"): the vote of each observation (BB 3.1) with the
     weights after it (fresh ids ``next_id, next_id + 1, ...`` for the observations *new feature*
     wins, in observation order), the clutter rate's running sums, the winners' ids written into
-    ``cid``, culling when ``cull`` (every ``cull_interval_steps``), and the log weights shifted
-    to a maximum of 0. With ``known_cids`` (K,) the winners are those ids, no vote is taken and
-    the clutter rate is left alone. Returns ``(winners, margins, n_new_ids, clutter_num,
-    clutter_den)``."""
-    K = votes.shape[0]
-    if known_cids is None:
-        winners, margins, shares = _votes_and_clutter_shares(logw_after, votes, clutter_prob)
+    ``state.cid``, culling when ``cull``, and the log weights shifted to a maximum of 0. With
+    ``known_cids`` (K,) the winners are those ids, no vote is taken and the clutter rate is left
+    alone. Returns ``(winners, margins, n_new_ids)``."""
+    K = out.votes.shape[0]
+    if known_cids.shape[0] == 0:
+        winners, margins, shares = vote_scan(out.logw_after, out.votes, out.clutter_prob)
         n_new = 0
         for k in range(K):
             if winners[k] == NEW:
                 winners[k] = next_id + n_new
                 n_new += 1
+        sums = state.clutter_sums
         for k in range(K):
-            clutter_num = clutter_decay * clutter_num + shares[k]
-            clutter_den = clutter_decay * clutter_den + 1.0
+            sums[0] = model.clutter_decay * sums[0] + shares[k]
+            sums[1] = model.clutter_decay * sums[1] + 1.0
     else:
         winners = known_cids.copy()
         margins = np.ones(K)
         n_new = 0
-    assign_correspondence_ids_unchecked(cid, active, slots, winners)
+    assign_correspondence_ids_unchecked(state.cid, state.active, out.slots, winners)
     if cull:
-        cull_features(active, mx, my, sxx, sxy, syy, ex, cid, count, cull_threshold)
+        cull_features(state, model.cull_threshold)
+    logw = state.logw
+    if logw.shape[0]:
+        top = logw.max()
+        for p in range(logw.shape[0]):
+            logw[p] -= top
+    return winners, margins, n_new
+
+
+@njit(cache=True)
+def normalise_weights(logw, w, threshold):
+    """The normalised weights ``w = exp(logw - max) / sum`` (into ``w``) and the resampling test:
+    returns ``(N_eff < threshold * P, N_eff / P)`` with ``N_eff = 1 / sum w^2``."""
+    P = logw.shape[0]
     top = logw.max()
-    for p in range(logw.shape[0]):
-        logw[p] -= top
-    return winners, margins, n_new, clutter_num, clutter_den
-
-
-@njit(cache=True)
-def _gather_rows(a, idx, out):
-    """``out[:] = np.take(a, idx, axis=0)`` for (P, C) arrays."""
-    for p in range(idx.shape[0]):
-        q = idx[p]
-        for c in range(a.shape[1]):
-            out[p, c] = a[q, c]
-
-
-@njit(cache=True, inline="always")
-def _less(a, b):
-    """numpy's sort order of floats (NaN last)."""
-    return a < b or (b != b and a == a)
-
-
-@njit(cache=True)
-def _searchsorted_right(a, keys):
-    """``np.searchsorted(a, keys, side="right")``: numpy's binary search, step for step (each
-    search narrowed by the previous key's result, as numpy does), so even an ``a`` that is not
-    sorted (a cdf whose last entry is set to 1 below a rounded sum) gives numpy's indices."""
-    n = a.shape[0]
-    out = np.empty(keys.shape[0], dtype=np.int64)
-    lo, hi = 0, n
-    last = keys[0] if keys.shape[0] else 0.0
-    for i in range(keys.shape[0]):
-        key = keys[i]
-        if not _less(key, last):  # last <= key in numpy's order
-            hi = n
-        else:
-            lo = 0
-            hi = hi + 1 if hi < n else n
-        last = key
-        while lo < hi:
-            mid = lo + ((hi - lo) >> 1)
-            if not _less(key, a[mid]):
-                lo = mid + 1
-            else:
-                hi = mid
-        out[i] = lo
-    return out
-
-
-@njit(cache=True)
-def normalise_weights(exp_w, threshold):
-    """The weights and the resampling decision of
-    :meth:`filters.fastslam.FastSLAM2._maybe_resample`, as numpy computed them, to the bit:
-    ``exp_w`` (P,), ``np.exp(logw - logw.max())`` (numpy's exp: module note above), normalised
-    in place; returns ``(resample, ess_ratio)``: whether ``N_eff < threshold * P``, and
-    ``N_eff / P``."""
-    P = exp_w.shape[0]
-    total = numpy_sum(exp_w)
-    squares = np.empty(P)
+    total = 0.0
     for p in range(P):
-        exp_w[p] = exp_w[p] / total
-        squares[p] = exp_w[p] * exp_w[p]
-    n_eff = 1.0 / numpy_sum(squares)
+        w[p] = math.exp(logw[p] - top)
+        total += w[p]
+    squares = 0.0
+    for p in range(P):
+        w[p] = w[p] / total
+        squares += w[p] * w[p]
+    n_eff = 1.0 / squares
     return not n_eff >= threshold * P, n_eff / P
 
 
 @njit(cache=True)
-def systematic_resample(w, start, logw, state, spare):
-    """Systematic resampling with the uniform ``start`` (drawn by the caller), as
-    :meth:`filters.fastslam.FastSLAM2._maybe_resample` did it in numpy, to the bit: the
-    particles ``np.searchsorted(cumsum(w), (start + arange(P)) / P, side="right")`` (the cdf's
-    last entry set to 1, the index capped at P - 1) of ``state`` ``(poses, prop_cov, mx, my,
-    sxx, sxy, syy, ex, active, cid, count, lineage)`` gathered into ``spare`` (arrays of the same
-    shapes that the caller allocates and then takes as its state: arrays allocated here cost
-    twice the copy), ``logw`` zeroed and ``w`` made the uniform weights, in place."""
-    poses, prop_cov, mx, my, sxx, sxy, syy, ex, active, cid, count, lineage = state
-    (s_poses, s_prop_cov, s_mx, s_my, s_sxx, s_sxy, s_syy, s_ex, s_active, s_cid, s_count,
-     s_lineage) = spare
+def _gather_rows(a, idx, out):
+    """``out[:] = a[idx]`` along the first axis (C-contiguous arrays; element by element: a
+    row slice's assignment costs more than the few elements it copies)."""
+    src = a.reshape((a.shape[0], -1))
+    dst = out.reshape((out.shape[0], -1))
+    for p in range(idx.shape[0]):
+        q = idx[p]
+        for c in range(src.shape[1]):
+            dst[p, c] = src[q, c]
+
+
+@njit(cache=True)
+def systematic_resample(state, w, start, spare):
+    """Systematic resampling with the uniform ``start``: the particles
+    ``searchsorted(cumsum(w), (start + arange(P)) / P, side="right")`` (the cdf's last entry set
+    to 1, the index capped at P - 1) of ``state`` gathered into ``spare`` (a state of the same
+    shapes, which the caller then takes as its state); the spare's log weights zeroed and ``w``
+    made uniform, in place. The clutter sums are the filter's, not the particles': copied."""
     P = w.shape[0]
     cdf = np.empty(P)
     cdf[0] = w[0]
-    for p in range(1, P):  # np.cumsum's order
+    for p in range(1, P):
         cdf[p] = cdf[p - 1] + w[p]
     cdf[P - 1] = 1.0
-    positions = np.empty(P)
+    idx = np.empty(P, dtype=np.int64)
+    q = 0
+    for p in range(P):  # the positions rise, so one pass over the cdf finds every index
+        position = (start + p) / P
+        while q < P - 1 and not position < cdf[q]:
+            q += 1
+        idx[p] = q
+    _gather_rows(state.poses, idx, spare.poses)
+    _gather_rows(state.prop_cov, idx, spare.prop_cov)
+    for a, b in ((state.mx, spare.mx), (state.my, spare.my), (state.sxx, spare.sxx),
+                 (state.sxy, spare.sxy), (state.syy, spare.syy), (state.ex, spare.ex)):
+        _gather_rows(a, idx, b)
+    _gather_rows(state.active, idx, spare.active)
+    _gather_rows(state.cid, idx, spare.cid)
+    _gather_rows(state.count, idx, spare.count)
+    _gather_rows(state.lineage, idx, spare.lineage)
+    spare.clutter_sums[:] = state.clutter_sums
     for p in range(P):
-        positions[p] = (start + p) / P
-    idx = _searchsorted_right(cdf, positions)
-    for p in range(P):
-        idx[p] = min(idx[p], P - 1)
-    _gather_rows(poses, idx, s_poses)
-    for p in range(P):
-        q = idx[p]
-        for i in range(3):
-            for k in range(3):
-                s_prop_cov[p, i, k] = prop_cov[q, i, k]
-        s_count[p] = count[q]
-        s_lineage[p] = lineage[q]
-    _gather_rows(mx, idx, s_mx)
-    _gather_rows(my, idx, s_my)
-    _gather_rows(sxx, idx, s_sxx)
-    _gather_rows(sxy, idx, s_sxy)
-    _gather_rows(syy, idx, s_syy)
-    _gather_rows(ex, idx, s_ex)
-    _gather_rows(active, idx, s_active)
-    _gather_rows(cid, idx, s_cid)
-    for p in range(P):  # the weights of logw = 0: exp(0) = 1, normalised
-        logw[p] = 0.0
-        w[p] = 1.0
-    total = numpy_sum(w)
-    for p in range(P):
-        w[p] = w[p] / total
+        spare.logw[p] = 0.0
+        w[p] = 1.0 / P
+
+
+@njit(cache=True)
+def update_iteration(state, z, known_cids, draws, model, out, next_id, cull, w, spare):
+    """One scan's whole work in one compiled call: :func:`scan_update`, :func:`finish_scan`, the
+    weights (into ``w``) and the resampling test, and the resampling into ``spare`` when the
+    test calls for it (the caller then takes ``spare`` as its state). Returns the fields of
+    :class:`ScanResult`, in its order."""
+    scan_update(state, z, known_cids, draws, model, out)
+    winners, margins, n_new = finish_scan(state, out, known_cids, next_id, cull, model)
+    resample, ess_ratio = normalise_weights(state.logw, w, model.resample_threshold)
+    if resample:
+        systematic_resample(state, w, draws.resample_offset, spare)
+    # the fields of ScanResult (a plain tuple: boxing a named tuple costs an unpickling a call)
+    return winners, margins, n_new, resample, ess_ratio
+
+
+# --------------------------------------------------------------------------- the local pose
+@njit(cache=True)
+def local_pose(state, w, pending, lineage_correction, small_sample):
+    """The local pose's weighted mean and covariance, BB (7) (circular mean heading), from the
+    normalised weights ``w``: with the proposals' covariances while ``pending``, the lineage term
+    when ``lineage_correction`` and the small-sample factor when ``small_sample``
+    (:func:`filters.conversion.pose_moments_unchecked`, module doc of filters.fastslam)."""
+    covs = state.prop_cov if pending else np.zeros((0, 3, 3))
+    lineage = state.lineage if lineage_correction else np.zeros(0, dtype=np.int64)
+    return pose_moments_unchecked(state.poses, w, covs, lineage, lineage.shape[0], small_sample)
+
+
+# --------------------------------------------------------------------------- called from Python
+# numba types a plain tuple of arrays by a fast path and a named tuple by a slow one (~20 us a
+# call for the state's 14 arrays against ~6 us, measured on this machine kind): the named tuples
+# cross into compiled code as plain tuples and are named again inside.
+@njit(cache=True)
+def _propagate_entry(state, v, omega, dt, Q):
+    propagate(ParticleState(*state), v, omega, dt, Q)
+
+
+@njit(cache=True)
+def _draw_poses_entry(state, normals):
+    draw_poses(ParticleState(*state), normals)
+
+
+@njit(cache=True)
+def _resample_entry(state, w, start, spare):
+    systematic_resample(ParticleState(*state), w, start, ParticleState(*spare))
+
+
+@njit(cache=True)
+def _local_pose_entry(state, w, pending, lineage_correction, small_sample):
+    return local_pose(ParticleState(*state), w, pending, lineage_correction, small_sample)
+
+
+@njit(cache=True)
+def _update_iteration_entry(state, z, known_cids, draws, model, out, next_id, cull, w, spare):
+    return update_iteration(ParticleState(*state), z, known_cids, ScanDraws(*draws),
+                            FilterModel(*model), ScanOutputs(*out), next_id, cull, w,
+                            ParticleState(*spare))
+
+
+def call_propagate(state: ParticleState, v, omega, dt, Q) -> None:
+    """:func:`propagate` from Python."""
+    _propagate_entry(tuple(state), v, omega, dt, Q)
+
+
+def call_draw_poses(state: ParticleState, normals) -> None:
+    """:func:`draw_poses` from Python."""
+    _draw_poses_entry(tuple(state), normals)
+
+
+def call_systematic_resample(state: ParticleState, w, start, spare: ParticleState) -> None:
+    """:func:`systematic_resample` from Python."""
+    _resample_entry(tuple(state), w, start, tuple(spare))
+
+
+def call_local_pose(state: ParticleState, w, pending, lineage_correction, small_sample):
+    """:func:`local_pose` from Python."""
+    return _local_pose_entry(tuple(state), w, pending, lineage_correction, small_sample)
+
+
+def call_update_iteration(state: ParticleState, z, known_cids, draws: ScanDraws,
+                          model: FilterModel, out: ScanOutputs, next_id, cull, w,
+                          spare: ParticleState) -> ScanResult:
+    """:func:`update_iteration` from Python."""
+    return ScanResult(*_update_iteration_entry(tuple(state), z, known_cids, tuple(draws),
+                                               tuple(model), tuple(out), next_id, cull, w,
+                                               tuple(spare)))

@@ -49,9 +49,11 @@ def make_action(fuse: bool, optimise: bool) -> np.ndarray:
     return np.array([1 if fuse else 0, 1 if optimise else 0], dtype=np.int64)
 
 
-def check_action(action: Any, policy: str) -> np.ndarray:
-    """The env's action from what policy ``policy`` returned, or ``ValueError`` naming the
-    policy and the value: an array-like of shape (2,), integer (or bool) dtype, each 0 or 1.
+def check_action(action: Any, policy: str | None = None) -> np.ndarray:
+    """The env's action from what policy ``policy`` returned (None: what the env's caller
+    passed, :meth:`slam_gym.envs.hybrid_slam.HybridSLAMEnv.step`), or ``ValueError`` naming the
+    policy, if any, and the value: an array-like of shape (2,), integer (or bool) dtype, each 0
+    or 1.
 
     Floats are refused even when they are whole (``[1.0, 0.0]``), as the env refuses them: a
     float usually means an unrounded score was returned where a decision was meant."""
@@ -62,8 +64,9 @@ def check_action(action: Any, policy: str) -> np.ndarray:
         and bool(np.all((arr == 0) | (arr == 1)))
     )
     if not ok:
+        source = "" if policy is None else f"policy {policy!r} returned "
         raise ValueError(
-            f"policy {policy!r} returned action={action!r} (dtype {arr.dtype}, shape "
+            f"{source}action={action!r} (dtype {arr.dtype}, shape "
             f"{arr.shape}), which is invalid: must be two integers in {{0, 1}} (fuse, optimise), "
             "e.g. np.array([1, 0], dtype=np.int64), the env's MultiDiscrete([2, 2]) action"
         )

@@ -34,11 +34,11 @@ import slam_gym.episode as episode
 from slam_gym.evaluation.core import play_decisions
 
 PIECES = (
-    (fastslam, "scan_update", "compiled scan (FastSLAM kernel)"),
-    (fastslam, "finish_scan", "votes, ids, clutter rate, culling"),
+    (fastslam, "call_update_iteration",
+     "compiled scan: scan, votes, ids, clutter rate, culling, weights, resampling"),
     (fastslam.FastSLAM2, "update", "FastSLAM update (scan included)"),
     (fastslam.FastSLAM2, "predict", "FastSLAM prediction"),
-    (fastslam.FastSLAM2, "_maybe_resample", "weights, resampling test, resampling"),
+    (fastslam.FastSLAM2, "_maybe_resample", "weights, resampling test, resampling (no scan)"),
     (submap.SubmapSLAM, "observation_innovation_ratio", "innovation ratio (prior pose)"),
     (episode.Episode, "_measure", "posterior pose, NEES, errors"),
     (episode.Episode, "map_score", "map score (reward)"),

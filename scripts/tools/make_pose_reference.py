@@ -3,7 +3,9 @@ reference for the front-end's pose (``FastSLAM2.pose()``: BB (6), (7), the linea
 small-sample factor), the composed global pose (``SubmapSLAM.pose()``) and the local map at
 every fusion (``FastSLAM2.to_gaussian()``, BB 3.2).
 
-The committed file was written at commit f658fba, before the pose was compiled (issue 27), by
+The committed file was re-recorded for issue 47 (the filter's state structure and compiled
+iteration: the weights' exponential is the compiled one, and the scan draws its resampling
+uniform every scan, so the run's numbers changed; f658fba wrote the one before), by
 
     python scripts/tools/make_pose_reference.py tests/data/pose_reference.npz
 

@@ -165,6 +165,7 @@ from filters.blas import check_blas_threads, limited_blas_threads
 from filters.draws import SynchronisedDraws
 from filters.interface_features import INTERFACE_FEATURE_NAMES
 from filters.validation import check_range, require
+from policies.base import check_action
 from slam_gym.compute_cost import ComputeModel, filter_ops, fusion_ops, optimise_ops
 from slam_gym.episode import Episode
 from slam_gym.metrics import nees_band
@@ -481,16 +482,7 @@ class HybridSLAMEnv(gym.Env):
                 f"step() after the episode ended ({self.episode_ended}=True at decision "
                 f"{self.n_decisions}): call reset() to start a new one (module docstring, "
                 "Episode end)")
-        action = np.asarray(action)
-        integral = np.issubdtype(action.dtype, np.integer) or action.dtype == np.bool_
-        if (
-            not integral or action.shape != (2,)
-            or not self.action_space.contains(action.astype(np.int64))
-        ):
-            raise ValueError(
-                f"action={action!r} is invalid: must be two integers (fuse, optimise) in "
-                "MultiDiscrete([2, 2])"
-            )
+        action = check_action(action)  # ValueError naming the action
         fuse, optimise = bool(action[0]), bool(action[1])
         ep, c = self.episode, self.config
         failed_before = ep.failure.failed

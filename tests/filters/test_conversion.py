@@ -21,7 +21,7 @@ from filters.conversion import (
     nearest_spd,
     pose_moments,
     small_sample_factor,
-    vote_all,
+    vote_scan,
 )
 
 # its module-scoped fixtures are built once: every test of this file on one worker (pytest -n)
@@ -367,7 +367,27 @@ def test_moment_match_rejects_bad_input():
         moment_match(poses, np.zeros(3), means, covs, common)
 
 
-def test_vote_all_equals_one_vote_per_observation():
+def vote_all(log_weights, votes):
+    """The reference of :func:`filters.conversion.vote_scan`'s votes: one
+    :func:`correspondence_vote` per observation with the weights after it; returns the winners,
+    margins and the clutter vote's share of each observation."""
+    winners, margins, clutter = [], [], []
+    for lw, v in zip(log_weights, votes, strict=True):
+        one = correspondence_vote(np.exp(lw - lw.max()), v)
+        winners.append(one.winner)
+        margins.append(one.margin)
+        clutter.append(one.share_of(CLUTTER_VOTE))
+    return np.array(winners, dtype=np.int64), np.array(margins), np.array(clutter)
+
+
+def clutter_share(log_weights, clutter_prob):
+    """The reference of :func:`filters.conversion.vote_scan`'s clutter shares: per observation
+    ``sum_p w_k^p c_k^p`` with ``w_k`` the normalised weights after observation k."""
+    w = np.exp(log_weights - log_weights.max(axis=1, keepdims=True))
+    return np.sum(w * clutter_prob, axis=1) / np.sum(w, axis=1)
+
+
+def test_vote_scan_equals_one_vote_per_observation():
     rng = np.random.default_rng(4)
     K, P = 6, 40
     log_w = rng.normal(size=(K, P)) * 3.0
@@ -375,14 +395,20 @@ def test_vote_all_equals_one_vote_per_observation():
     votes[2] = 8  # a unanimous observation
     votes[4, : P // 2], votes[4, P // 2 :] = 3, 11
     log_w[4] = 0.0  # an exact tie: the smaller id wins
-    winners, margins, clutter = vote_all(log_w, votes)
-    for k in range(K):
-        one = correspondence_vote(np.exp(log_w[k] - log_w[k].max()), votes[k])
-        assert winners[k] == one.winner
-        assert margins[k] == pytest.approx(one.margin, abs=1e-12)
-        assert clutter[k] == pytest.approx(one.share_of(CLUTTER_VOTE), abs=1e-12)
+    # the clutter probability of a DAS scan: 1 for a clutter vote, 1 - e_new for a new feature
+    clutter_prob = np.where(votes == CLUTTER_VOTE, 1.0,
+                            np.where(votes == NEW_VOTE, rng.random((K, P)), 0.0))
+    winners, margins, shares = vote_scan(log_w, votes, clutter_prob)
+    ref_winners, ref_margins, ref_clutter = vote_all(log_w, votes)
+    np.testing.assert_array_equal(winners, ref_winners)
+    np.testing.assert_allclose(margins, ref_margins, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(shares, clutter_share(log_w, clutter_prob), rtol=1e-12)
     assert winners[2] == 8 and margins[2] == 1.0
     assert winners[4] == 3 and margins[4] == pytest.approx(0.0, abs=1e-12)
+    # with the clutter votes alone counted, the share is the clutter vote's share
+    _, _, only_votes = vote_scan(log_w, votes, (votes == CLUTTER_VOTE).astype(float))
+    np.testing.assert_allclose(only_votes, ref_clutter, rtol=1e-12, atol=1e-15)
+    assert (ref_clutter > 0).sum() >= 3  # the clutter vote really took part
 
 
 @njit
@@ -697,7 +723,7 @@ def pose_replay():
     expected = {"prior": ([], []), "post": ([], [])}
 
     def observe(when, front):
-        mean, cov = _f658fba_pose_moments(front._poses, front.weights, front._pose_covs(),
+        mean, cov = _f658fba_pose_moments(front.poses, front.weights, front._pose_covs(),
                                           front.lineages)
         expected[when][0].append(mean)
         expected[when][1].append(cov)
@@ -720,9 +746,11 @@ def test_compiled_pose_matches_the_numpy_pose_of_f658fba_on_a_seeded_run(pose_re
         _assert_covariances_match(when, covs, replay[f"{when}_cov"])
 
 
-def test_seeded_run_reproduces_the_poses_and_local_maps_f658fba_wrote(pose_replay):
-    """Issue 27: the same seeded HYBRID run against what the numpy code of commit f658fba wrote
-    (tests/data/pose_reference.npz, scripts/tools/make_pose_reference.py): the front-end's means,
+def test_seeded_run_reproduces_the_recorded_poses_and_local_maps(pose_replay):
+    """Issue 27: the same seeded HYBRID run against the recorded reference
+    (tests/data/pose_reference.npz, scripts/tools/make_pose_reference.py; written by f658fba's
+    numpy code, re-recorded at issue 47, whose filter draws and rounds differently): the
+    front-end's means,
     the composed global pose and the local maps at fusion, to float rounding. The front-end's
     covariances are compared on this machine (previous test), not with the file: the run's
     degenerate steps make them differ across CPUs by more than rounding bounds (f658fba's own

@@ -82,9 +82,8 @@ def test_terms_and_refine_match_matrix_kalman_form():
         m = pose[:2] + rng.normal(size=2) * 5
         B = rng.normal(size=(2, 2))
         sig = B @ B.T * 0.1
-        t = kernel._observation_terms(
-            zk[0], zk[1], *pose, Pc, m[0], m[1], sig[0, 0], sig[0, 1], sig[1, 1], R[0, 0], R[1, 1]
-        )
+        t = kernel._observation_terms(zk[0], zk[1], pose, Pc, m[0], m[1], sig[0, 0], sig[0, 1],
+                                      sig[1, 1], R[0, 0], R[1, 1])
         nu_r, nu_b, S00, S01, S11, det, d2, h00, h01, h10, h11 = t
         G, Hm = observe_jacobians(pose, m)
         S = G @ Pc @ G.T + Hm @ sig @ Hm.T + R
@@ -97,7 +96,7 @@ def test_terms_and_refine_match_matrix_kalman_form():
 
         x, P = pose.copy(), Pc.copy()
         scratch = np.full((4, 3), np.nan)  # work space: its contents must not matter
-        kernel._refine(x, P, nu_r, nu_b, S00, S01, S11, det, h00, h01, h10, h11, scratch)
+        kernel._refine(x, P, np.array(t), scratch)
         K = Pc @ G.T @ np.linalg.inv(S)
         np.testing.assert_allclose(wrap_angle(x - (pose + K @ nu)), 0.0, atol=1e-12)
         np.testing.assert_allclose(P, Pc - K @ G @ Pc, atol=1e-12)
@@ -114,7 +113,7 @@ def test_feature_ekf_matches_matrix_ekf():
         sig = B @ B.T * 0.2
         z = observe(pose, m) + rng.normal(size=2) * 0.05
         mx, my, sxx, sxy, syy = kernel._feature_ekf(
-            *pose, m[0], m[1], sig[0, 0], sig[0, 1], sig[1, 1], z[0], z[1], R[0, 0], R[1, 1]
+            pose, m[0], m[1], sig[0, 0], sig[0, 1], sig[1, 1], z[0], z[1], R[0, 0], R[1, 1]
         )
         _, H = observe_jacobians(pose, m)
         S = H @ sig @ H.T + R
@@ -136,15 +135,16 @@ def test_new_feature_is_the_inverse_observation_with_its_covariance():
     cov_expected = Gz @ f.sensor.R @ np.swapaxes(Gz, 1, 2)
     np.testing.assert_allclose(f.means[0, :2], m_expected, atol=1e-12)
     np.testing.assert_allclose(f.covs[0, :2], cov_expected, atol=1e-15)
-    assert f.active[:, :2].all() and f._count.tolist() == [2, 2, 2]
+    assert f.active[:, :2].all() and f._state.count.tolist() == [2, 2, 2]
 
 def test_propagate_matches_the_motion_model_and_its_jacobian():
     rng = np.random.default_rng(3)
     poses = rng.normal(size=(5, 3)) * [3.0, 3.0, 3.0]
     u, dt = np.array([1.3, -0.7]), 0.1
     Q = np.array([[0.04, 0.01], [0.01, 0.09]])
-    moved, covs = poses.copy(), np.empty((5, 3, 3))
-    kernel.propagate(moved, covs, u[0], u[1], dt, Q)
+    state = kernel.new_state(5, 1, np.zeros(3))._replace(poses=poses.copy())
+    kernel.propagate(state, u[0], u[1], dt, Q)
+    moved, covs = state.poses, state.prop_cov
     np.testing.assert_allclose(moved, motion(poses, u, dt), atol=1e-14)
     for p in range(5):
         _, J = motion_jacobians(poses[p], u, dt)
@@ -159,7 +159,10 @@ def test_pose_draw_reproduces_singular_covariances(rank):
     n = 100_000
     x = np.zeros((n, 3))
     covs = np.ascontiguousarray(np.broadcast_to(C, (n, 3, 3)))
-    kernel.draw_poses(x, covs, rng.standard_normal((n, 3)))
+    state = kernel.new_state(n, 1, np.zeros(3))._replace(prop_cov=covs.copy())
+    kernel.draw_poses(state, rng.standard_normal((n, 3)))
+    x = state.poses
+    assert not state.prop_cov.any()  # the pose is drawn: no proposal left
     # each entry of the sample covariance is within ~6 standard errors
     tol = 6.0 * np.sqrt((np.outer(np.diag(C), np.diag(C)) + C**2) / n) + 1e-12
     assert np.abs(x[:, 2]).max() < np.pi
@@ -203,9 +206,9 @@ def test_methods_reject_bad_input():
     f = make_filter(n_particles=3)
     with pytest.raises(ValueError, match="dt"):
         f.predict([1.0, 0.0], -0.1)
-    poses = f._poses.copy()
+    poses = f.poses
     f.predict([1.0, 0.0], 0.0)  # no time elapsed: no motion (a scan at the start pose)
-    np.testing.assert_array_equal(f._poses, poses)
+    np.testing.assert_array_equal(f.poses, poses)
     with pytest.raises(ValueError, match="u"):
         f.predict([1.0, np.nan], 0.1)
     with pytest.raises(ValueError, match="z"):
@@ -465,12 +468,13 @@ def test_repeated_detection_confirms_and_votes_agree():
 def _place_features(f, positions, cids, existence=0.999, var=0.01):
     """Give every particle the features ``positions`` (list per particle) by hand."""
     f._grow(max(len(p) for p in positions))
+    s = f._state
     for p, feats in enumerate(positions):
         for slot, (x, y) in enumerate(feats):
-            f._mx[p, slot], f._my[p, slot] = x, y
-            f._sxx[p, slot], f._sxy[p, slot], f._syy[p, slot] = var, 0.0, var
-            f._ex[p, slot], f._active[p, slot], f._cid[p, slot] = existence, True, cids[p][slot]
-        f._count[p] = len(feats)
+            s.mx[p, slot], s.my[p, slot] = x, y
+            s.sxx[p, slot], s.sxy[p, slot], s.syy[p, slot] = var, 0.0, var
+            s.ex[p, slot], s.active[p, slot], s.cid[p, slot] = existence, True, cids[p][slot]
+        s.count[p] = len(feats)
 
 
 def test_duplicate_features_are_not_rewarded():
@@ -533,11 +537,10 @@ def test_visibility_is_soft_at_the_range_limit():
     _place_features(f, [[(24.9, 0.0), (25.0, 0.0), (25.1, 0.0), (5.0, 0.0), (40.0, 0.0)]],
                     [[0, 1, 2, 3, 4]], var=0.01)
     Pc = np.zeros((3, 3))
+    s = f._state
     p_vis = [
-        kernel._visibility(
-            0.0, 0.0, 0.0, Pc, f._mx[0, j], f._my[0, j], f._sxx[0, j], f._sxy[0, j],
-            f._syy[0, j], f.sensor.max_range_m, f.sensor.fov_rad,
-        )
+        kernel._visibility(np.zeros(3), Pc, s.mx[0, j], s.my[0, j], s.sxx[0, j], s.sxy[0, j],
+                           s.syy[0, j], f.sensor.max_range_m, f.sensor.fov_rad)
         for j in range(5)
     ]
     sigma = 0.1  # radial std of a feature with covariance 0.01 I, pose known
@@ -560,10 +563,10 @@ def test_existence_model_bb_uses_beta_literally():
         z = observe(np.zeros(3), np.array([[8.0, 3.0]]))
         f.predict([0.0, 0.0], 0.1)
         f.update(z)
-        first = f._ex[:, 0].copy()
+        first = f.existence[:, 0]
         f.predict([0.0, 0.0], 0.1)
         f.update(z)
-        existence[model] = (first, f._ex[:, 0].copy())
+        existence[model] = (first, f.existence[:, 0])
     first_bb, second_bb = existence["bb"]
     # the first detection creates the feature; the second updates it by BB (11) with beta
     from filters.existence import detection_update

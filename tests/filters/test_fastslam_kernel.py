@@ -1,6 +1,6 @@
-"""The compiled FastSLAM helpers against their numpy definitions."""
+"""The compiled FastSLAM kernels against plain numpy references, step by step."""
 
-import math
+import copy
 
 import numpy as np
 import pytest
@@ -8,7 +8,7 @@ import pytest
 
 @pytest.mark.parametrize("seed", range(5))
 def test_compact_features_is_the_stable_argsort_permutation(seed):
-    from filters.fastslam_kernel import compact_features
+    from filters.fastslam_kernel import compact_features, new_state
 
     rng = np.random.default_rng(seed)
     P, C = 20, 15
@@ -19,111 +19,101 @@ def test_compact_features_is_the_stable_argsort_permutation(seed):
     cid = rng.integers(-1, 9, (P, C))
     order = np.argsort(~active, axis=1, kind="stable")
     expected = [np.take_along_axis(a, order, axis=1) for a in [active, *floats, cid]]
-    got = [a.copy() for a in [active, *floats, cid]]
-    compact_features(*got)
+    state = new_state(P, C, np.zeros(3))._replace(
+        active=active.copy(), mx=floats[0].copy(), my=floats[1].copy(), sxx=floats[2].copy(),
+        sxy=floats[3].copy(), syy=floats[4].copy(), ex=floats[5].copy(), cid=cid.copy())
+    compact_features(state)
+    got = [state.active, state.mx, state.my, state.sxx, state.sxy, state.syy, state.ex, state.cid]
     assert all(np.array_equal(e, g) for e, g in zip(expected, got, strict=True))
 
 
-def test_numpy_sum_is_numpys_pairwise_sum_to_the_bit():
-    from filters.fastslam_kernel import numpy_sum
-
-    rng = np.random.default_rng(0)
-    lengths = [*range(0, 300), 500, 511, 1000, 1023, 1025, 4097, 20000]
-    differing = 0
-    for n in lengths:
-        a = np.exp(rng.standard_normal(n) * rng.uniform(0.0, 30.0))  # sums that round
-        differing += numpy_sum(a) != a.sum()
-    assert differing == 0
-    # a plain left-to-right sum is not numpy's: the check above can fail
-    a = np.exp(rng.standard_normal(500) * 20.0)
-    assert math.fsum(a) != a.sum() or sum(a.tolist()) != a.sum()
-
-
-@pytest.mark.parametrize("case", ["sorted", "last set to one", "nan", "repeated keys"])
-def test_searchsorted_right_is_numpys(case):
-    from filters.fastslam_kernel import _searchsorted_right
+def test_systematic_resample_is_numpys_searchsorted():
+    """The resampling's single pass over the cdf picks the particles
+    ``searchsorted(cdf, (u + arange(P)) / P, "right")`` (the cdf's last entry 1, capped at P - 1)
+    and gathers every field of the state with them."""
+    from filters.fastslam_kernel import new_state, systematic_resample
 
     rng = np.random.default_rng(1)
-    for _ in range(200):
-        a = np.cumsum(rng.random(int(rng.integers(1, 600))))
-        a /= a[-1] * rng.uniform(0.99, 1.01)
-        keys = np.sort(rng.random(int(rng.integers(1, 600))))
-        if case == "last set to one":  # the resampling cdf: a rounded sum above 1, then 1
-            a[-1] = 1.0
-            keys[-1] = 1.0
-        elif case == "nan":
-            a[rng.integers(0, len(a))] = np.nan
-            keys[rng.random(len(keys)) < 0.1] = np.nan
-        elif case == "repeated keys":
-            keys = np.repeat(keys, 3)
-            a[-1] = a[0]  # not sorted: numpy's answer depends on its search order
-        np.testing.assert_array_equal(_searchsorted_right(a, keys),
-                                      np.searchsorted(a, keys, side="right"))
+    for P in (1, 2, 7, 50, 500):
+        for _ in range(20):
+            w = rng.random(P) ** 8  # uneven weights, some near zero
+            w /= w.sum()
+            u = rng.random()
+            state = new_state(P, 3, np.zeros(3))
+            state = state._replace(poses=rng.normal(size=(P, 3)), mx=rng.normal(size=(P, 3)),
+                                   lineage=rng.permutation(P))
+            spare = state._replace(**{f: np.empty_like(getattr(state, f))
+                                      for f in state._fields if f != "clutter_sums"})
+            cdf = np.cumsum(w)
+            cdf[-1] = 1.0
+            idx = np.minimum(np.searchsorted(cdf, (u + np.arange(P)) / P, side="right"), P - 1)
+            ww = w.copy()
+            systematic_resample(state, ww, u, spare)
+            np.testing.assert_array_equal(spare.poses, state.poses[idx])
+            np.testing.assert_array_equal(spare.mx, state.mx[idx])
+            np.testing.assert_array_equal(spare.lineage, state.lineage[idx])
+            assert not spare.logw.any() and np.allclose(ww, 1.0 / P)
 
 
-def _numpy_update_tail(f, known_cids, votes, slots, logw_after, clutter_prob):
-    """What FastSLAM2.update did after scan_update before issue 40 item 3, in numpy: the
-    reference the compiled bookkeeping must equal to the bit."""
-    from filters.conversion import NEW_VOTE, assign_correspondence_ids, vote_all
-    from filters.fastslam import clutter_share
+STATE = ("poses", "prop_cov", "logw", "mx", "my", "sxx", "sxy", "syy", "ex", "active", "cid",
+         "count", "lineage", "clutter_sums")
+
+
+def _numpy_update_tail(f, state, out, known_cids, offset):
+    """What follows the scan, in plain numpy (the reference of finish_scan, normalise_weights and
+    systematic_resample): the votes (tests/filters/test_conversion.py's references), fresh ids,
+    the clutter rate, the ids written, culling, the weights, the resampling test and the
+    resampling. Returns the new state, the winners, the margins and whether it resampled."""
+    from test_conversion import clutter_share, vote_all
+
+    from filters.conversion import NEW_VOTE, assign_correspondence_ids
     from filters.fastslam_kernel import compact_features
 
-    if known_cids is None:
-        winners, margins, _ = vote_all(logw_after, votes)
+    state = state._replace(**{name: getattr(state, name).copy() for name in STATE})
+    if len(known_cids) == 0:
+        winners, margins, _ = vote_all(out.logw_after, out.votes)
         new = np.flatnonzero(winners == NEW_VOTE)
         if len(new):
-            winners[new] = f.ids.new(len(new))
+            winners[new] = f.ids.next_id + np.arange(len(new))
         decay = 1.0 - 1.0 / f.clutter_rate_memory
-        for share in clutter_share(logw_after, clutter_prob):
-            f._clutter_num = decay * f._clutter_num + share
-            f._clutter_den = decay * f._clutter_den + 1.0
+        for share in clutter_share(out.logw_after, out.clutter_prob):
+            state.clutter_sums[:] = decay * state.clutter_sums + [share, 1.0]
     else:
-        winners, margins = known_cids, np.ones(len(known_cids))
-    assign_correspondence_ids(f._cid, f._active, slots, winners)
-    f._steps += 1
-    if f._steps % f.cull_interval_steps == 0:
-        dead = f._active & (f._ex < f.cull_threshold)
+        winners, margins = known_cids.copy(), np.ones(len(known_cids))
+    assign_correspondence_ids(state.cid, state.active, out.slots, winners)
+    if (f._steps + 1) % f.cull_interval_steps == 0:
+        dead = state.active & (state.ex < f.cull_threshold)
         if dead.any():
-            f._active &= ~dead
-            compact_features(f._active, f._mx, f._my, f._sxx, f._sxy, f._syy, f._ex, f._cid)
-            f._count = f._active.sum(axis=1)
-            f._ex[~f._active] = 0.0
-            f._cid[~f._active] = -1
-    f._logw -= f._logw.max()
-    f.last_associations = winners
-    f._vote_margins = margins
-    w = np.exp(f._logw - f._logw.max())
+            state.active[dead] = False
+            compact_features(state)
+            state.count[:] = state.active.sum(axis=1)
+            state.ex[~state.active] = 0.0
+            state.cid[~state.active] = -1
+    state.logw[:] -= state.logw.max()
+    w = np.exp(state.logw - state.logw.max())
     w = w / w.sum()
     n_eff = 1.0 / np.sum(w * w)
-    f._ess_ratio = float(n_eff / f.n_particles)
-    if n_eff >= f.resample_threshold * f.n_particles:
-        return False
-    P = f.n_particles
-    positions = (f.rng.random() + np.arange(P)) / P
+    P = len(w)
+    if n_eff >= f.resample_threshold * P:
+        return state, winners, margins, False, n_eff / P
+    positions = (offset + np.arange(P)) / P
     cdf = np.cumsum(w)
     cdf[-1] = 1.0
     idx = np.minimum(np.searchsorted(cdf, positions, side="right"), P - 1)
-    for name in STATE:
-        if name != "_logw":
-            setattr(f, name, np.take(getattr(f, name), idx, axis=0))
-    f._logw = np.zeros(P)
-    return True
-
-
-STATE = ("_poses", "_prop_cov", "_logw", "_mx", "_my", "_sxx", "_sxy", "_syy", "_ex", "_active",
-         "_cid", "_count", "_lineage")
+    state = state._replace(**{name: getattr(state, name)[idx] for name in STATE
+                              if name != "clutter_sums"})
+    state.logw[:] = 0.0
+    return state, winners, margins, True, n_eff / P
 
 
 @pytest.mark.parametrize("known", [False, True])
-def test_update_bookkeeping_equals_the_numpy_code_to_the_bit(known, monkeypatch):
-    """The compiled bookkeeping after the scan (votes, ids, clutter rate, culling, resampling,
-    the pose) against the numpy code it replaced, step by step from the same state: every array
-    of the state, the ids, the generator, the weights and the pose equal to the bit."""
-    import copy
-
-    from filters import fastslam as fastslam_module
-    from filters.conversion import pose_moments_unchecked
+def test_update_iteration_equals_the_numpy_reference_on_captured_scans(known):
+    """The compiled scan's bookkeeping (votes, ids, clutter rate, culling, weights, resampling)
+    against the plain numpy reference, from the same state and the same scan at every step of a
+    seeded run: every array of the state, the winners and margins to rounding (1e-12), and
+    the integer arrays equal."""
     from filters.fastslam import FastSLAM2
+    from filters.fastslam_kernel import ScanDraws, new_outputs, scan_update
     from slam_gym.world import make_stream
 
     stream = make_stream("brooks-bailey", seed=3, n_steps=80, clutter_level=3)
@@ -131,46 +121,40 @@ def test_update_bookkeeping_equals_the_numpy_code_to_the_bit(known, monkeypatch)
                   np.random.default_rng(5), n_particles=60, initial_pose=stream.initial_pose,
                   cull_interval_steps=3, cull_threshold=0.2, resample_threshold=0.8,
                   initial_capacity=2)
-    scan_update = fastslam_module.scan_update
-    captured = []
-
-    def capture(*args):  # the scan as it is; its outputs kept for the reference's bookkeeping
-        scan_update(*args)
-        captured[:] = [args[15], *(a.copy() for a in args[16:20])]
-
     n_resampled = n_culled = 0
     for step in stream:
         f.predict(step.odometry, step.dt_s)
-        ref = copy.deepcopy(f)
         labels = step.truth.landmark_ids if known else None
+        # the reference's input: the filter's state and draws just before the update
+        K, P = len(step.z), f.n_particles
+        ref = copy.deepcopy(f)
+        known_cids = (np.array([ref._label_id(int(x)) for x in labels], dtype=np.int64)
+                      if known else np.zeros(0, dtype=np.int64))
+        ref._grow(int(ref._state.count.max()) + K)
+        uniforms = (ref.draws.generator("association").random((K, P)) if not known
+                    else np.zeros((0, P)))
+        normals = ref.draws.generator("scan_pose").standard_normal((P, 3))
+        offset = ref.draws.generator("resample_after_scan").random()
+        state = ref._state
+        out = new_outputs(K, P)
+        scan_update(state, step.z, known_cids, ScanDraws(uniforms, normals, offset), ref._model,
+                    out)
+        active_before = int(state.active.sum())
+        expected, winners, margins, resampled, ess = _numpy_update_tail(ref, state, out,
+                                                                        known_cids, offset)
         f.update(step.z, labels)
-        mean, cov = f.pose()
-        # the reference: the same head of update (validation, draws, the scan), no tail
-        with monkeypatch.context() as m:
-            m.setattr(fastslam_module, "scan_update", capture)
-            m.setattr(fastslam_module, "finish_scan",
-                      lambda *a: (None, None, 0, a[16], a[17]))
-            m.setattr(FastSLAM2, "_maybe_resample", lambda self, role: None)
-            ref.update(step.z, labels)
-        ref._steps -= 1  # counted again by the reference's tail
-        active_before = int(ref._active.sum())
-        n_resampled += _numpy_update_tail(ref, *captured)
-        n_culled += int(ref._active.sum()) < active_before
+        n_resampled += resampled
+        n_culled += int(expected.active.sum()) < active_before
         for name in STATE:
-            np.testing.assert_array_equal(getattr(f, name), getattr(ref, name), err_msg=name)
-            assert getattr(f, name).dtype == getattr(ref, name).dtype
-        assert f.ids.next_id == ref.ids.next_id
-        assert f.rng.bit_generator.state == ref.rng.bit_generator.state
-        assert (f._clutter_num, f._clutter_den, f._ess_ratio, f._steps) == (
-            ref._clutter_num, ref._clutter_den, ref._ess_ratio, ref._steps)
-        np.testing.assert_array_equal(f.last_associations, ref.last_associations)
-        np.testing.assert_array_equal(f._vote_margins, ref._vote_margins)
-        w = np.exp(ref._logw - ref._logw.max())
-        w = w / w.sum()
-        np.testing.assert_array_equal(f.weights, w)
-        # FastSLAM2.pose before: the compiled moments of the filter's own weights
-        ref_mean, ref_cov = pose_moments_unchecked(ref._poses, w, np.zeros((0, 3, 3)),
-                                                   ref._lineage, len(ref._lineage), True)
-        np.testing.assert_array_equal(mean, ref_mean)
-        np.testing.assert_array_equal(cov, ref_cov)
+            got, want = getattr(f._state, name), getattr(expected, name)
+            assert got.dtype == want.dtype and got.shape == want.shape, name
+            if got.dtype.kind == "f":
+                np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12, err_msg=name)
+            else:
+                np.testing.assert_array_equal(got, want, err_msg=name)
+        np.testing.assert_array_equal(f.last_associations, winners)
+        np.testing.assert_allclose(f._vote_margins, margins, rtol=0, atol=1e-12)
+        assert f._ess_ratio == pytest.approx(ess, rel=1e-12)
+        w = np.exp(expected.logw - expected.logw.max())
+        np.testing.assert_allclose(f.weights, w / w.sum(), rtol=1e-12, atol=1e-300)
     assert n_resampled > 5 and n_culled > 0  # both paths were exercised

@@ -127,10 +127,22 @@ def test_front_command_runs_rules_once_and_the_model_at_every_price(tmp_path):
     assert "†" not in (out / "front.md").read_text()
 
 
-def test_the_front_figure_takes_a_policy_that_spent_no_interface_cpu(tmp_path):
+def test_the_front_figure_takes_a_policy_that_spent_no_interface_cpu(tmp_path, monkeypatch):
     """A short path can end before any fusion: 0 s of interface CPU has no place on a log axis,
-    so the axis turns linear instead of the figure failing (it did, on `--n-steps 300`)."""
+    so the axis turns linear instead of the figure failing (it did, on `--n-steps 300`); with
+    every point above 0 s it is a log axis again. The axes are read from the saved figure."""
+    from matplotlib.figure import Figure
+
     from slam_gym.evaluation.front import plot_front
+
+    saved = []
+    savefig = Figure.savefig
+
+    def keep(fig, *args, **kwargs):
+        saved.append(fig)
+        return savefig(fig, *args, **kwargs)
+
+    monkeypatch.setattr(Figure, "savefig", keep)
 
     # as `slam-gym front --particles 20 --n-steps 300` gave: every run failed before a fusion
     point = {"success_rate": 0.0, "map_error_m": float("nan"), "success_diff_pp": 0.0,
@@ -140,6 +152,10 @@ def test_the_front_figure_takes_a_policy_that_spent_no_interface_cpu(tmp_path):
               {**point, "label": "learned", "interface_cpu_s": 0.0, "learned": True}]
     path = plot_front(points, tmp_path / "front.png", title="no CPU")
     assert path.stat().st_size > 10_000
-    log_path = plot_front([{**p, "interface_cpu_s": 0.2} for p in points], tmp_path / "log.png",
-                          title="some CPU")
+    assert [ax.get_xscale() for ax in saved[-1].axes] == ["linear", "linear"]
+    assert all("linear" in ax.get_xlabel() for ax in saved[-1].axes)
+    some_cpu = [{**p, "interface_cpu_s": 0.2, "map_error_m": 1.0} for p in points]
+    log_path = plot_front(some_cpu, tmp_path / "log.png", title="some CPU")
     assert log_path.stat().st_size > 10_000
+    assert [ax.get_xscale() for ax in saved[-1].axes] == ["log", "log"]
+    assert not any("linear" in ax.get_xlabel() for ax in saved[-1].axes)
