@@ -226,11 +226,13 @@ class Scenario:
             f"at least corridor_zones + burst_zones + patch_zones + 2 = {n_zones + 2} (the "
             "loop's first and last sectors, where it starts and closes, carry no zone)",
         )
-        check_range("corridor_clearance_m", self.corridor_clearance_m, 0.0, self.world_size_m)
-        check_range("burst_beta", self.burst_beta, 0.0, 1.0, high_open=True)
-        check_range("burst_radius_m", self.burst_radius_m, 0.0, self.world_size_m)
-        check_range("patch_radius_m", self.patch_radius_m, 0.0, self.world_size_m,
-                    low_open=True)
+        if n_zones:  # the zones' sizes bind only a world that has zones
+            check_range("corridor_clearance_m", self.corridor_clearance_m, 0.0,
+                        self.world_size_m)
+            check_range("burst_beta", self.burst_beta, 0.0, 1.0, high_open=True)
+            check_range("burst_radius_m", self.burst_radius_m, 0.0, self.world_size_m)
+            check_range("patch_radius_m", self.patch_radius_m, 0.0, self.world_size_m,
+                        low_open=True)
 
     @property
     def has_zones(self) -> bool:

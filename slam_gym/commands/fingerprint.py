@@ -81,7 +81,11 @@ def run(args) -> int:
                          "the env options it was trained under are unknown")
     saved = config.get("fingerprint")
     if args.stamp:
-        current = system_fingerprint(config.get("env_id"), config.get("env_options"))
+        from slam_gym.envs import system_env_id
+
+        env_id = config.get("env_id")
+        current = system_fingerprint(None if env_id is None else system_env_id(env_id),
+                                     config.get("env_options"))
         current["stamped"] = True
         replaced = compare_fingerprints(saved, current) if saved is not None else []
         if replaced:

@@ -132,7 +132,8 @@ Version History
     * v1, issue 46 (2026-11-28): synchronised random numbers (above, "Seeding"). The reward,
       the observation and the filters' equations are unchanged; every episode's filter draws
       differ from ``-v0``'s, so its bits do. ``-v0`` stays reachable (``random_streams=
-      "ordered"``: the old draws, bit for bit) for the rows and models made with it.
+      "ordered"``: the old draws; equal in distribution, not bits, since issue 47) for the rows
+      and models made with it.
 
     * v0 (2026-11-21, aa8eb86): the first release. Reward ``-(w_nees nees_excess + w_pose
       pose_error_m + w_map map_error_m + fusion_cost fused + optimise_cost optimised +

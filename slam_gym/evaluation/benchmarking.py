@@ -195,7 +195,7 @@ def _seed_range(seeds: int | Iterable[int], seed_start: int, runs_per_seed: int 
     return [int(s) for s in values]
 
 
-def _check_env_options(scenario: str, levels: Sequence[int], **options: Any) -> None:
+def check_env_options(scenario: str, levels: Sequence[int], **options: Any) -> None:
     """The env's own validation of every option, at every level, before any run."""
     from slam_gym.envs.hybrid_slam import HybridSLAMConfig
 
@@ -324,7 +324,7 @@ def benchmark(
     require(len(set(levels)) == len(levels), "clutter_levels", levels, "distinct levels")
     seed_list = _seed_range(seeds, seed_start, len(entries) + len(baselines), len(levels),
                             executor)
-    _check_env_options(scenario, levels, n_particles=n_particles,
+    check_env_options(scenario, levels, n_particles=n_particles,
                        decision_interval=decision_interval, front_end=front_end,
                        back_end=back_end, n_steps=n_steps, w_compute=w_compute,
                        compute_clip_s=compute_clip_s, random_streams=random_streams)

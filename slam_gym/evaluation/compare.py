@@ -222,7 +222,7 @@ def compare(
     run (``ValueError`` naming it)."""
     from slam_gym.evaluation import paired
     from slam_gym.evaluation.benchmarking import (
-        _check_env_options,
+        check_env_options,
         env_id_ends,
         env_id_streams,
         make_out_dir,
@@ -266,7 +266,7 @@ def compare(
     if env is not None:
         front_end, back_end = env_id_ends(env)
         random_streams = env_id_streams(env)
-    _check_env_options(scenario, levels, n_particles=n_particles,
+    check_env_options(scenario, levels, n_particles=n_particles,
                        decision_interval=decision_interval, front_end=front_end,
                        back_end=back_end, n_steps=n_steps, w_compute=w_compute,
                        compute_clip_s=compute_clip_s, random_streams=random_streams)

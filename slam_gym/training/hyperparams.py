@@ -116,10 +116,13 @@ def load_hyperparams(
         doc = yaml.safe_load(file.read_text())
     except yaml.YAMLError as exc:
         raise ValueError(f"hyperparams={str(file)!r} is invalid: not YAML ({exc})") from exc
-    if not isinstance(doc, dict) or env_id not in doc:
+    key = env_id
+    if isinstance(doc, dict) and key not in doc and key.endswith("-v1"):
+        key = key[:-3] + "-v0"  # -v1 is -v0 with synchronised draws: the same settings
+    if not isinstance(doc, dict) or key not in doc:
         ids = sorted(doc) if isinstance(doc, dict) else []
         raise ValueError(f"env_id={env_id!r} is invalid: {file} has entries for {ids}")
-    params = copy.deepcopy(doc[env_id])
+    params = copy.deepcopy(doc[key])
     if not isinstance(params, dict):
         raise ValueError(f"hyperparams[{env_id!r}] in {file} is invalid: must be a mapping")
     for key, value in (overrides or {}).items():

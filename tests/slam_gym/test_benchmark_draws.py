@@ -1,5 +1,5 @@
 """Draws as a design factor of the benchmark (issue 46 item 2; it replaces
-scripts/results/filter_noise.py, whose checks are here)."""
+the script filter_noise.py of 66af76f, whose checks are here)."""
 
 import numpy as np
 import pytest

@@ -142,7 +142,7 @@ def test_blas_threads_option_reaches_the_optimiser():
 
     for threads in (2, 1):
         seen.clear()
-        env = HybridSLAMEnv(n_particles=5, n_steps=120, blas_threads=threads)
+        env = HybridSLAMEnv(n_particles=50, n_steps=120, blas_threads=threads)
         env.reset(seed=0)
         submap_optimise.gauss_newton = recording
         try:

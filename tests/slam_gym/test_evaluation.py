@@ -374,7 +374,7 @@ def test_summary_on_hand_made_results(tmp_path):
     assert h3["paper_success_rate"] is None
 
     table = (tmp_path / "table.md").read_text()
-    assert "| ekf | 1 | 11 | 1 | 80 % [49, 94] | 76 % | 5.50 | 50 % | 1.70 / 0.65 |" in table
+    assert "| ekf | 1 | 11 | 1 | 50 % | 5.50 | 1.70 / 0.65 | 80 % [49, 94] | 76 % |" in table
     assert "| hybrid | 2 | 5 | 0 | 0 % [0, 43] | 83 % |" in table
     assert "28 runs, 3 errored" in table
     text = format_table(doc, rich=False)

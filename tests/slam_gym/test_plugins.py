@@ -231,7 +231,8 @@ def test_an_installed_plugin_appears_in_available_and_runs_in_worker_processes(t
     rows = read_results(tmp_path / "out" / "results.jsonl")
     assert sorted(r["policy"] for r in rows) == ["every-n", "every-n", "fixed-10s", "fixed-10s"]
     assert all(r["status"] == "ok" for r in rows), [r["error"] for r in rows]
-    # seed 0 runs the 14 decisions of its 15 s (the first second is reset's): every third
-    # decision fuses, 4 times; seed 1 fails at its 4th decision, after 1 fusion
+    # one world runs the 14 decisions of its 15 s (the first second is reset's): every third
+    # decision fuses, 4 times; the other fails at its 4th decision, after 1 fusion
     fusions = {r["seed"]: r["n_fusions"] for r in rows if r["policy"] == "every-n"}
-    assert fusions == {0: 4, 1: 1}
+    # (which of the two -v1 worlds fails is the draws', not the plug-in's)
+    assert sorted(fusions.values()) == [1, 4]
