@@ -261,7 +261,7 @@ def summarise(
         }
         if several:
             # the noise floor of a success comparison: worlds whose outcome the filter's draws
-            # alone change (issue 46; formerly scripts/results/filter_noise.py)
+            # alone change (issue 46; formerly the script filter_noise.py)
             group["worlds_with_draws"] = several
             group["worlds_outcome_varies"] = varies
         for key in _MEAN_KEYS:

@@ -132,7 +132,8 @@ def test_the_policy_normalises_observations_as_vecnormalize_did(tmp_path):
     train_run(setup, tmp_path / "run", progress=False)
     vec = VecNormalize.load(str(tmp_path / "run" / "checkpoints" / "vecnormalize_96.pkl"),
                             DummyVecEnv([make_env_fn(setup, 0)]))
-    policy = policies.make("learned", path=str(tmp_path / "run" / "model.zip"))
+    # deterministic: the mode that calls predict (a run may choose sampling by its evaluations)
+    policy = policies.make("learned", path=str(tmp_path / "run" / "model.zip"), deterministic=True)
     raw = np.random.default_rng(0).uniform(0, 50, len(FEATURE_NAMES))
     seen = []
     policy.model.predict = lambda x, deterministic: (seen.append(x), (np.zeros(2), None))[1]
