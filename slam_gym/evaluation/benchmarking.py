@@ -226,6 +226,22 @@ MAX_DRAWS = 1000
 """Filter draws per world a benchmark accepts."""
 
 
+def policy_job_options(*, n_particles: int, decision_interval: int, front_end: str,
+                       back_end: str, random_streams: str, n_steps: int | None = None,
+                       w_compute: float | None = None,
+                       compute_clip_s: float | None = None) -> dict[str, Any]:
+    """The options every policy job of a benchmark or a comparison carries (the optional ones
+    only when given, so a key names just what was chosen)."""
+    options: dict[str, Any] = {"n_particles": n_particles, "decision_interval": decision_interval,
+                               "front_end": front_end, "back_end": back_end,
+                               "random_streams": random_streams}
+    for key, value in (("n_steps", n_steps), ("w_compute", w_compute),
+                       ("compute_clip_s", compute_clip_s)):
+        if value is not None:
+            options[key] = value
+    return options
+
+
 def env_id_streams(env: str) -> str:
     """The ``random_streams`` of a registered simulated env id (``-v1``: synchronised)."""
     from slam_gym.envs import ENV_VARIANTS
@@ -332,13 +348,10 @@ def benchmark(
         _check_picklable(entries, executor)
     out = make_out_dir(out)
 
-    options: dict[str, Any] = {"n_particles": n_particles, "decision_interval": decision_interval,
-                               "front_end": front_end, "back_end": back_end,
-                               "random_streams": random_streams}
-    for key, value in (("n_steps", n_steps), ("w_compute", w_compute),
-                       ("compute_clip_s", compute_clip_s)):
-        if value is not None:
-            options[key] = value
+    options = policy_job_options(n_particles=n_particles, decision_interval=decision_interval,
+                                 front_end=front_end, back_end=back_end,
+                                 random_streams=random_streams, n_steps=n_steps,
+                                 w_compute=w_compute, compute_clip_s=compute_clip_s)
     jobs = []
     for entry in entries:
         opts = options | (learned_options(model) if entry.name == "learned" else {})

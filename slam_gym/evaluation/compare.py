@@ -222,10 +222,12 @@ def compare(
     run (``ValueError`` naming it)."""
     from slam_gym.evaluation import paired
     from slam_gym.evaluation.benchmarking import (
+        MAX_DRAWS,
         check_env_options,
         env_id_ends,
         env_id_streams,
         make_out_dir,
+        policy_job_options,
     )
     from slam_gym.evaluation.core import run_job
     from slam_gym.evaluation.executors import run_jobs
@@ -237,8 +239,8 @@ def compare(
     levels = [int(v) for v in clutter_levels]
     require(bool(levels) and len(set(levels)) == len(levels), "clutter_levels", levels,
             "distinct levels, at least one")
-    require(isinstance(draws, int) and not isinstance(draws, bool) and 1 <= draws <= 1000,
-            "draws", draws, "an integer in [1, 1000]")
+    require(isinstance(draws, int) and not isinstance(draws, bool) and 1 <= draws <= MAX_DRAWS,
+            "draws", draws, f"an integer in [1, {MAX_DRAWS}]")
     require(isinstance(batch_seeds, int) and batch_seeds >= 1, "batch_seeds", batch_seeds,
             "an integer >= 1")
     batch_worlds = batch_seeds * len(levels)
@@ -272,12 +274,10 @@ def compare(
                        compute_clip_s=compute_clip_s, random_streams=random_streams)
     arm_a, arm_b = resolve_arm(a), resolve_arm(b)
     out = make_out_dir(out)
-    base = {"n_particles": n_particles, "decision_interval": decision_interval,
-            "front_end": front_end, "back_end": back_end, "random_streams": random_streams}
-    for key, value in (("n_steps", n_steps), ("w_compute", w_compute),
-                       ("compute_clip_s", compute_clip_s)):
-        if value is not None:
-            base[key] = value
+    base = policy_job_options(n_particles=n_particles, decision_interval=decision_interval,
+                              front_end=front_end, back_end=back_end,
+                              random_streams=random_streams, n_steps=n_steps,
+                              w_compute=w_compute, compute_clip_s=compute_clip_s)
     shipped = {arm.name: arm.shipped for arm in (arm_a, arm_b) if arm.shipped is not None}
     run_fn = functools.partial(run_job, policy_factories=shipped) if shipped else run_job
 
