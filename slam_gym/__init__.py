@@ -9,18 +9,17 @@ The public API is :data:`__all__` (with ``slam_gym.evaluation``'s, ``policies``'
 ``filters``'): the env and its options (:class:`HybridSLAMEnv`, :class:`HybridSLAMConfig`,
 :class:`MRCLAMEnv`), the ``Discrete(4)`` wrapper (:class:`DiscreteActions`), the real-data
 loaders, the benchmark and the training helpers. Every other module path is internal and may
-change. The training helpers are imported on first use (they load stable-baselines3).
+change. The training helpers, the real-data loaders, the recorded env and the benchmark are
+imported on first use (:data:`_ON_FIRST_USE`): making an env loads none of them.
 """
 
+import importlib
 from typing import Any
 
 from policies.learned import set_provenance_check
-from slam_gym.datasets import load_mrclam, load_victoria_park
 from slam_gym.envs import ENV_VARIANTS, TASK_ENV_VARIANTS, register_envs
 from slam_gym.envs.hybrid_slam import HybridSLAMConfig, HybridSLAMEnv
-from slam_gym.envs.mrclam import MRCLAMEnv, default_mrclam_dir
 from slam_gym.envs.wrappers import DiscreteActions
-from slam_gym.evaluation import benchmark
 from slam_gym.training.provenance import check_model_provenance
 
 register_envs()
@@ -46,18 +45,26 @@ __all__ = [
 __version__ = "0.1.0"
 
 
+_ON_FIRST_USE = {
+    # name: the module that defines it, imported when the name is first read, so that a
+    # process that only makes an env does not load the real-data loaders, the evaluation's
+    # table and plot code, or stable-baselines3 and torch (the training helpers)
+    "BenchmarkEvalCallback": "slam_gym.training.callbacks",
+    "MRCLAMEnv": "slam_gym.envs.mrclam",
+    "benchmark": "slam_gym.evaluation",
+    "default_mrclam_dir": "slam_gym.envs.mrclam",
+    "evaluate_policy": "slam_gym.training.evaluation",
+    "load_mrclam": "slam_gym.datasets",
+    "load_victoria_park": "slam_gym.datasets",
+    "set_initial_action_probabilities": "slam_gym.training.run",
+}
+
+
 def __getattr__(name: str) -> Any:
-    # the training helpers, imported on first use (stable-baselines3 and torch are heavy)
-    if name == "BenchmarkEvalCallback":
-        from slam_gym.training.callbacks import BenchmarkEvalCallback
-
-        return BenchmarkEvalCallback
-    if name == "evaluate_policy":
-        from slam_gym.training.evaluation import evaluate_policy
-
-        return evaluate_policy
-    if name == "set_initial_action_probabilities":
-        from slam_gym.training.run import set_initial_action_probabilities
-
-        return set_initial_action_probabilities
+    if name in _ON_FIRST_USE:
+        return getattr(importlib.import_module(_ON_FIRST_USE[name]), name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_ON_FIRST_USE))
