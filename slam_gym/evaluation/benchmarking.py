@@ -139,7 +139,9 @@ def resolve_policies(specs: Any, model: str | None = None) -> list[PolicyEntry]:
     return entries
 
 
-def _check_picklable(entries: Sequence[PolicyEntry], executor: str) -> None:
+def check_picklable(entries: Sequence[Any], executor: str) -> None:
+    """Every entry's ``shipped`` policy object (if any) pickles, as a worker process needs
+    (``ValueError`` naming the policy otherwise); entries have ``name`` and ``shipped``."""
     for entry in entries:
         if entry.shipped is None:
             continue
@@ -242,20 +244,22 @@ def policy_job_options(*, n_particles: int, decision_interval: int, front_end: s
     return options
 
 
-def env_id_streams(env: str) -> str:
-    """The ``random_streams`` of a registered simulated env id (``-v1``: synchronised)."""
+def _env_variant(env: str) -> dict:
+    """The registration options of a simulated env id (``ValueError`` naming ``env``)."""
     from slam_gym.envs import ENV_VARIANTS
 
     require(env in ENV_VARIANTS, "env", env, f"one of {sorted(ENV_VARIANTS)}")
-    return ENV_VARIANTS[env].get("random_streams", "synchronised")
+    return ENV_VARIANTS[env]
+
+
+def env_id_streams(env: str) -> str:
+    """The ``random_streams`` of a registered simulated env id (``-v1``: synchronised)."""
+    return _env_variant(env).get("random_streams", "synchronised")
 
 
 def env_id_ends(env: str) -> tuple[str, str]:
     """The (front-end, back-end) of a registered simulated env id."""
-    from slam_gym.envs import ENV_VARIANTS
-
-    require(env in ENV_VARIANTS, "env", env, f"one of {sorted(ENV_VARIANTS)}")
-    kwargs = ENV_VARIANTS[env]
+    kwargs = _env_variant(env)
     return kwargs.get("front_end", "fastslam"), kwargs.get("back_end", "ekf")
 
 
@@ -345,7 +349,7 @@ def benchmark(
                        back_end=back_end, n_steps=n_steps, w_compute=w_compute,
                        compute_clip_s=compute_clip_s, random_streams=random_streams)
     if executor != "serial":
-        _check_picklable(entries, executor)
+        check_picklable(entries, executor)
     out = make_out_dir(out)
 
     options = policy_job_options(n_particles=n_particles, decision_interval=decision_interval,

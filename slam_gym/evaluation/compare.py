@@ -224,6 +224,7 @@ def compare(
     from slam_gym.evaluation.benchmarking import (
         MAX_DRAWS,
         check_env_options,
+        check_picklable,
         env_id_ends,
         env_id_streams,
         make_out_dir,
@@ -273,6 +274,8 @@ def compare(
                        back_end=back_end, n_steps=n_steps, w_compute=w_compute,
                        compute_clip_s=compute_clip_s, random_streams=random_streams)
     arm_a, arm_b = resolve_arm(a), resolve_arm(b)
+    if executor != "serial":
+        check_picklable((arm_a, arm_b), executor)
     out = make_out_dir(out)
     base = policy_job_options(n_particles=n_particles, decision_interval=decision_interval,
                               front_end=front_end, back_end=back_end,

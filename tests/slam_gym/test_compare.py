@@ -90,3 +90,19 @@ def test_plan_prints_the_worlds_a_margin_needs(tmp_path, capsys):
     plan = json.loads(out)["plan"]
     assert plan["pilot_worlds"] == 4
     assert plan["sequential"]["worlds"] >= plan["fixed"]["worlds"] >= 2
+
+
+def test_a_policy_object_that_cannot_reach_a_worker_is_refused_before_any_run(tmp_path):
+    class LocalRule:  # defined in a function: does not pickle to a worker process
+        name = "local-rule"
+
+        def reset(self):
+            pass
+
+        def act(self, obs, info):
+            return {"fuse": 0, "optimise": 0}
+
+    with pytest.raises(ValueError, match="policy 'local-rule' is invalid for executor='process'"):
+        compare("fixed-10s", LocalRule(), seeds=2, clutter_levels=[1], n_particles=15,
+                n_steps=120, executor="process", out=tmp_path / "c")
+    assert not (tmp_path / "c").exists()  # refused before the output folder was made
