@@ -52,6 +52,12 @@ def add_parser(subparsers) -> None:
                    "interface_cpu_s (0: superiority either way)")
     p.add_argument("--max-worlds", type=int, default=None, metavar="N",
                    help="sequential design: batches of worlds until decided or N worlds")
+    p.add_argument("--design", default="confidence-sequence",
+                   choices=["confidence-sequence", "group-sequential"],
+                   help="the sequential design's interval: an anytime-valid confidence sequence "
+                   "(default; any stopping, --max-worlds may be raised later) or an "
+                   "O'Brien-Fleming-type group-sequential design planned for --max-worlds "
+                   "(narrower near its end; --max-worlds fixed in advance)")
     p.add_argument("--batch-seeds", type=int, default=2, metavar="S",
                    help="seeds per batch of the sequential design, each at every clutter level "
                    "(default 2: 8 worlds a batch over levels 0-3)")
@@ -106,6 +112,14 @@ def check_options(args) -> None:
         if args.trials is not None:
             raise ValueError("--seeds is invalid with --max-worlds: the sequential design "
                              "chooses how many worlds it runs")
+    if args.design != "confidence-sequence":
+        if args.max_worlds is None:
+            raise ValueError(f"--design {args.design} is invalid without --max-worlds: it is a "
+                             "sequential design, planned for --max-worlds worlds")
+        if args.metric != "success":
+            raise ValueError(f"--design {args.design} is invalid with --metric {args.metric}: "
+                             "it is checked on success only (continuous metrics take the "
+                             "confidence sequence)")
     if args.trials is not None and args.trials < 2:
         raise ValueError(f"--seeds {args.trials} is invalid: must be >= 2")
     if args.plan and (args.metric is None or args.max_worlds is not None):
@@ -140,8 +154,8 @@ def text_report(result) -> list[str]:
         better = "higher" if q["higher_is_better"] else "lower"
         where = ("" if ci is None else f"; interval of the gain ({better} is better) "
                  f"[{ci[0]:+.2f}, {ci[1]:+.2f}] {q['unit']}")
-        design = (f"sequential, stopped at {result.worlds} of at most {q['max_worlds']} worlds"
-                  if q["design"] == "sequential" else "fixed design")
+        design = (f"{q['design']}, stopped at {result.worlds} of at most {q['max_worlds']} "
+                  "worlds" if q["design"] != "fixed" else "fixed design")
         lines.append(f"question: is {result.b} not worse than {result.a} by {q['margin']:g} "
                      f"{q['unit']} on {q['metric']}? {result.decision} ({design}{where})")
     return lines
@@ -174,7 +188,7 @@ def run(args) -> int:
                  f"{planned['sequential']['sd']:.3g})"])
         return errors_exit_code(args, result.rows)
     result = compare(args.a, args.b, metric=args.metric, margin=args.margin,
-                     seeds=args.trials, max_worlds=args.max_worlds,
+                     seeds=args.trials, max_worlds=args.max_worlds, design=args.design,
                      batch_seeds=args.batch_seeds, **common)
     doc = to_jsonable(result.as_dict())
     (result.out / "compare.json").write_text(json.dumps(doc, indent=2, sort_keys=True) + "\n")

@@ -17,10 +17,15 @@ a finished run). Statistics: :mod:`slam_gym.evaluation.paired`.
 Two designs:
 
 * **sequential** (``max_worlds``): worlds in batches of ``batch_seeds`` seeds at every clutter
-  level, a look after each batch (from :data:`slam_gym.evaluation.paired.MIN_WORLDS` worlds on)
-  at the declared metric's confidence sequence (valid under any number of looks), stopping at
-  the first look that decides the question or at ``max_worlds``. The looks are a function of
-  the rows alone, so a rerun looks at the same batches and decides the same.
+  level, a look after each batch (from :data:`slam_gym.evaluation.paired.MIN_WORLDS` worlds on),
+  stopping at the first look that decides the question or at ``max_worlds``. ``design`` chooses
+  the interval of a look: ``"confidence-sequence"`` (the default; valid under any number of
+  looks and any stopping, ``max_worlds`` only tunes where it is narrowest) or
+  ``"group-sequential"`` (repeated confidence intervals of an O'Brien-Fleming-type design planned
+  for ``max_worlds``: about half the worlds for the same question when the answer comes near
+  ``max_worlds``, but ``max_worlds`` is then a commitment, not to be raised once rows are
+  seen; success only). The looks are a function of the rows alone, so a rerun looks at the
+  same batches and decides the same.
 * **fixed** (``seeds``): that many seeds at every level, the fixed-sample intervals, the
   question (if any) answered on them.
 
@@ -44,7 +49,7 @@ from typing import Any
 
 import numpy as np
 
-from filters.validation import require
+from filters.validation import check_choice, require
 
 METRICS = ("success", "nees_in_band_fraction", "anees", "map_error_m", "interface_cpu_s",
            "return")
@@ -199,6 +204,7 @@ def compare(
     draws: int = 2,
     seeds: int | None = None,
     max_worlds: int | None = None,
+    design: str = "confidence-sequence",
     batch_seeds: int = 2,
     seed_start: int = 0,
     alpha: float = 0.05,
@@ -235,6 +241,9 @@ def compare(
     from slam_gym.evaluation.jobs import Job
 
     check_question(metric, margin)
+    check_choice("design", design, paired.SEQUENTIAL_DESIGNS)
+    if max_worlds is not None and metric is not None:
+        paired.check_design(design, metric in paired.RATE_METRICS)
     if metric is not None and margin is None:
         margin = 0.0
     levels = [int(v) for v in clutter_levels]
@@ -292,6 +301,7 @@ def compare(
     rows_b: list[dict] = []
     worlds: list[tuple[int, int]] = []
     looks: list[dict] = []
+    look_worlds: list[int] = []  # the worlds with values at each decision look so far
     decision = None
     for batch in range(n_batches):
         first = seed_start + batch * batch_seeds
@@ -315,8 +325,11 @@ def compare(
             continue
         rate = metric in paired.RATE_METRICS
         if max_worlds is not None:
-            interval = paired.confidence_sequence(d.differences, planned_worlds=max_worlds,
-                                                  alpha=alpha, rate=rate)
+            look_worlds.append(len(d))
+            interval = paired.sequential_interval(d.differences, design=design,
+                                                  planned_worlds=max_worlds,
+                                                  look_worlds=look_worlds, alpha=alpha,
+                                                  rate=rate)
         elif rate:
             interval = paired.matched_rate_interval(d.differences, confidence=1 - alpha)
         else:
@@ -333,7 +346,7 @@ def compare(
     question = None
     if metric is not None:
         question = {"metric": metric, "margin": margin, "unit": UNITS[metric],
-                    "design": "sequential" if max_worlds is not None else "fixed",
+                    "design": design if max_worlds is not None else "fixed",
                     "max_worlds": max_worlds, "alpha": alpha,
                     "oriented_ci": looks[-1].get("oriented_ci") if looks else None,
                     "higher_is_better": paired.metric_direction(metric) > 0}

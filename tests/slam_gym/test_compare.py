@@ -31,6 +31,26 @@ def test_a_policy_against_itself_is_not_worse_and_runs_once(tmp_path):
     assert {json.loads(line)["draw"] for line in lines} == {0, 1}
 
 
+def test_group_sequential_design_is_planned_for_max_worlds(tmp_path, capsys):
+    """The same question under the group-sequential design: its looks' intervals are the
+    repeated confidence intervals of a design planned for --max-worlds, narrower than the
+    confidence sequence's on the same rows (the design's reason), and the JSON names it."""
+    argv = ["fixed-10s", "fixed-10s", "--metric", "success", "--margin", "40", "--draws", "1",
+            "--max-worlds", "16", "--batch-seeds", "8", "--json", "--out", str(tmp_path / "g"),
+            *TINY]
+    code, out, _ = run_cli(capsys, *argv, "--design", "group-sequential")
+    assert code == 0
+    gsd = json.loads(out)
+    assert gsd["question"]["design"] == "group-sequential"
+    assert gsd["looks"][-1]["method"] == "group-sequential-rci"
+    code, out, _ = run_cli(capsys, *argv)  # the same rows, not rerun, under the sequence
+    cs = json.loads(out)
+    assert cs["question"]["design"] == "confidence-sequence"
+    lo_g, hi_g = gsd["looks"][-1]["oriented_ci"]
+    lo_c, hi_c = cs["looks"][-1]["oriented_ci"]
+    assert lo_c < lo_g <= hi_g < hi_c
+
+
 def test_json_names_the_decision_worlds_draws_and_each_metric(tmp_path, capsys):
     code, out, _ = run_cli(capsys, "fixed-10s", "always", "--metric", "map_error_m", "--margin",
                            "0.5", "--seeds", "2", "--draws", "2", "--json", "--out",
@@ -74,6 +94,10 @@ def test_a_killed_comparison_resumes_without_rerunning_finished_worlds(tmp_path,
      "--max-worlds"),
     (["fixed-10s", "always", "--metric", "success", "--margin", "-1"], "--margin"),
     (["fixed-10s", "always", "--seeds", "1"], "--seeds"),
+    (["fixed-10s", "always", "--metric", "map_error_m", "--margin", "1", "--max-worlds", "16",
+      "--design", "group-sequential"], "--design"),
+    (["fixed-10s", "always", "--metric", "success", "--margin", "5",
+      "--design", "group-sequential"], "--design"),
 ])
 def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, argv, says):
     code, out, err = run_cli(capsys, *argv, "--out", str(tmp_path / "bad"), *TINY)

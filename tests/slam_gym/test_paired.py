@@ -318,10 +318,12 @@ SEQ_TRIALS = 4000
 MARGIN = 0.05
 
 
-def false_positive(d: np.ndarray, *, rate: bool) -> tuple[float, float]:
-    """Share of comparisons declared ``not worse``/``better`` by the confidence sequence and by
+def false_positive(d: np.ndarray, *, rate: bool,
+                   design: str = "confidence-sequence") -> tuple[float, float]:
+    """Share of comparisons declared ``not worse``/``better`` by the sequential ``design`` and by
     the naive repeated t-test, looking after every batch of 8 worlds from 16 on."""
-    out = sequential_decisions(d, margin=MARGIN, alpha=ALPHA, batch_size=8, rate=rate)
+    out = sequential_decisions(d, margin=MARGIN, alpha=ALPHA, batch_size=8, rate=rate,
+                               design=design)
     fp = float(np.isin(out.decision, ["better", "not worse"]).mean())
     naive = float(naive_repeated_t(d, MARGIN, ALPHA, 8, paired.MIN_WORLDS).mean())
     return fp, naive
@@ -339,17 +341,24 @@ NULL_SCENARIOS = {
 }
 
 
+DESIGNS = paired.SEQUENTIAL_DESIGNS
+
+
+@pytest.mark.parametrize("design", DESIGNS)
 @pytest.mark.parametrize("max_worlds", [96, 200])
 @pytest.mark.parametrize("name", list(NULL_SCENARIOS))
-def test_sequential_false_positive_rate_success(name, max_worlds):
-    """True difference exactly -margin, looks after every batch of 8 up to ``max_worlds``: the
-    sequence declares ``not worse`` at most alpha (+ 2 MC SE, 4 000 trials) of the time; the
-    naive repeated t-test on the same data, clearly more (at least alpha + 10 MC SE)."""
+def test_sequential_false_positive_rate_success(name, max_worlds, design):
+    """True difference exactly -margin, looks after every batch of 8 up to ``max_worlds``: either
+    design declares ``not worse`` at most alpha (+ 2 MC SE, 4 000 trials) of the time; the
+    naive repeated t-test on the same data, clearly more (at least alpha + 10 MC SE). Measured:
+    the confidence sequence 0.000-0.026, the group-sequential design 0.011-0.052 (its one-sided
+    nominal is alpha / 2; it reaches alpha where B only ever loses, 5 % of worlds: a skewed 0/1
+    difference)."""
     rng = np.random.default_rng(40 + max_worlds + len(name))
     a, b, truth = NULL_SCENARIOS[name](rng, max_worlds)
     assert truth == pytest.approx(-MARGIN)
-    fp, naive = false_positive(b - a, rate=True)
-    print(f"{name}, {max_worlds} worlds: false positive {fp:.4f}, naive t {naive:.4f}")
+    fp, naive = false_positive(b - a, rate=True, design=design)
+    print(f"{name}, {max_worlds} worlds, {design}: false positive {fp:.4f}, naive t {naive:.4f}")
     assert fp <= ALPHA + 2 * mc_se(ALPHA, SEQ_TRIALS)
     assert naive >= ALPHA + 10 * mc_se(ALPHA, SEQ_TRIALS)
 
@@ -357,13 +366,71 @@ def test_sequential_false_positive_rate_success(name, max_worlds):
 @pytest.mark.parametrize("max_worlds", [96, 200])
 def test_sequential_false_positive_rate_skewed_continuous(max_worlds):
     """Left-skewed differences (skewness 1.75), mean exactly -margin, sd 4 margins: the same
-    check as for success. Measured 0.044 (96) and 0.034 (200); heavier skew is documented."""
+    check as for success. Measured 0.040 (96) and 0.034 (200); heavier skew is documented. (The
+    group-sequential design is refused for continuous metrics: on these data it measured 0.064
+    at 96 worlds, 0.044 at 200.)"""
     rng = np.random.default_rng(7 + max_worlds)
     d = left_skewed(rng, SEQ_TRIALS, max_worlds, -MARGIN, 4 * MARGIN)
     fp, naive = false_positive(d, rate=False)
     print(f"left-skewed, {max_worlds} worlds: false positive {fp:.4f}, naive t {naive:.4f}")
     assert fp <= ALPHA + 2 * mc_se(ALPHA, SEQ_TRIALS)
     assert naive >= ALPHA + 10 * mc_se(ALPHA, SEQ_TRIALS)
+
+
+def test_group_sequential_bounds_are_the_published_ones():
+    """Five equally spaced looks, two-sided alpha 0.05, O'Brien-Fleming-type spending of
+    alpha / 2 a side: gsDesign's sfLDOF bounds (Jennison & Turnbull 2000, table 2.3's
+    Lan-DeMets analogue) 4.877, 3.357, 2.680, 2.290, 2.031; one look is the fixed 1.96."""
+    bounds = paired.group_sequential_bounds([0.2, 0.4, 0.6, 0.8, 1.0])
+    assert bounds == pytest.approx([4.877, 3.357, 2.680, 2.290, 2.031], abs=2e-3)
+    assert paired.group_sequential_bounds([1.0])[0] == pytest.approx(stats.norm.isf(0.025))
+    assert paired.obrien_fleming_spending(1.0) == pytest.approx(ALPHA)
+
+
+def test_group_sequential_bounds_hold_alpha_on_brownian_paths():
+    """The recursion itself, by simulation: a standard Brownian motion seen at the looks of
+    ``compare``'s default batches (16, 24, ..., 200 worlds of 200) leaves the bounds at some look
+    with probability alpha (200 000 paths: within 3 MC SE), and at each look k at most the
+    spending function's alpha(t_k)."""
+    looks = np.arange(16, 201, 8)
+    t = looks / 200.0
+    bounds = paired.group_sequential_bounds(t)
+    rng = np.random.default_rng(46)
+    trials = 200_000
+    steps = rng.standard_normal((trials, len(t))) * np.sqrt(np.diff(t, prepend=0.0))
+    z = np.cumsum(steps, axis=1) / np.sqrt(t)
+    crossed = np.abs(z) >= bounds
+    first = np.where(crossed.any(axis=1), crossed.argmax(axis=1), len(t))
+    by_look = np.array([np.mean(first <= k) for k in range(len(t))])
+    assert by_look[-1] == pytest.approx(ALPHA, abs=3 * mc_se(ALPHA, trials))
+    spent = paired.obrien_fleming_spending(t)
+    assert np.all(by_look <= spent + 3 * np.sqrt(spent * (1 - spent) / trials) + 1e-12)
+
+
+def test_group_sequential_design_decides_worse_where_the_sequence_cannot():
+    """Why the group-sequential design exists: success about 10 pp lower with a per-world SD of
+    ~34 pp (2 draws; what ``fixed-10s`` against ``fixed-10s-optimise`` measured, RESULTS issue
+    46), margin 5 pp, at most 400 worlds in looks of 8: the group-sequential design answers
+    ``worse`` clearly more often than the confidence sequence, and neither answers ``not
+    worse`` or ``better`` (1 000 comparisons)."""
+    rng = np.random.default_rng(4646)
+    a, b, truth = rate_worlds(rng, 1000, 400, 2, [(0.9, 0.9), (0.9, 0.5), (0.3, 0.3), (0.6, 0.7)],
+                              [0.45, 0.3, 0.15, 0.1], 0.5)
+    assert truth == pytest.approx(-0.11)
+    worse = {}
+    for design in DESIGNS:
+        out = sequential_decisions(b - a, margin=MARGIN, rate=True, design=design)
+        assert not np.isin(out.decision, ["better", "not worse"]).any()
+        worse[design] = float(np.mean(out.decision == "worse"))
+    print(f"worse by 400 worlds: {worse}")
+    assert worse["group-sequential"] >= worse["confidence-sequence"] + 0.2
+
+
+def test_group_sequential_design_is_refused_for_continuous_metrics():
+    with pytest.raises(ValueError, match="design='group-sequential' is invalid"):
+        sequential_decisions(np.zeros(32), margin=MARGIN, design="group-sequential")
+    with pytest.raises(ValueError, match="design='sprt' is invalid"):
+        sequential_decisions(np.zeros(32), margin=MARGIN, rate=True, design="sprt")
 
 
 def test_naive_test_is_valid_at_one_look():
