@@ -1,9 +1,9 @@
 """The compiled FastSLAM scan timed on captured scans, two versions side by side (issue 27).
 
-Usage: python scripts/performance/kernel_replay.py capture SCANS.pkl
-       python scripts/performance/kernel_replay.py time SCANS.pkl KERNEL_A.py KERNEL_B.py [...]
+Usage: python scripts/archive/kernel_replay.py capture SCANS.pkl
+       python scripts/archive/kernel_replay.py time SCANS.pkl KERNEL_A.py KERNEL_B.py [...]
 e.g.   git show c92c4a3:filters/fastslam_kernel.py > /tmp/old_kernel.py
-       python scripts/performance/kernel_replay.py time /tmp/scans.pkl /tmp/old_kernel.py \\
+       python scripts/archive/kernel_replay.py time /tmp/scans.pkl /tmp/old_kernel.py \\
            filters/fastslam_kernel.py
 
 ``capture`` plays 60 ``fixed-10s`` decisions of ``HybridSLAMEnv(n_particles=500)`` on world 5
@@ -18,8 +18,8 @@ Supports docs/PERFORMANCE.md, "The code of 15bcb7d (2026-11-25 evening, the slow
 more bit-identical speed-ups, and a sixth".
 The command behind it::
 
-    python scripts/performance/kernel_replay.py capture /tmp/scans.pkl
-    python scripts/performance/kernel_replay.py time /tmp/scans.pkl OLD_KERNEL.py \
+    python scripts/archive/kernel_replay.py capture /tmp/scans.pkl
+    python scripts/archive/kernel_replay.py time /tmp/scans.pkl OLD_KERNEL.py \
         filters/fastslam_kernel.py
 """
 
