@@ -1,20 +1,23 @@
 """Two codes' filters compared by distributions, paired by world and draw (issue 47 item 3).
 
 Usage: python scripts/results/filter_equivalence.py REF.jsonl[,MORE.jsonl] NEW.jsonl[,MORE.jsonl]
-       [--resamples 4000] [--seed 0]
+       [--margins success=3,map_error_m=0.15,nees_in_band_fraction=2] [--json OUT.json]
 
 Each argument is one or more ``results.jsonl`` of :func:`slam_gym.evaluation.benchmark` (run once
 from each checkout on the same worlds, policies, particles and ``draws``; under synchronised
-random numbers both codes draw by the same keys, so rows of one (policy, level, seed, draw) are
-paired). Per policy, over the pairs both codes finished, it prints the new code minus the
-reference with a 95 % interval:
+random numbers both codes draw by the same keys, so the rows of one (policy, clutter level, seed,
+draw) are a pair). Only the runs both codes finished enter. Per policy, the reference is arm A
+and the new code arm B of ``slam-gym compare``'s statistics
+(:func:`slam_gym.evaluation.compare.metric_report`: per world the mean over its draws, the world
+the unit of pairing; success by the cluster Bonett-Price interval, the other metrics by the
+bootstrap over worlds stratified by clutter level), and each metric with a margin gets
+:func:`slam_gym.evaluation.paired.decide`'s answer to "is the new code not worse than the
+reference by more than the margin?" on its fixed-sample 95 % interval.
 
-* success (pp): the difference of paired proportions with Agresti and Min's interval for matched
-  pairs (Agresti & Min, "Simple improved confidence intervals for comparing matched
-  proportions", Stat. Med. 2005: half a pair added to each of the four cells);
-* map error (m) of the runs that did not fail, over the pairs in which neither failed: per world
-  the mean over its draws, then a bootstrap over worlds stratified by clutter level;
-* the fraction of pose NEES inside its band (pp): the same per-world means and bootstrap.
+The default margins are issue 47's: success 3 pp, map error 0.15 m, the fraction of pose NEES
+inside its band 2 pp. With no discordant world at all, the success interval's half-width is
+``1.96 sqrt(2) / (n + 2)``: below 3 pp from 91 worlds on, so fewer worlds cannot show
+equivalence on success however alike the codes are.
 
 Supports docs/RESULTS.md, "The filter of issue 47 against its reference, by distributions".
 """
@@ -23,13 +26,16 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
-from collections import defaultdict
 
-import numpy as np
+from slam_gym.evaluation import paired
+from slam_gym.evaluation.compare import metric_report
 
-Z95 = 1.959963984540054
+REPORTED = ("success", "nees_in_band_fraction", "anees", "map_error_m", "interface_cpu_s")
+"""The metrics printed per policy (those with a margin are decided)."""
+
+DEFAULT_MARGINS = {"success": 3.0, "map_error_m": 0.15, "nees_in_band_fraction": 2.0}
+"""Issue 47's margins, in the metrics' reported units (pp, m, pp)."""
 
 
 def read_rows(spec: str) -> dict:
@@ -53,83 +59,71 @@ def read_rows(spec: str) -> dict:
     return rows
 
 
-def agresti_min(ref: np.ndarray, new: np.ndarray) -> tuple[float, float, float]:
-    """``new - ref`` of paired 0/1 outcomes and Agresti-Min's 95 % interval."""
-    n = len(ref)
-    b = float(np.sum(ref & ~new))  # the reference succeeded, the new code failed
-    c = float(np.sum(~ref & new))
-    diff = (c - b) / n
-    m = n + 2.0
-    p12, p21 = (b + 0.5) / m, (c + 0.5) / m
-    centre = p21 - p12
-    half = Z95 * math.sqrt(max((p12 + p21) - centre * centre, 0.0) / m)
-    return diff, centre - half, centre + half
+def parse_margins(text: str) -> dict[str, float]:
+    """``metric=value,...`` -> {metric: value} (``ValueError`` naming ``--margins``)."""
+    margins = {}
+    for item in filter(None, (part.strip() for part in text.split(","))):
+        metric, _, value = item.partition("=")
+        if metric not in REPORTED or paired.metric_direction(metric) == 0 or not value:
+            raise ValueError(f"--margins {text!r} is invalid: each item is METRIC=VALUE with "
+                             f"METRIC one of success, nees_in_band_fraction, map_error_m, "
+                             f"interface_cpu_s")
+        margins[metric] = float(value)
+        if not margins[metric] >= 0:
+            raise ValueError(f"--margins {text!r} is invalid: {metric}'s margin must be >= 0")
+    return margins
 
 
-def stratified_bootstrap(per_world: dict, resamples: int, rng) -> tuple[float, float, float]:
-    """Mean of the per-world differences and its 95 % percentile interval, worlds resampled
-    within their clutter level. ``per_world``: {(level, seed): difference}."""
-    strata = defaultdict(list)
-    for (level, _), d in per_world.items():
-        strata[level].append(d)
-    values = {level: np.array(ds) for level, ds in strata.items()}
-    total = sum(len(v) for v in values.values())
-    mean = sum(v.sum() for v in values.values()) / total
-    draws = np.zeros(resamples)
-    for v in values.values():
-        idx = rng.integers(0, len(v), (resamples, len(v)))
-        draws += v[idx].sum(axis=1)
-    draws /= total
-    low, high = np.percentile(draws, [2.5, 97.5])
-    return float(mean), float(low), float(high)
-
-
-def compare(ref: dict, new: dict, policy: str, resamples: int, rng) -> dict:
+def compare_codes(ref: dict, new: dict, policy: str, margins: dict[str, float]) -> dict:
+    """One policy's report: pairs, worlds and per metric compare's report of new - reference,
+    with ``decision`` where ``margins`` names the metric."""
     keys = sorted(k for k in ref if k[0] == policy and k in new)
-    success_ref = np.array([bool(ref[k]["success"]) for k in keys])
-    success_new = np.array([bool(new[k]["success"]) for k in keys])
-    out = {"policy": policy, "pairs": len(keys),
-           "worlds": len({k[1:3] for k in keys}),
-           "success_ref": float(success_ref.mean()), "success_new": float(success_new.mean())}
-    out["success_diff"] = agresti_min(success_ref, success_new)
-    for field, only_successes in (("map_error_m", True), ("nees_in_band_fraction", False)):
-        per_world = defaultdict(list)
-        for k in keys:
-            a, b = ref[k].get(field), new[k].get(field)
-            if a is None or b is None or not (math.isfinite(a) and math.isfinite(b)):
-                continue
-            if only_successes and not (ref[k]["success"] and new[k]["success"]):
-                continue
-            per_world[k[1:3]].append((a, b))
-        diffs = {w: float(np.mean([b for _, b in v]) - np.mean([a for a, _ in v]))
-                 for w, v in per_world.items()}
-        out[field + "_worlds"] = len(diffs)
-        out[field + "_ref"] = float(np.mean([np.mean([a for a, _ in v])
-                                             for v in per_world.values()]))
-        out[field + "_diff"] = stratified_bootstrap(diffs, resamples, rng)
+    worlds = sorted({(k[1], k[2]) for k in keys})
+    rows_ref, rows_new = [ref[k] for k in keys], [new[k] for k in keys]
+    out = {"policy": policy, "pairs": len(keys), "worlds": len(worlds), "metrics": {}}
+    for metric in REPORTED:
+        report = metric_report(rows_ref, rows_new, metric, worlds)
+        if metric in margins and report["ci"] is not None:
+            lo, hi = report["ci"]
+            if paired.metric_direction(metric) < 0:  # oriented: positive = the new code better
+                lo, hi = -hi, -lo
+            report["margin"] = margins[metric]
+            report["decision"] = paired.decide(lo, hi, margins[metric])
+        out["metrics"][metric] = report
     return out
 
 
 def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("ref")
-    parser.add_argument("new")
-    parser.add_argument("--resamples", type=int, default=4000)
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("ref", help="the reference code's results.jsonl (comma-separated: several)")
+    parser.add_argument("new", help="the new code's results.jsonl (comma-separated: several)")
+    parser.add_argument("--margins", default=",".join(f"{k}={v:g}"
+                                                      for k, v in DEFAULT_MARGINS.items()),
+                        help="non-inferiority margins, METRIC=VALUE,... in reported units "
+                        "(default issue 47's: %(default)s)")
+    parser.add_argument("--json", default=None, metavar="OUT", help="also write the reports")
     args = parser.parse_args(argv)
+    try:
+        margins = parse_margins(args.margins)
+    except ValueError as exc:
+        parser.error(str(exc))
     ref, new = read_rows(args.ref), read_rows(args.new)
-    rng = np.random.default_rng(args.seed)
-    for policy in sorted({k[0] for k in ref} & {k[0] for k in new}):
-        r = compare(ref, new, policy, args.resamples, rng)
-        s, m, e = r["success_diff"], r["map_error_m_diff"], r["nees_in_band_fraction_diff"]
-        print(f"{policy}: {r['pairs']} pairs on {r['worlds']} worlds")
-        print(f"  success {100 * r['success_ref']:.1f} % -> {100 * r['success_new']:.1f} %: "
-              f"{100 * s[0]:+.1f} pp [{100 * s[1]:+.1f}, {100 * s[2]:+.1f}] (Agresti-Min)")
-        print(f"  map error (both succeeded, {r['map_error_m_worlds']} worlds) "
-              f"{r['map_error_m_ref']:.3f} m: {m[0]:+.2g} m [{m[1]:+.2g}, {m[2]:+.2g}]")
-        print(f"  NEES in band ({r['nees_in_band_fraction_worlds']} worlds) "
-              f"{100 * r['nees_in_band_fraction_ref']:.1f} %: {100 * e[0]:+.2g} pp "
-              f"[{100 * e[1]:+.2g}, {100 * e[2]:+.2g}]")
+    reports = [compare_codes(ref, new, policy, margins)
+               for policy in sorted({k[0] for k in ref} & {k[0] for k in new})]
+    for r in reports:
+        print(f"{r['policy']}: {r['pairs']} pairs on {r['worlds']} worlds (new - reference)")
+        for metric, m in r["metrics"].items():
+            if m["ci"] is None:
+                print(f"  {metric}: too few worlds")
+                continue
+            verdict = (f"  -> {m['decision']} at {m['margin']:g} {m['unit']}"
+                       if "decision" in m else "")
+            print(f"  {metric} ({m['worlds']} worlds): {m['a']:.4g} -> {m['b']:.4g} {m['unit']}, "
+                  f"{m['difference']:+.3g} [{m['ci'][0]:+.3g}, {m['ci'][1]:+.3g}]{verdict}")
+    if args.json:
+        with open(args.json, "w", encoding="utf-8") as f:
+            json.dump(reports, f, indent=2, sort_keys=True)
+            f.write("\n")
     return 0
 
 
