@@ -15,7 +15,12 @@ which this module follows line by line:
 * :func:`finish_scan`: the correspondence votes (BB 3.1), the ids, the clutter rate and culling;
 * :func:`normalise_weights`, :func:`systematic_resample`: the weights, the resampling test and
   the resampling;
-* :func:`update_iteration`: all of the scan's work above in one compiled call.
+* :func:`update_iteration`: all of the scan's work above in one compiled call;
+* :func:`heading_update`: a compass reading (the FS2 proposal refined, or the weights alone);
+* :func:`iteration`: one whole filter iteration in one compiled call (issue 47): the pending pose
+  draw, the prediction, the compass, CM's innovation ratio against the prior, the scan, the
+  local pose's moments, the pose composed with the local map's origin and its NEES against the
+  truth (:mod:`filters.global_frame`).
 
 Why compiled: vectorised over the particles with numpy, every observation cost some hundred
 array operations of a few microseconds each whatever the particle count (docs/PERFORMANCE.md,
@@ -54,6 +59,7 @@ from filters.existence import (
     miss_update_one,
 )
 from filters.geometry import wrap_angle_one as _wrap
+from filters.global_frame import compose_with_covariance, nearest_global_innovations, pose_metrics
 
 _TWO_PI = 2.0 * math.pi
 _SQRT_HALF = math.sqrt(0.5)
@@ -176,6 +182,78 @@ class ScanResult(NamedTuple):
     n_new_ids: int
     resampled: bool
     ess_ratio: float
+
+
+class IterationInput(NamedTuple):
+    """What one filter iteration is given: the odometry ``(v, omega)`` over ``dt`` seconds and its
+    covariance ``Q`` (2, 2), a compass heading in the local frame with its variance (NaN: no
+    reading), and the scan ``z`` (K, 2) with ``known_cids`` as :func:`scan_update` takes them;
+    ``scanned`` False for an iteration without a scan (``z`` then empty)."""
+
+    v: float
+    omega: float
+    dt: float
+    Q: np.ndarray
+    heading: float
+    heading_var: float
+    scanned: bool
+    z: np.ndarray
+    known_cids: np.ndarray
+
+
+class IterationDraws(NamedTuple):
+    """The random numbers of one filter iteration, one block per role of
+    :data:`filters.draws.ROLES`: ``pending_normals`` (P, 3) the pose draw of a proposal left by
+    an iteration without a scan (``pending_pose``; empty when there is none), the resampling
+    uniforms after it (``resample_after_pending``) and after a compass reading that came after
+    the pose was drawn (``resample_after_heading``), then the scan's :class:`ScanDraws` fields
+    (``association``, ``scan_pose``, ``resample_after_scan``). A uniform is used only where the
+    weights call for a resampling."""
+
+    pending_normals: np.ndarray
+    pending_offset: float
+    heading_offset: float
+    uniforms: np.ndarray
+    normals: np.ndarray
+    resample_offset: float
+
+
+class GlobalFrame(NamedTuple):
+    """Where the local map sits (BB Fig. 3): its origin ``v-`` (3,) with covariance (3, 3), and
+    the global map CM's innovation ratio tests the scan against (CM III.B): the back-end's state
+    ``x``, covariance ``P``, its features' columns ``cols`` (N, 2) (none: no ratio) and the
+    search radius (:func:`filters.global_frame.nearest_global_innovations`). A front-end alone
+    sits at a zero origin known exactly, with no global features."""
+
+    origin: np.ndarray
+    origin_cov: np.ndarray
+    x: np.ndarray
+    P: np.ndarray
+    cols: np.ndarray
+    radius_m: float
+
+
+class IterationResult(NamedTuple):
+    """:func:`iteration`'s answer: how often the state and the spare swapped (an odd count: the
+    spare holds the state), CM's innovation ratio of the scan against the prior (0 without global
+    features), the scan's winners and margins (K,) and fresh ids, ``N_eff / P`` of the last
+    resampling test (NaN: none ran), the local pose's moments, the global pose's (the local one
+    composed with the origin) and ``J_a``, its NEES and position error against the truth (NaN
+    without truth)."""
+
+    swaps: int
+    innovation_ratio: float
+    winners: np.ndarray
+    margins: np.ndarray
+    n_new_ids: int
+    ess_ratio: float
+    local_mean: np.ndarray
+    local_cov: np.ndarray
+    mean: np.ndarray
+    cov: np.ndarray
+    J_a: np.ndarray
+    nees: float
+    position_error_m: float
 
 
 # --------------------------------------------------------------------------- scalar equations
@@ -365,6 +443,42 @@ def draw_poses(state, normals):
         pose[1] += step[1]
         pose[2] = _wrap(pose[2] + step[2])
         state.prop_cov[p, :, :] = 0.0
+
+
+@njit(cache=True)
+def heading_update(state, theta, var, pending):
+    """A compass reading ``theta`` (variance ``var``) of every particle's heading, in place
+    (:meth:`filters.fastslam.FastSLAM2.update_heading`). While the proposal is ``pending`` it is
+    refined by the scalar Kalman update ``x += P e3 nu / s``, ``P -= P e3 e3^T P / s`` (then
+    symmetrised), ``s = P_tt + var``, ``nu = theta - x_t`` wrapped, and the weight multiplied by
+    ``N(nu; 0, s)``; after the pose draw only the weight, with ``s = var``. The log weights are
+    shifted to a maximum of 0."""
+    poses, prop_cov, logw = state.poses, state.prop_cov, state.logw
+    k = np.empty(3)
+    for p in range(poses.shape[0]):
+        nu = _wrap(theta - poses[p, 2])
+        s = var
+        if pending:
+            Pc = prop_cov[p]
+            s = Pc[2, 2] + var
+            for i in range(3):
+                k[i] = Pc[i, 2] / s
+            poses[p, 0] += k[0] * nu
+            poses[p, 1] += k[1] * nu
+            poses[p, 2] = _wrap(poses[p, 2] + k[2] * nu)
+            r0, r1, r2 = Pc[2, 0], Pc[2, 1], Pc[2, 2]
+            for i in range(3):
+                Pc[i, 0] -= k[i] * r0
+                Pc[i, 1] -= k[i] * r1
+                Pc[i, 2] -= k[i] * r2
+            for i in range(3):
+                for j in range(i + 1, 3):
+                    Pc[i, j] = 0.5 * (Pc[i, j] + Pc[j, i])
+                    Pc[j, i] = Pc[i, j]
+        logw[p] += -0.5 * nu * nu / s - 0.5 * math.log(_TWO_PI * s)
+    top = logw.max()
+    for p in range(logw.shape[0]):
+        logw[p] -= top
 
 
 # --------------------------------------------------------------------------- the scan
@@ -739,6 +853,16 @@ def systematic_resample(state, w, start, spare):
 
 
 @njit(cache=True)
+def _resample_if_called_for(state, spare, w, offset, model):
+    """The weights (into ``w``) and the resampling test; the resampling into ``spare`` when it
+    calls for it. Returns ``(resampled, N_eff / P)``."""
+    resample, ess_ratio = normalise_weights(state.logw, w, model.resample_threshold)
+    if resample:
+        systematic_resample(state, w, offset, spare)
+    return resample, ess_ratio
+
+
+@njit(cache=True)
 def update_iteration(state, z, known_cids, draws, model, out, next_id, cull, w, spare):
     """One scan's whole work in one compiled call: :func:`scan_update`, :func:`finish_scan`, the
     weights (into ``w``) and the resampling test, and the resampling into ``spare`` when the
@@ -746,9 +870,7 @@ def update_iteration(state, z, known_cids, draws, model, out, next_id, cull, w, 
     :class:`ScanResult`, in its order."""
     scan_update(state, z, known_cids, draws, model, out)
     winners, margins, n_new = finish_scan(state, out, known_cids, next_id, cull, model)
-    resample, ess_ratio = normalise_weights(state.logw, w, model.resample_threshold)
-    if resample:
-        systematic_resample(state, w, draws.resample_offset, spare)
+    resample, ess_ratio = _resample_if_called_for(state, spare, w, draws.resample_offset, model)
     # the fields of ScanResult (a plain tuple: boxing a named tuple costs an unpickling a call)
     return winners, margins, n_new, resample, ess_ratio
 
@@ -765,6 +887,82 @@ def local_pose(state, w, pending, lineage_correction, small_sample):
     return pose_moments_unchecked(state.poses, w, covs, lineage, lineage.shape[0], small_sample)
 
 
+# --------------------------------------------------------------------------- the iteration
+@njit(cache=True)
+def iteration(state, spare, step, draws, model, frame, truth_pose, flags, out, w):
+    """One filter iteration in one compiled call (module doc of filters.fastslam, "One filter
+    iteration"), in place; ``step``: :class:`IterationInput`, ``draws``:
+    :class:`IterationDraws`, ``frame``: :class:`GlobalFrame`, ``truth_pose`` (3,) (NaN: none),
+    ``flags``: ``(pending, next_id, cull, lineage_correction, small_sample)``, ``out``:
+    :class:`ScanOutputs` (K, P), ``w`` (P,) the normalised weights on return. In turn:
+
+    1. if time passed (``dt > 0``): a proposal left pending by an iteration without a scan is
+       drawn from (FS2) and the resampling test runs; then :func:`propagate`;
+    2. a compass reading: :func:`heading_update` (and the resampling test if the pose was drawn);
+    3. with a scan and global features: CM's innovation ratio ``||nu|| / (2 sigma)`` (CM III.B)
+       of the scan against the prior, the local pose composed with the origin;
+    4. the scan: :func:`update_iteration`;
+    5. the local pose's moments (BB (7), :func:`local_pose`), the global pose ``v- (+) x_v^L``
+       with covariance ``J_a P_v- J_a^T + J_b P_L J_b^T`` (BB Fig. 3) and its NEES and position
+       error against the truth (:func:`filters.global_frame.pose_metrics`).
+
+    Each resampling gathers into the other of ``state`` and ``spare``; the count of swaps says
+    which holds the state at the end. Returns the fields of :class:`IterationResult`."""
+    pending, next_id, cull, lineage_correction, small_sample = flags
+    swaps = 0
+    ess_ratio = np.nan
+    if step.dt > 0.0:
+        if pending:
+            draw_poses(state, draws.pending_normals)
+            resampled, ess_ratio = _resample_if_called_for(state, spare, w, draws.pending_offset,
+                                                           model)
+            if resampled:
+                state, spare = spare, state
+                swaps += 1
+        propagate(state, step.v, step.omega, step.dt, step.Q)
+        pending = True
+    if not math.isnan(step.heading):
+        heading_update(state, step.heading, step.heading_var, pending)
+        if not pending:
+            resampled, ess_ratio = _resample_if_called_for(state, spare, w, draws.heading_offset,
+                                                           model)
+            if resampled:
+                state, spare = spare, state
+                swaps += 1
+    ratio = 0.0
+    if step.scanned and step.z.shape[0] > 0 and frame.cols.shape[0] > 0:
+        normalise_weights(state.logw, w, 0.0)
+        prior_mean, prior_cov = local_pose(state, w, pending, lineage_correction, small_sample)
+        pose, sigma, J_a = compose_with_covariance(frame.origin, frame.origin_cov, prior_mean,
+                                                   prior_cov)
+        _, ratios = nearest_global_innovations(step.z, pose, sigma, J_a, frame.x, frame.P,
+                                               frame.cols, model.r_var, model.b_var,
+                                               frame.radius_m)
+        ratio = ratios.max()
+    winners = np.zeros(0, dtype=np.int64)
+    margins = np.zeros(0)
+    n_new = 0
+    if step.scanned:
+        if not pending:
+            state.prop_cov[:] = 0.0
+        winners, margins, n_new, resampled, ess_ratio = update_iteration(
+            state, step.z, step.known_cids,
+            ScanDraws(draws.uniforms, draws.normals, draws.resample_offset), model, out, next_id,
+            cull, w, spare)
+        if resampled:
+            state, spare = spare, state
+            swaps += 1
+        pending = False
+    else:
+        normalise_weights(state.logw, w, 0.0)
+    local_mean, local_cov = local_pose(state, w, pending, lineage_correction, small_sample)
+    mean, cov, J_a = compose_with_covariance(frame.origin, frame.origin_cov, local_mean,
+                                             local_cov)
+    nees, position_error = pose_metrics(truth_pose, mean, cov)
+    return (swaps, ratio, winners, margins, n_new, ess_ratio, local_mean, local_cov, mean, cov,
+            J_a, nees, position_error)
+
+
 # --------------------------------------------------------------------------- called from Python
 # numba types a plain tuple of arrays by a fast path and a named tuple by a slow one (~20 us a
 # call for the state's 14 arrays against ~6 us, measured on this machine kind): the named tuples
@@ -777,6 +975,11 @@ def _propagate_entry(state, v, omega, dt, Q):
 @njit(cache=True)
 def _draw_poses_entry(state, normals):
     draw_poses(ParticleState(*state), normals)
+
+
+@njit(cache=True)
+def _heading_update_entry(state, theta, var, pending):
+    heading_update(ParticleState(*state), theta, var, pending)
 
 
 @njit(cache=True)
@@ -806,6 +1009,11 @@ def call_draw_poses(state: ParticleState, normals) -> None:
     _draw_poses_entry(tuple(state), normals)
 
 
+def call_heading_update(state: ParticleState, theta, var, pending) -> None:
+    """:func:`heading_update` from Python."""
+    _heading_update_entry(tuple(state), theta, var, pending)
+
+
 def call_systematic_resample(state: ParticleState, w, start, spare: ParticleState) -> None:
     """:func:`systematic_resample` from Python."""
     _resample_entry(tuple(state), w, start, tuple(spare))
@@ -823,3 +1031,19 @@ def call_update_iteration(state: ParticleState, z, known_cids, draws: ScanDraws,
     return ScanResult(*_update_iteration_entry(tuple(state), z, known_cids, tuple(draws),
                                                tuple(model), tuple(out), next_id, cull, w,
                                                tuple(spare)))
+
+
+@njit(cache=True)
+def _iteration_entry(state, spare, step, draws, model, frame, truth_pose, flags, out, w):
+    return iteration(ParticleState(*state), ParticleState(*spare), IterationInput(*step),
+                     IterationDraws(*draws), FilterModel(*model), GlobalFrame(*frame),
+                     truth_pose, flags, ScanOutputs(*out), w)
+
+
+def call_iteration(state: ParticleState, spare: ParticleState, step: IterationInput,
+                   draws: IterationDraws, model: FilterModel, frame: GlobalFrame, truth_pose,
+                   flags, out: ScanOutputs, w) -> IterationResult:
+    """:func:`iteration` from Python."""
+    return IterationResult(*_iteration_entry(tuple(state), tuple(spare), tuple(step),
+                                             tuple(draws), tuple(model), tuple(frame), truth_pose,
+                                             flags, tuple(out), w))

@@ -11,6 +11,7 @@ from scipy.stats import chi2
 
 from filters.ekf_slam import EKFSLAM
 from filters.geometry import compose, compose_jacobians, transform_point, wrap_angle
+from filters.global_frame import nearest_global_innovations as _nearest_global_innovations
 from filters.models import (
     ClutterModel,
     ProportionalVelocityNoise,
@@ -23,7 +24,6 @@ from filters.submap import (
     INTERFACE_FEATURE_NAMES,
     GlobalMap,
     SubmapSLAM,
-    _nearest_global_innovations,
 )
 from filters.types import GaussianMap
 from slam_gym.scenarios import SQUARE_LOOP_OVERRIDES
@@ -594,7 +594,7 @@ def test_global_innovations_match_the_dense_computation():
 def test_compiled_composition_equals_the_geometry_functions():
     """Issue 27: the sub-map system's compiled composition (BB Fig. 3) against
     filters.geometry.compose / compose_jacobians and the covariance formula in numpy."""
-    from filters.submap import _compose_with_covariance
+    from filters.global_frame import compose_with_covariance as _compose_with_covariance
 
     rng = np.random.default_rng(11)
     for _ in range(100):
