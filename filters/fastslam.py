@@ -14,7 +14,10 @@ the next one is associated with, then the votes, ids, clutter rate, culling, the
 resampling test and the resampling) run compiled, the scan in one call
 (:func:`filters.fastslam_kernel.update_iteration`; the reasons and the measured gains are given
 there and in docs/PERFORMANCE.md); the random draws come from the generator of each purpose
-(:mod:`filters.draws`) and are handed over in blocks.
+(:mod:`filters.draws`) and are handed over in blocks. :meth:`FastSLAM2.run_iteration` runs a
+whole iteration (prediction, compass, scan, pose moments and, given the frame the local map sits
+in, the innovation ratio, the global pose and its NEES) in one compiled call
+(:func:`filters.fastslam_kernel.iteration`, issue 47): what the env steps through.
 
 One filter iteration
 --------------------
@@ -708,6 +711,13 @@ class FastSLAM2:
                 clutter_sums=state.clutter_sums)
             self._spare = spare
         return spare
+
+    def __getstate__(self):
+        """What a copy or a pickle keeps: everything but the resampling's spare state (work
+        space, made anew when needed), so a copy of the filter costs what it did before."""
+        state = self.__dict__.copy()
+        state["_spare"] = None
+        return state
 
     def _take_spare(self) -> None:
         """The spare, into which a resampling gathered the particles, becomes the state."""

@@ -317,25 +317,36 @@ def _refine(pose, Pc, t, scratch):
 
 
 @njit(cache=True)
-def _ldl_draw(cov, normals, out):
-    """``out = L sqrt(D) n`` for a PSD ``cov`` (3, 3) via a guarded LDL^T: a pivot that is zero
-    up to round-off (relative 1e-12 of the trace) gets a zero column, so singular proposals
-    (rank-2 motion noise) are sampled correctly."""
-    tiny = 1e-12 * max(cov[0, 0] + cov[1, 1] + cov[2, 2], 1e-300)
-    d0 = cov[0, 0]
+def _ldl_draw(c00, c10, c11, c20, c21, c22, n0, n1, n2):
+    """``L sqrt(D) n`` for a PSD covariance (the lower triangle ``c``) and standard normals ``n``
+    via a guarded LDL^T: a pivot that is zero up to round-off (relative 1e-12 of the trace) gets
+    a zero column, so singular proposals (rank-2 motion noise) are sampled correctly. Scalars
+    only (an array argument would cost its reference counts at every call)."""
+    tiny = 1e-12 * max(c00 + c11 + c22, 1e-300)
+    d0 = c00
     ok0 = d0 > tiny
-    l10 = cov[1, 0] / d0 if ok0 else 0.0
-    l20 = cov[2, 0] / d0 if ok0 else 0.0
-    d1 = cov[1, 1] - l10 * l10 * d0
+    l10 = c10 / d0 if ok0 else 0.0
+    l20 = c20 / d0 if ok0 else 0.0
+    d1 = c11 - l10 * l10 * d0
     ok1 = d1 > tiny
-    l21 = (cov[2, 1] - l20 * l10 * d0) / d1 if ok1 else 0.0
-    d2 = cov[2, 2] - l20 * l20 * d0 - l21 * l21 * d1
-    y0 = math.sqrt(d0) * normals[0] if ok0 else 0.0
-    y1 = math.sqrt(d1) * normals[1] if ok1 else 0.0
-    y2 = math.sqrt(d2) * normals[2] if d2 > tiny else 0.0
-    out[0] = y0
-    out[1] = l10 * y0 + y1
-    out[2] = l20 * y0 + l21 * y1 + y2
+    l21 = (c21 - l20 * l10 * d0) / d1 if ok1 else 0.0
+    d2 = c22 - l20 * l20 * d0 - l21 * l21 * d1
+    y0 = math.sqrt(d0) * n0 if ok0 else 0.0
+    y1 = math.sqrt(d1) * n1 if ok1 else 0.0
+    y2 = math.sqrt(d2) * n2 if d2 > tiny else 0.0
+    return y0, l10 * y0 + y1, l20 * y0 + l21 * y1 + y2
+
+
+@njit(cache=True, inline="always")
+def _draw_pose(pose, Pc, normals):
+    """The pose drawn from the proposal ``N(pose, Pc)`` with the normals (3,), in place (heading
+    wrapped), and ``Pc`` zeroed (FS2)."""
+    s0, s1, s2 = _ldl_draw(Pc[0, 0], Pc[1, 0], Pc[1, 1], Pc[2, 0], Pc[2, 1], Pc[2, 2],
+                           normals[0], normals[1], normals[2])
+    pose[0] += s0
+    pose[1] += s1
+    pose[2] = _wrap(pose[2] + s2)
+    Pc[:, :] = 0.0
 
 
 @njit(cache=True, inline="always")
@@ -378,19 +389,17 @@ def _new_feature(pose, zr, zb, r_var, b_var):
 
 
 @njit(cache=True)
-def _visibility(pose, Pc, mx, my, sxx, sxy, syy, max_range_m, fov_rad):
-    """Probability that a feature lies inside the sensor's range: ``Phi((r_max - r) /
-    sigma_r)`` with ``sigma_r^2`` the radial variance of feature and proposal position; a
-    limited field of view is a hard bearing test on the mean (module doc of filters.fastslam)."""
-    dx = mx - pose[0]
-    dy = my - pose[1]
+def _visibility(dx, dy, heading, cxx, cxy, cyy, max_range_m, fov_rad):
+    """Probability that a feature at ``(dx, dy)`` from the pose lies inside the sensor's range:
+    ``Phi((r_max - r) / sigma_r)`` with ``sigma_r^2`` the radial variance of the sum ``[[cxx, cxy],
+    [cxy, cyy]]`` of the feature's and the proposal's position covariances; a limited field of
+    view is a hard bearing test on the mean against ``heading`` (module doc of filters.fastslam).
+    Scalars only: an array argument would cost its reference counts at every call."""
     q = max(dx * dx + dy * dy, 1e-12)
     r = math.sqrt(q)
-    if fov_rad < _TWO_PI and abs(_wrap(math.atan2(dy, dx) - pose[2])) > 0.5 * fov_rad:
+    if fov_rad < _TWO_PI and abs(_wrap(math.atan2(dy, dx) - heading)) > 0.5 * fov_rad:
         return 0.0
-    radial = (
-        dx * dx * (sxx + Pc[0, 0]) + 2.0 * dx * dy * (sxy + Pc[0, 1]) + dy * dy * (syy + Pc[1, 1])
-    ) / q
+    radial = (dx * dx * cxx + 2.0 * dx * dy * cxy + dy * dy * cyy) / q
     sigma = math.sqrt(max(radial, 0.0)) + 1e-9
     margin = (max_range_m - r) / sigma
     if margin > 8.5:  # Phi(8.5) = 1 - 1e-17: 1 in double precision
@@ -435,14 +444,9 @@ def propagate(state, v, omega, dt, Q):
 def draw_poses(state, normals):
     """Draw every particle's pose from its proposal ``N(x, P)`` and zero ``P`` (in place;
     FS2)."""
-    step = np.empty(3)
-    for p in range(state.poses.shape[0]):
-        _ldl_draw(state.prop_cov[p], normals[p], step)
-        pose = state.poses[p]
-        pose[0] += step[0]
-        pose[1] += step[1]
-        pose[2] = _wrap(pose[2] + step[2])
-        state.prop_cov[p, :, :] = 0.0
+    poses, prop_cov = state.poses, state.prop_cov
+    for p in range(poses.shape[0]):
+        _draw_pose(poses[p], prop_cov[p], normals[p])
 
 
 @njit(cache=True)
@@ -522,7 +526,6 @@ def scan_update(state, z, known_cids, draws, model, out):
     feature_std = np.empty(n_hi)  # sqrt(trace) of each feature's covariance, for the pre-gate
     gate_areas = np.empty(K)
     new_existence = np.empty(K)
-    step = np.empty(3)
     scratch = np.empty((4, 3))
     for p in range(P):
         pose = poses[p]
@@ -537,8 +540,9 @@ def scan_update(state, z, known_cids, draws, model, out):
                 ratio[j] = 0.0
                 continue
             feature_std[j] = math.sqrt(sxx[p, j] + syy[p, j])
-            p_vis[j] = _visibility(pose, Pc, mx[p, j], my[p, j], sxx[p, j], sxy[p, j], syy[p, j],
-                                   max_range_m, fov_rad)
+            p_vis[j] = _visibility(mx[p, j] - pose[0], my[p, j] - pose[1], pose[2],
+                                   sxx[p, j] + Pc[0, 0], sxy[p, j] + Pc[0, 1],
+                                   syy[p, j] + Pc[1, 1], max_range_m, fov_rad)
             seen = alpha * ex[p, j] * p_vis[j]
             logw[p] += math.log(1.0 - seen)
             ratio[j] = seen / (1.0 - seen)
@@ -645,11 +649,7 @@ def scan_update(state, z, known_cids, draws, model, out):
             logw_after[k, p] = logw[p]
 
         # --- draw the pose from the refined proposal, then existence and map at that pose
-        _ldl_draw(Pc, normals[p], step)
-        pose[0] += step[0]
-        pose[1] += step[1]
-        pose[2] = _wrap(pose[2] + step[2])
-        Pc[:, :] = 0.0
+        _draw_pose(pose, Pc, normals[p])
         p_fa_miss = existence_false_alarm_one(literal_beta, beta, n_vis, area_r, max_range_m,
                                               fov_rad)
         for j in range(n):  # the miss update of BB (11) for every feature not associated
