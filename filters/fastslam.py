@@ -198,11 +198,23 @@ _TWO_PI = 2.0 * np.pi
 
 _NO_KNOWN_IDS = np.zeros(0, dtype=np.int64)  # DAS (writable: one compiled signature for both)
 _NO_SCAN = np.zeros((0, 2))
+_NO_SCAN.flags.writeable = False  # as a stream's scans (read_only): one compiled signature
 _NO_NORMALS = np.zeros((0, 3))
 _NO_TRUTH = np.full(3, np.nan)
 _NO_COLUMNS = np.zeros((0, 2), dtype=np.int64)
 _NO_COLUMNS.flags.writeable = False  # as a back-end's feature_cols(): one compiled signature
 _ZERO_Q = np.zeros((2, 2))
+
+
+def read_only(a: np.ndarray) -> np.ndarray:
+    """``a`` as a read-only array (a read-only view of a writable one): numba compiles a
+    function once per argument type, and a read-only array is a type of its own, so the arrays
+    that reach the compiled iteration read-only from some callers (a stream's scans, a
+    back-end's feature columns) are made so for all (a copied env's are writable)."""
+    if a.flags.writeable:
+        a = a.view()
+        a.flags.writeable = False
+    return a
 
 
 def own_frame() -> GlobalFrame:
@@ -644,7 +656,7 @@ class FastSLAM2:
                                       pending_draw, heading is not None and not pending, scanned)
         step = IterationInput(float(u[0]), float(u[1]), dt,
                               self._motion_noise(u, dt) if dt > 0.0 else _ZERO_Q, theta, var,
-                              scanned, z, known_cids)
+                              scanned, read_only(z), known_cids)
         truth = _NO_TRUTH if truth_pose is None else np.asarray(truth_pose, dtype=float)
         flags = (self._pending, self.ids.next_id, (self._steps + 1) % self.cull_interval_steps == 0,
                  self.lineage_correction, self.small_sample_correction)

@@ -43,7 +43,7 @@ from filters.back_ends import (
 )
 from filters.blas import DEFAULT_BLAS_THREADS, check_blas_threads
 from filters.existence import CONFIRMED_PROBABILITY
-from filters.fastslam import own_frame
+from filters.fastslam import own_frame, read_only
 from filters.fastslam_kernel import GlobalFrame
 from filters.geometry import transform_point, wrap_angle
 from filters.global_frame import (
@@ -229,7 +229,7 @@ class SubmapSLAM:
         if z is None or len(z) == 0 or g.n_features == 0:
             return own_frame()._replace(origin=v, origin_cov=P_v)
         return GlobalFrame(v, P_v, np.asarray(g.x, dtype=float), np.asarray(g.P, dtype=float),
-                           g.feature_cols(), self.closure_radius_m)
+                           read_only(g.feature_cols()), self.closure_radius_m)
 
     def _compose_with_origin(self):
         """``(v- (+) x_v^L, its covariance, J_a)``; computed once per state (every method that
