@@ -14,7 +14,10 @@ the next one is associated with, then the votes, ids, clutter rate, culling, the
 resampling test and the resampling) run compiled, the scan in one call
 (:func:`filters.fastslam_kernel.update_iteration`; the reasons and the measured gains are given
 there and in docs/PERFORMANCE.md); the random draws come from the generator of each purpose
-(:mod:`filters.draws`) and are handed over in blocks.
+(:mod:`filters.draws`) and are handed over in blocks. :meth:`FastSLAM2.run_iteration` runs a
+whole iteration (prediction, compass, scan, pose moments and, given the frame the local map sits
+in, the innovation ratio, the global pose and its NEES) in one compiled call
+(:func:`filters.fastslam_kernel.iteration`, issue 47): what the env steps through.
 
 One filter iteration
 --------------------
@@ -158,9 +161,15 @@ from filters.draws import as_draws
 from filters.existence import CONFIRMED_PROBABILITY, validate_existence_model
 from filters.fastslam_kernel import (
     FilterModel,
+    GlobalFrame,
+    IterationDraws,
+    IterationInput,
+    IterationResult,
     ParticleState,
     ScanDraws,
     call_draw_poses,
+    call_heading_update,
+    call_iteration,
     call_local_pose,
     call_propagate,
     call_systematic_resample,
@@ -170,7 +179,6 @@ from filters.fastslam_kernel import (
     new_state,
     normalise_weights,
 )
-from filters.geometry import wrap_angle
 from filters.models import ClutterModel, RangeBearingSensor
 from filters.types import FeatureIds, GaussianMap, LandmarkEstimate
 from filters.validation import check_range, require
@@ -189,6 +197,30 @@ _TWO_PI = 2.0 * np.pi
 
 
 _NO_KNOWN_IDS = np.zeros(0, dtype=np.int64)  # DAS (writable: one compiled signature for both)
+_NO_SCAN = np.zeros((0, 2))
+_NO_SCAN.flags.writeable = False  # as a stream's scans (read_only): one compiled signature
+_NO_NORMALS = np.zeros((0, 3))
+_NO_TRUTH = np.full(3, np.nan)
+_NO_COLUMNS = np.zeros((0, 2), dtype=np.int64)
+_NO_COLUMNS.flags.writeable = False  # as a back-end's feature_cols(): one compiled signature
+_ZERO_Q = np.zeros((2, 2))
+
+
+def read_only(a: np.ndarray) -> np.ndarray:
+    """``a`` as a read-only array (a read-only view of a writable one): numba compiles a
+    function once per argument type, and a read-only array is a type of its own, so the arrays
+    that reach the compiled iteration read-only from some callers (a stream's scans, a
+    back-end's feature columns) are made so for all (a copied env's are writable)."""
+    if a.flags.writeable:
+        a = a.view()
+        a.flags.writeable = False
+    return a
+
+
+def own_frame() -> GlobalFrame:
+    """The frame of a front-end alone: its origin at zero, known exactly, no global features."""
+    return GlobalFrame(np.zeros(3), np.zeros((3, 3)), np.zeros(0), np.zeros((0, 0)),
+                       _NO_COLUMNS, 0.0)
 
 
 _NOT_FINITE, _NEGATIVE_RANGE = 1, 2
@@ -206,6 +238,25 @@ def _scan_problem(z):
         if not z[k, 0] >= 0.0:
             return _NEGATIVE_RANGE
     return 0
+
+
+def _checked_motion(u, dt):
+    """``(u, dt)`` as a finite ``(v, omega)`` array and a float in [0, 1e6]; ``ValueError``
+    naming the argument otherwise."""
+    u = np.asarray(u, dtype=float)
+    require(u.shape == (2,) and math.isfinite(u[0]) and math.isfinite(u[1]), "u", u,
+            "a finite (v, omega)")
+    dt = float(dt)
+    check_range("dt", dt, 0.0, 1e6)
+    return u, dt
+
+
+def _checked_heading(theta, std_rad):
+    """A compass reading ``(theta, std_rad)`` as ``(theta, variance)``, validated."""
+    theta, std_rad = float(theta), float(std_rad)
+    check_range("theta", theta, -1e3, 1e3)
+    check_range("std_rad", std_rad, 0.0, 10.0, low_open=True)
+    return theta, std_rad**2
 
 
 class FastSLAM2:
@@ -365,6 +416,7 @@ class FastSLAM2:
         self._initial_capacity = int(initial_capacity)
         self._capacity = self._initial_capacity
         self._state = None
+        self._spare = None
         self.lineage_correction = bool(lineage_correction)
         self.small_sample_correction = bool(small_sample_correction)
         self._reset(pose0)
@@ -454,23 +506,25 @@ class FastSLAM2:
     # ------------------------------------------------------------------ prediction
     def predict(self, u, dt):
         """Motion prediction: proposal prior N(f(v, u), J_u Q J_u^T) for every particle (FS2)."""
-        u = np.asarray(u, dtype=float)
-        require(u.shape == (2,) and math.isfinite(u[0]) and math.isfinite(u[1]), "u", u,
-                "a finite (v, omega)")
-        dt = float(dt)
-        check_range("dt", dt, 0.0, 1e6)
+        u, dt = _checked_motion(u, dt)
         if dt == 0.0:  # no time elapsed, no motion (e.g. a scan at the start pose)
             return
         if self._pending:
             self._sample_pending()
             self._maybe_resample("resample_after_pending")
-        Q = np.ascontiguousarray(self.odometry_noise.covariance(u, dt), dtype=float)
-        call_propagate(self._state, float(u[0]), float(u[1]), dt, Q)
+        call_propagate(self._state, float(u[0]), float(u[1]), dt, self._motion_noise(u, dt))
         self._pending = True
-        self._age_s += dt
-        self._distance_m += abs(float(u[0])) * dt
+        self._moved(u, dt)
         # the poses moved, the weights did not: only their normalisation outlives the prediction
         self._outputs = {k: v for k, v in self._outputs.items() if k == "weights"}
+
+    def _motion_noise(self, u, dt) -> np.ndarray:
+        """Q = ``odometry_noise.covariance(u, dt)`` (2, 2), contiguous."""
+        return np.ascontiguousarray(self.odometry_noise.covariance(u, dt), dtype=float)
+
+    def _moved(self, u, dt) -> None:
+        self._age_s += dt
+        self._distance_m += abs(float(u[0])) * dt
 
     def _sample_pending(self):
         """Draw every particle's pose from its proposal N(x, P) (FS2)."""
@@ -485,25 +539,9 @@ class FastSLAM2:
         update ``x += P e3 nu / s``, ``P -= P e3 e3^T P / s``, ``s = P_tt + std^2``, and weights by
         ``N(nu; 0, s)``; after ``update`` it can only weight by ``N(theta - theta^p; 0, std^2)``.
         """
-        theta, std_rad = float(theta), float(std_rad)
-        check_range("theta", theta, -1e3, 1e3)
-        check_range("std_rad", std_rad, 0.0, 10.0, low_open=True)
-        var = std_rad**2
-        state = self._state
-        nu = wrap_angle(theta - state.poses[:, 2])
+        theta, var = _checked_heading(theta, std_rad)
         self._outputs = {}
-        if self._pending:
-            Pc = state.prop_cov
-            s = Pc[:, 2, 2] + var
-            k = Pc[:, :, 2] / s[:, None]
-            state.poses[:] += k * nu[:, None]
-            state.poses[:, 2] = wrap_angle(state.poses[:, 2])
-            Pc = Pc - k[:, :, None] * Pc[:, None, 2, :]
-            state.prop_cov[:] = 0.5 * (Pc + np.swapaxes(Pc, 1, 2))
-        else:
-            s = np.full(self.n_particles, var)
-        state.logw[:] += -0.5 * nu * nu / s - 0.5 * np.log(_TWO_PI * s)
-        state.logw[:] -= state.logw.max()
+        call_heading_update(self._state, theta, var, self._pending)
         if not self._pending:
             self._maybe_resample("resample_after_heading")
 
@@ -524,17 +562,8 @@ class FastSLAM2:
         ``association``, ``scan_pose`` and ``resample_after_scan`` (drawn whether or not the
         weights call for resampling: the kernel decides).
         """
-        z = np.asarray(z, dtype=float).reshape(-1, 2) if np.size(z) else np.zeros((0, 2))
-        problem = _scan_problem(z)
-        require(problem != _NOT_FINITE, "z", z, "finite range-bearing pairs (K, 2)")
-        require(problem != _NEGATIVE_RANGE, "z", z, "ranges >= 0")
+        z, known_cids = self._checked_scan(z, associations)
         K, P = len(z), self.n_particles
-        known_cids = _NO_KNOWN_IDS
-        if associations is not None:
-            known = np.asarray(associations, dtype=np.int64).reshape(-1)
-            require(len(known) == K, "associations", associations, f"length {K} like z")
-            require(bool(np.all(known >= -1)), "associations", associations, "labels >= -1")
-            known_cids = np.array([self._label_id(int(label)) for label in known], dtype=np.int64)
         self._grow(int(self._state.count.max()) + K)
         state = self._state
         if not self._pending:
@@ -561,16 +590,112 @@ class FastSLAM2:
             (self._steps + 1) % self.cull_interval_steps == 0, weights, spare,
         )
         self._pending = False
-        if result.n_new_ids:
-            self.ids.new(result.n_new_ids)  # the ids the kernel gave, now taken from the source
-        self._steps += 1
         self._ess_ratio = float(result.ess_ratio)
         if result.resampled:
-            self._state = spare
+            self._take_spare()
+        self._scanned(result.winners, result.margins, result.n_new_ids, out)
         self._outputs = {"weights": weights}
-        self.last_associations = result.winners
+
+    def _scanned(self, winners, margins, n_new_ids, out) -> None:
+        """The filter's records of a scan the kernel processed."""
+        if n_new_ids:
+            self.ids.new(n_new_ids)  # the ids the kernel gave, now taken from the source
+        self._steps += 1
+        self.last_associations = winners
         self.last_votes = out.votes
-        self._vote_margins = result.margins
+        self._vote_margins = margins
+
+    def _checked_scan(self, z, associations):
+        """``z`` as a valid (K, 2) array and the common ids of the known ``associations``
+        (empty for DAS); ``ValueError`` naming the argument otherwise."""
+        z = np.asarray(z, dtype=float).reshape(-1, 2) if np.size(z) else np.zeros((0, 2))
+        problem = _scan_problem(z)
+        require(problem != _NOT_FINITE, "z", z, "finite range-bearing pairs (K, 2)")
+        require(problem != _NEGATIVE_RANGE, "z", z, "ranges >= 0")
+        if associations is None:
+            return z, _NO_KNOWN_IDS
+        known = np.asarray(associations, dtype=np.int64).reshape(-1)
+        require(len(known) == len(z), "associations", associations, f"length {len(z)} like z")
+        require(bool(np.all(known >= -1)), "associations", associations, "labels >= -1")
+        return z, np.array([self._label_id(int(label)) for label in known], dtype=np.int64)
+
+    # ------------------------------------------------------------------ the whole iteration
+    def iterate(self, u, dt, z=None, *, heading=None, truth_pose=None):
+        """One filter iteration of the filter alone (:meth:`run_iteration` in its own frame):
+        ``(mean, cov, nees, position_error_m)`` of the pose, as
+        :meth:`filters.submap.SubmapSLAM.iterate` returns them."""
+        result = self.run_iteration(u, dt, z, heading=heading, truth_pose=truth_pose)
+        return result.mean.copy(), result.cov.copy(), float(result.nees), float(
+            result.position_error_m)
+
+    def run_iteration(self, u, dt, z=None, *, heading=None, associations=None, frame=None,
+                      truth_pose=None) -> IterationResult:
+        """One filter iteration in one compiled call (:func:`filters.fastslam_kernel.iteration`):
+        what ``predict(u, dt)``, ``update_heading(*heading)`` (``heading`` = ``(theta,
+        std_rad)`` in the local frame, or None), ``update(z, associations)`` (``z`` None: no
+        scan) and :meth:`pose` do, and besides, with the :class:`GlobalFrame` ``frame`` (None:
+        :func:`own_frame`) the local map sits in, CM's innovation ratio of the scan against the
+        prior and the global pose, and that pose's NEES and position error against
+        ``truth_pose`` (None: NaN). Returns the :class:`IterationResult`.
+
+        The random numbers are those of the separate calls, each role's block drawn from its
+        generator before the call (:meth:`_iteration_draws`): with a synchronised source the
+        same numbers; with one ordered stream another order of the same distribution (every
+        resampling uniform the iteration might use is drawn).
+        """
+        u, dt = _checked_motion(u, dt)
+        scanned = z is not None
+        z, known_cids = self._checked_scan(z, associations) if scanned else (_NO_SCAN,
+                                                                             _NO_KNOWN_IDS)
+        theta, var = _checked_heading(*heading) if heading is not None else (np.nan, np.nan)
+        pending_draw = self._pending and dt > 0.0
+        pending = self._pending or dt > 0.0  # the proposal is pending after the prediction
+        if scanned:
+            self._grow(int(self._state.count.max()) + len(z))
+        draws = self._iteration_draws(len(z) if scanned and associations is None else 0,
+                                      pending_draw, heading is not None and not pending, scanned)
+        step = IterationInput(float(u[0]), float(u[1]), dt,
+                              self._motion_noise(u, dt) if dt > 0.0 else _ZERO_Q, theta, var,
+                              scanned, read_only(z), known_cids)
+        truth = _NO_TRUTH if truth_pose is None else np.asarray(truth_pose, dtype=float)
+        flags = (self._pending, self.ids.next_id, (self._steps + 1) % self.cull_interval_steps == 0,
+                 self.lineage_correction, self.small_sample_correction)
+        out = new_outputs(len(z), self.n_particles)
+        weights = np.empty(self.n_particles)
+        result = call_iteration(self._state, self._spare_state(), step, draws, self._model,
+                                own_frame() if frame is None else frame, truth, flags, out,
+                                weights)
+        if result.swaps % 2:
+            self._take_spare()
+        if dt > 0.0:
+            self._moved(u, dt)
+        if not math.isnan(result.ess_ratio):
+            self._ess_ratio = float(result.ess_ratio)
+        if scanned:
+            self._scanned(result.winners, result.margins, result.n_new_ids, out)
+        self._pending = pending and not scanned
+        key = ("pose", self.lineage_correction, self.small_sample_correction)
+        self._outputs = {"weights": weights, key: (result.local_mean, result.local_cov)}
+        return result
+
+    def _iteration_draws(self, n_uniform_rows, pending, heading, scanned) -> IterationDraws:
+        """The iteration's random numbers (:class:`filters.fastslam_kernel.IterationDraws`), each
+        role's block from its generator (:mod:`filters.draws`), drawn where the iteration may use
+        it: the pending pose and its resampling's uniform when a proposal is pending; the heading
+        resampling's uniform after a compass reading that comes after the pose draw; the DAS
+        uniforms (``n_uniform_rows`` rows: none under known association), the scan's pose draw
+        and its resampling uniform with a scan."""
+        generator, P = self.draws.generator, self.n_particles
+        return IterationDraws(
+            pending_normals=(generator("pending_pose").standard_normal((P, 3)) if pending
+                             else _NO_NORMALS),
+            pending_offset=generator("resample_after_pending").random() if pending else 0.0,
+            heading_offset=generator("resample_after_heading").random() if heading else 0.0,
+            uniforms=(generator("association").random((n_uniform_rows, P)) if n_uniform_rows
+                      else np.zeros((0, P))),
+            normals=generator("scan_pose").standard_normal((P, 3)) if scanned else _NO_NORMALS,
+            resample_offset=generator("resample_after_scan").random() if scanned else 0.0,
+        )
 
     @property
     def rng(self) -> np.random.Generator:
@@ -588,10 +713,27 @@ class FastSLAM2:
 
     def _spare_state(self) -> ParticleState:
         """A state of the current shapes for the resampling to gather into (it shares the
-        clutter sums, which belong to the filter, not to the particles)."""
-        state = self._state
-        return ParticleState(*(np.empty_like(a) for a in state))._replace(
-            clutter_sums=state.clutter_sums)
+        clutter sums, which belong to the filter, not to the particles): kept from one
+        resampling to the next (:meth:`_take_spare` swaps the two), made anew when the shapes
+        changed."""
+        state, spare = self._state, self._spare
+        if (spare is None or spare.clutter_sums is not state.clutter_sums
+                or spare.mx.shape != state.mx.shape):
+            spare = ParticleState(*(np.empty_like(a) for a in state))._replace(
+                clutter_sums=state.clutter_sums)
+            self._spare = spare
+        return spare
+
+    def __getstate__(self):
+        """What a copy or a pickle keeps: everything but the resampling's spare state (work
+        space, made anew when needed), so a copy of the filter costs what it did before."""
+        state = self.__dict__.copy()
+        state["_spare"] = None
+        return state
+
+    def _take_spare(self) -> None:
+        """The spare, into which a resampling gathered the particles, becomes the state."""
+        self._state, self._spare = self._spare, self._state
 
     def _maybe_resample(self, role: str):
         """Systematic resampling when N_eff < resample_threshold * P (compiled:
@@ -604,10 +746,9 @@ class FastSLAM2:
                                                 self.resample_threshold)
         self._ess_ratio = float(ess_ratio)
         if resample:
-            spare = self._spare_state()
             offset = self.draws.generator(role).random()
-            call_systematic_resample(self._state, weights, offset, spare)
-            self._state = spare
+            call_systematic_resample(self._state, weights, offset, self._spare_state())
+            self._take_spare()
             self._outputs = {}
         self._outputs["weights"] = weights
 

@@ -15,7 +15,12 @@ which this module follows line by line:
 * :func:`finish_scan`: the correspondence votes (BB 3.1), the ids, the clutter rate and culling;
 * :func:`normalise_weights`, :func:`systematic_resample`: the weights, the resampling test and
   the resampling;
-* :func:`update_iteration`: all of the scan's work above in one compiled call.
+* :func:`update_iteration`: all of the scan's work above in one compiled call;
+* :func:`heading_update`: a compass reading (the FS2 proposal refined, or the weights alone);
+* :func:`iteration`: one whole filter iteration in one compiled call (issue 47): the pending pose
+  draw, the prediction, the compass, CM's innovation ratio against the prior, the scan, the
+  local pose's moments, the pose composed with the local map's origin and its NEES against the
+  truth (:mod:`filters.global_frame`).
 
 Why compiled: vectorised over the particles with numpy, every observation cost some hundred
 array operations of a few microseconds each whatever the particle count (docs/PERFORMANCE.md,
@@ -54,6 +59,7 @@ from filters.existence import (
     miss_update_one,
 )
 from filters.geometry import wrap_angle_one as _wrap
+from filters.global_frame import compose_with_covariance, nearest_global_innovations, pose_metrics
 
 _TWO_PI = 2.0 * math.pi
 _SQRT_HALF = math.sqrt(0.5)
@@ -178,6 +184,78 @@ class ScanResult(NamedTuple):
     ess_ratio: float
 
 
+class IterationInput(NamedTuple):
+    """What one filter iteration is given: the odometry ``(v, omega)`` over ``dt`` seconds and its
+    covariance ``Q`` (2, 2), a compass heading in the local frame with its variance (NaN: no
+    reading), and the scan ``z`` (K, 2) with ``known_cids`` as :func:`scan_update` takes them;
+    ``scanned`` False for an iteration without a scan (``z`` then empty)."""
+
+    v: float
+    omega: float
+    dt: float
+    Q: np.ndarray
+    heading: float
+    heading_var: float
+    scanned: bool
+    z: np.ndarray
+    known_cids: np.ndarray
+
+
+class IterationDraws(NamedTuple):
+    """The random numbers of one filter iteration, one block per role of
+    :data:`filters.draws.ROLES`: ``pending_normals`` (P, 3) the pose draw of a proposal left by
+    an iteration without a scan (``pending_pose``; empty when there is none), the resampling
+    uniforms after it (``resample_after_pending``) and after a compass reading that came after
+    the pose was drawn (``resample_after_heading``), then the scan's :class:`ScanDraws` fields
+    (``association``, ``scan_pose``, ``resample_after_scan``). A uniform is used only where the
+    weights call for a resampling."""
+
+    pending_normals: np.ndarray
+    pending_offset: float
+    heading_offset: float
+    uniforms: np.ndarray
+    normals: np.ndarray
+    resample_offset: float
+
+
+class GlobalFrame(NamedTuple):
+    """Where the local map sits (BB Fig. 3): its origin ``v-`` (3,) with covariance (3, 3), and
+    the global map CM's innovation ratio tests the scan against (CM III.B): the back-end's state
+    ``x``, covariance ``P``, its features' columns ``cols`` (N, 2) (none: no ratio) and the
+    search radius (:func:`filters.global_frame.nearest_global_innovations`). A front-end alone
+    sits at a zero origin known exactly, with no global features."""
+
+    origin: np.ndarray
+    origin_cov: np.ndarray
+    x: np.ndarray
+    P: np.ndarray
+    cols: np.ndarray
+    radius_m: float
+
+
+class IterationResult(NamedTuple):
+    """:func:`iteration`'s answer: how often the state and the spare swapped (an odd count: the
+    spare holds the state), CM's innovation ratio of the scan against the prior (0 without global
+    features), the scan's winners and margins (K,) and fresh ids, ``N_eff / P`` of the last
+    resampling test (NaN: none ran), the local pose's moments, the global pose's (the local one
+    composed with the origin) and ``J_a``, its NEES and position error against the truth (NaN
+    without truth)."""
+
+    swaps: int
+    innovation_ratio: float
+    winners: np.ndarray
+    margins: np.ndarray
+    n_new_ids: int
+    ess_ratio: float
+    local_mean: np.ndarray
+    local_cov: np.ndarray
+    mean: np.ndarray
+    cov: np.ndarray
+    J_a: np.ndarray
+    nees: float
+    position_error_m: float
+
+
 # --------------------------------------------------------------------------- scalar equations
 @njit(cache=True, inline="always")
 def _innovation(zr, zb, pose, mx, my):
@@ -239,25 +317,36 @@ def _refine(pose, Pc, t, scratch):
 
 
 @njit(cache=True)
-def _ldl_draw(cov, normals, out):
-    """``out = L sqrt(D) n`` for a PSD ``cov`` (3, 3) via a guarded LDL^T: a pivot that is zero
-    up to round-off (relative 1e-12 of the trace) gets a zero column, so singular proposals
-    (rank-2 motion noise) are sampled correctly."""
-    tiny = 1e-12 * max(cov[0, 0] + cov[1, 1] + cov[2, 2], 1e-300)
-    d0 = cov[0, 0]
+def _ldl_draw(c00, c10, c11, c20, c21, c22, n0, n1, n2):
+    """``L sqrt(D) n`` for a PSD covariance (the lower triangle ``c``) and standard normals ``n``
+    via a guarded LDL^T: a pivot that is zero up to round-off (relative 1e-12 of the trace) gets
+    a zero column, so singular proposals (rank-2 motion noise) are sampled correctly. Scalars
+    only (an array argument would cost its reference counts at every call)."""
+    tiny = 1e-12 * max(c00 + c11 + c22, 1e-300)
+    d0 = c00
     ok0 = d0 > tiny
-    l10 = cov[1, 0] / d0 if ok0 else 0.0
-    l20 = cov[2, 0] / d0 if ok0 else 0.0
-    d1 = cov[1, 1] - l10 * l10 * d0
+    l10 = c10 / d0 if ok0 else 0.0
+    l20 = c20 / d0 if ok0 else 0.0
+    d1 = c11 - l10 * l10 * d0
     ok1 = d1 > tiny
-    l21 = (cov[2, 1] - l20 * l10 * d0) / d1 if ok1 else 0.0
-    d2 = cov[2, 2] - l20 * l20 * d0 - l21 * l21 * d1
-    y0 = math.sqrt(d0) * normals[0] if ok0 else 0.0
-    y1 = math.sqrt(d1) * normals[1] if ok1 else 0.0
-    y2 = math.sqrt(d2) * normals[2] if d2 > tiny else 0.0
-    out[0] = y0
-    out[1] = l10 * y0 + y1
-    out[2] = l20 * y0 + l21 * y1 + y2
+    l21 = (c21 - l20 * l10 * d0) / d1 if ok1 else 0.0
+    d2 = c22 - l20 * l20 * d0 - l21 * l21 * d1
+    y0 = math.sqrt(d0) * n0 if ok0 else 0.0
+    y1 = math.sqrt(d1) * n1 if ok1 else 0.0
+    y2 = math.sqrt(d2) * n2 if d2 > tiny else 0.0
+    return y0, l10 * y0 + y1, l20 * y0 + l21 * y1 + y2
+
+
+@njit(cache=True, inline="always")
+def _draw_pose(pose, Pc, normals):
+    """The pose drawn from the proposal ``N(pose, Pc)`` with the normals (3,), in place (heading
+    wrapped), and ``Pc`` zeroed (FS2)."""
+    s0, s1, s2 = _ldl_draw(Pc[0, 0], Pc[1, 0], Pc[1, 1], Pc[2, 0], Pc[2, 1], Pc[2, 2],
+                           normals[0], normals[1], normals[2])
+    pose[0] += s0
+    pose[1] += s1
+    pose[2] = _wrap(pose[2] + s2)
+    Pc[:, :] = 0.0
 
 
 @njit(cache=True, inline="always")
@@ -300,19 +389,17 @@ def _new_feature(pose, zr, zb, r_var, b_var):
 
 
 @njit(cache=True)
-def _visibility(pose, Pc, mx, my, sxx, sxy, syy, max_range_m, fov_rad):
-    """Probability that a feature lies inside the sensor's range: ``Phi((r_max - r) /
-    sigma_r)`` with ``sigma_r^2`` the radial variance of feature and proposal position; a
-    limited field of view is a hard bearing test on the mean (module doc of filters.fastslam)."""
-    dx = mx - pose[0]
-    dy = my - pose[1]
+def _visibility(dx, dy, heading, cxx, cxy, cyy, max_range_m, fov_rad):
+    """Probability that a feature at ``(dx, dy)`` from the pose lies inside the sensor's range:
+    ``Phi((r_max - r) / sigma_r)`` with ``sigma_r^2`` the radial variance of the sum ``[[cxx, cxy],
+    [cxy, cyy]]`` of the feature's and the proposal's position covariances; a limited field of
+    view is a hard bearing test on the mean against ``heading`` (module doc of filters.fastslam).
+    Scalars only: an array argument would cost its reference counts at every call."""
     q = max(dx * dx + dy * dy, 1e-12)
     r = math.sqrt(q)
-    if fov_rad < _TWO_PI and abs(_wrap(math.atan2(dy, dx) - pose[2])) > 0.5 * fov_rad:
+    if fov_rad < _TWO_PI and abs(_wrap(math.atan2(dy, dx) - heading)) > 0.5 * fov_rad:
         return 0.0
-    radial = (
-        dx * dx * (sxx + Pc[0, 0]) + 2.0 * dx * dy * (sxy + Pc[0, 1]) + dy * dy * (syy + Pc[1, 1])
-    ) / q
+    radial = (dx * dx * cxx + 2.0 * dx * dy * cxy + dy * dy * cyy) / q
     sigma = math.sqrt(max(radial, 0.0)) + 1e-9
     margin = (max_range_m - r) / sigma
     if margin > 8.5:  # Phi(8.5) = 1 - 1e-17: 1 in double precision
@@ -357,14 +444,45 @@ def propagate(state, v, omega, dt, Q):
 def draw_poses(state, normals):
     """Draw every particle's pose from its proposal ``N(x, P)`` and zero ``P`` (in place;
     FS2)."""
-    step = np.empty(3)
-    for p in range(state.poses.shape[0]):
-        _ldl_draw(state.prop_cov[p], normals[p], step)
-        pose = state.poses[p]
-        pose[0] += step[0]
-        pose[1] += step[1]
-        pose[2] = _wrap(pose[2] + step[2])
-        state.prop_cov[p, :, :] = 0.0
+    poses, prop_cov = state.poses, state.prop_cov
+    for p in range(poses.shape[0]):
+        _draw_pose(poses[p], prop_cov[p], normals[p])
+
+
+@njit(cache=True)
+def heading_update(state, theta, var, pending):
+    """A compass reading ``theta`` (variance ``var``) of every particle's heading, in place
+    (:meth:`filters.fastslam.FastSLAM2.update_heading`). While the proposal is ``pending`` it is
+    refined by the scalar Kalman update ``x += P e3 nu / s``, ``P -= P e3 e3^T P / s`` (then
+    symmetrised), ``s = P_tt + var``, ``nu = theta - x_t`` wrapped, and the weight multiplied by
+    ``N(nu; 0, s)``; after the pose draw only the weight, with ``s = var``. The log weights are
+    shifted to a maximum of 0."""
+    poses, prop_cov, logw = state.poses, state.prop_cov, state.logw
+    k = np.empty(3)
+    for p in range(poses.shape[0]):
+        nu = _wrap(theta - poses[p, 2])
+        s = var
+        if pending:
+            Pc = prop_cov[p]
+            s = Pc[2, 2] + var
+            for i in range(3):
+                k[i] = Pc[i, 2] / s
+            poses[p, 0] += k[0] * nu
+            poses[p, 1] += k[1] * nu
+            poses[p, 2] = _wrap(poses[p, 2] + k[2] * nu)
+            r0, r1, r2 = Pc[2, 0], Pc[2, 1], Pc[2, 2]
+            for i in range(3):
+                Pc[i, 0] -= k[i] * r0
+                Pc[i, 1] -= k[i] * r1
+                Pc[i, 2] -= k[i] * r2
+            for i in range(3):
+                for j in range(i + 1, 3):
+                    Pc[i, j] = 0.5 * (Pc[i, j] + Pc[j, i])
+                    Pc[j, i] = Pc[i, j]
+        logw[p] += -0.5 * nu * nu / s - 0.5 * math.log(_TWO_PI * s)
+    top = logw.max()
+    for p in range(logw.shape[0]):
+        logw[p] -= top
 
 
 # --------------------------------------------------------------------------- the scan
@@ -408,7 +526,6 @@ def scan_update(state, z, known_cids, draws, model, out):
     feature_std = np.empty(n_hi)  # sqrt(trace) of each feature's covariance, for the pre-gate
     gate_areas = np.empty(K)
     new_existence = np.empty(K)
-    step = np.empty(3)
     scratch = np.empty((4, 3))
     for p in range(P):
         pose = poses[p]
@@ -423,8 +540,9 @@ def scan_update(state, z, known_cids, draws, model, out):
                 ratio[j] = 0.0
                 continue
             feature_std[j] = math.sqrt(sxx[p, j] + syy[p, j])
-            p_vis[j] = _visibility(pose, Pc, mx[p, j], my[p, j], sxx[p, j], sxy[p, j], syy[p, j],
-                                   max_range_m, fov_rad)
+            p_vis[j] = _visibility(mx[p, j] - pose[0], my[p, j] - pose[1], pose[2],
+                                   sxx[p, j] + Pc[0, 0], sxy[p, j] + Pc[0, 1],
+                                   syy[p, j] + Pc[1, 1], max_range_m, fov_rad)
             seen = alpha * ex[p, j] * p_vis[j]
             logw[p] += math.log(1.0 - seen)
             ratio[j] = seen / (1.0 - seen)
@@ -531,11 +649,7 @@ def scan_update(state, z, known_cids, draws, model, out):
             logw_after[k, p] = logw[p]
 
         # --- draw the pose from the refined proposal, then existence and map at that pose
-        _ldl_draw(Pc, normals[p], step)
-        pose[0] += step[0]
-        pose[1] += step[1]
-        pose[2] = _wrap(pose[2] + step[2])
-        Pc[:, :] = 0.0
+        _draw_pose(pose, Pc, normals[p])
         p_fa_miss = existence_false_alarm_one(literal_beta, beta, n_vis, area_r, max_range_m,
                                               fov_rad)
         for j in range(n):  # the miss update of BB (11) for every feature not associated
@@ -739,6 +853,16 @@ def systematic_resample(state, w, start, spare):
 
 
 @njit(cache=True)
+def _resample_if_called_for(state, spare, w, offset, model):
+    """The weights (into ``w``) and the resampling test; the resampling into ``spare`` when it
+    calls for it. Returns ``(resampled, N_eff / P)``."""
+    resample, ess_ratio = normalise_weights(state.logw, w, model.resample_threshold)
+    if resample:
+        systematic_resample(state, w, offset, spare)
+    return resample, ess_ratio
+
+
+@njit(cache=True)
 def update_iteration(state, z, known_cids, draws, model, out, next_id, cull, w, spare):
     """One scan's whole work in one compiled call: :func:`scan_update`, :func:`finish_scan`, the
     weights (into ``w``) and the resampling test, and the resampling into ``spare`` when the
@@ -746,9 +870,7 @@ def update_iteration(state, z, known_cids, draws, model, out, next_id, cull, w, 
     :class:`ScanResult`, in its order."""
     scan_update(state, z, known_cids, draws, model, out)
     winners, margins, n_new = finish_scan(state, out, known_cids, next_id, cull, model)
-    resample, ess_ratio = normalise_weights(state.logw, w, model.resample_threshold)
-    if resample:
-        systematic_resample(state, w, draws.resample_offset, spare)
+    resample, ess_ratio = _resample_if_called_for(state, spare, w, draws.resample_offset, model)
     # the fields of ScanResult (a plain tuple: boxing a named tuple costs an unpickling a call)
     return winners, margins, n_new, resample, ess_ratio
 
@@ -765,6 +887,82 @@ def local_pose(state, w, pending, lineage_correction, small_sample):
     return pose_moments_unchecked(state.poses, w, covs, lineage, lineage.shape[0], small_sample)
 
 
+# --------------------------------------------------------------------------- the iteration
+@njit(cache=True)
+def iteration(state, spare, step, draws, model, frame, truth_pose, flags, out, w):
+    """One filter iteration in one compiled call (module doc of filters.fastslam, "One filter
+    iteration"), in place; ``step``: :class:`IterationInput`, ``draws``:
+    :class:`IterationDraws`, ``frame``: :class:`GlobalFrame`, ``truth_pose`` (3,) (NaN: none),
+    ``flags``: ``(pending, next_id, cull, lineage_correction, small_sample)``, ``out``:
+    :class:`ScanOutputs` (K, P), ``w`` (P,) the normalised weights on return. In turn:
+
+    1. if time passed (``dt > 0``): a proposal left pending by an iteration without a scan is
+       drawn from (FS2) and the resampling test runs; then :func:`propagate`;
+    2. a compass reading: :func:`heading_update` (and the resampling test if the pose was drawn);
+    3. with a scan and global features: CM's innovation ratio ``||nu|| / (2 sigma)`` (CM III.B)
+       of the scan against the prior, the local pose composed with the origin;
+    4. the scan: :func:`update_iteration`;
+    5. the local pose's moments (BB (7), :func:`local_pose`), the global pose ``v- (+) x_v^L``
+       with covariance ``J_a P_v- J_a^T + J_b P_L J_b^T`` (BB Fig. 3) and its NEES and position
+       error against the truth (:func:`filters.global_frame.pose_metrics`).
+
+    Each resampling gathers into the other of ``state`` and ``spare``; the count of swaps says
+    which holds the state at the end. Returns the fields of :class:`IterationResult`."""
+    pending, next_id, cull, lineage_correction, small_sample = flags
+    swaps = 0
+    ess_ratio = np.nan
+    if step.dt > 0.0:
+        if pending:
+            draw_poses(state, draws.pending_normals)
+            resampled, ess_ratio = _resample_if_called_for(state, spare, w, draws.pending_offset,
+                                                           model)
+            if resampled:
+                state, spare = spare, state
+                swaps += 1
+        propagate(state, step.v, step.omega, step.dt, step.Q)
+        pending = True
+    if not math.isnan(step.heading):
+        heading_update(state, step.heading, step.heading_var, pending)
+        if not pending:
+            resampled, ess_ratio = _resample_if_called_for(state, spare, w, draws.heading_offset,
+                                                           model)
+            if resampled:
+                state, spare = spare, state
+                swaps += 1
+    ratio = 0.0
+    if step.scanned and step.z.shape[0] > 0 and frame.cols.shape[0] > 0:
+        normalise_weights(state.logw, w, 0.0)
+        prior_mean, prior_cov = local_pose(state, w, pending, lineage_correction, small_sample)
+        pose, sigma, J_a = compose_with_covariance(frame.origin, frame.origin_cov, prior_mean,
+                                                   prior_cov)
+        _, ratios = nearest_global_innovations(step.z, pose, sigma, J_a, frame.x, frame.P,
+                                               frame.cols, model.r_var, model.b_var,
+                                               frame.radius_m)
+        ratio = ratios.max()
+    winners = np.zeros(0, dtype=np.int64)
+    margins = np.zeros(0)
+    n_new = 0
+    if step.scanned:
+        if not pending:
+            state.prop_cov[:] = 0.0
+        winners, margins, n_new, resampled, ess_ratio = update_iteration(
+            state, step.z, step.known_cids,
+            ScanDraws(draws.uniforms, draws.normals, draws.resample_offset), model, out, next_id,
+            cull, w, spare)
+        if resampled:
+            state, spare = spare, state
+            swaps += 1
+        pending = False
+    else:
+        normalise_weights(state.logw, w, 0.0)
+    local_mean, local_cov = local_pose(state, w, pending, lineage_correction, small_sample)
+    mean, cov, J_a = compose_with_covariance(frame.origin, frame.origin_cov, local_mean,
+                                             local_cov)
+    nees, position_error = pose_metrics(truth_pose, mean, cov)
+    return (swaps, ratio, winners, margins, n_new, ess_ratio, local_mean, local_cov, mean, cov,
+            J_a, nees, position_error)
+
+
 # --------------------------------------------------------------------------- called from Python
 # numba types a plain tuple of arrays by a fast path and a named tuple by a slow one (~20 us a
 # call for the state's 14 arrays against ~6 us, measured on this machine kind): the named tuples
@@ -777,6 +975,11 @@ def _propagate_entry(state, v, omega, dt, Q):
 @njit(cache=True)
 def _draw_poses_entry(state, normals):
     draw_poses(ParticleState(*state), normals)
+
+
+@njit(cache=True)
+def _heading_update_entry(state, theta, var, pending):
+    heading_update(ParticleState(*state), theta, var, pending)
 
 
 @njit(cache=True)
@@ -806,6 +1009,11 @@ def call_draw_poses(state: ParticleState, normals) -> None:
     _draw_poses_entry(tuple(state), normals)
 
 
+def call_heading_update(state: ParticleState, theta, var, pending) -> None:
+    """:func:`heading_update` from Python."""
+    _heading_update_entry(tuple(state), theta, var, pending)
+
+
 def call_systematic_resample(state: ParticleState, w, start, spare: ParticleState) -> None:
     """:func:`systematic_resample` from Python."""
     _resample_entry(tuple(state), w, start, tuple(spare))
@@ -823,3 +1031,19 @@ def call_update_iteration(state: ParticleState, z, known_cids, draws: ScanDraws,
     return ScanResult(*_update_iteration_entry(tuple(state), z, known_cids, tuple(draws),
                                                tuple(model), tuple(out), next_id, cull, w,
                                                tuple(spare)))
+
+
+@njit(cache=True)
+def _iteration_entry(state, spare, step, draws, model, frame, truth_pose, flags, out, w):
+    return iteration(ParticleState(*state), ParticleState(*spare), IterationInput(*step),
+                     IterationDraws(*draws), FilterModel(*model), GlobalFrame(*frame),
+                     truth_pose, flags, ScanOutputs(*out), w)
+
+
+def call_iteration(state: ParticleState, spare: ParticleState, step: IterationInput,
+                   draws: IterationDraws, model: FilterModel, frame: GlobalFrame, truth_pose,
+                   flags, out: ScanOutputs, w) -> IterationResult:
+    """:func:`iteration` from Python."""
+    return IterationResult(*_iteration_entry(tuple(state), tuple(spare), tuple(step),
+                                             tuple(draws), tuple(model), tuple(frame), truth_pose,
+                                             flags, tuple(out), w))

@@ -29,7 +29,6 @@ import logging
 from dataclasses import dataclass, field
 
 import numpy as np
-from numba import njit
 
 from filters.association import DEFAULT_NODE_BUDGET, validate_gate_probability, validate_node_budget
 from filters.back_ends import (
@@ -44,7 +43,14 @@ from filters.back_ends import (
 )
 from filters.blas import DEFAULT_BLAS_THREADS, check_blas_threads
 from filters.existence import CONFIRMED_PROBABILITY
+from filters.fastslam import own_frame, read_only
+from filters.fastslam_kernel import GlobalFrame
 from filters.geometry import transform_point, wrap_angle
+from filters.global_frame import (
+    compose_with_covariance,
+    nearest_global_innovations,
+    stepwise_iteration,
+)
 from filters.interface_features import INTERFACE_FEATURE_NAMES
 from filters.models import observe
 from filters.optimiser import ROBUST_KERNELS
@@ -185,13 +191,53 @@ class SubmapSLAM:
         self.front_end.update_heading(float(wrap_angle(theta - v_theta)), std_rad)
         self._composed = None
 
+    def iterate(self, u, dt, z=None, *, heading=None, truth_pose=None):
+        """One filter iteration: what ``predict(u, dt)``, ``update_heading(*heading)``
+        (``heading`` = ``(theta, std_rad)``, global; None: no compass), ``update(z)`` (None: no
+        scan) and :meth:`pose` do, and the pose's NEES and position error against ``truth_pose``
+        (None: NaN). Returns ``(mean, cov, nees, position_error_m)``.
+
+        With a front-end that has a compiled iteration
+        (:meth:`filters.fastslam.FastSLAM2.run_iteration`)
+        all of it, the innovation ratio of :meth:`update` and the composition with the origin
+        included, is one compiled call given the origin and the global map
+        (:class:`filters.fastslam_kernel.GlobalFrame`); otherwise the separate calls
+        (:func:`filters.global_frame.stepwise_iteration`)."""
+        front = self.front_end
+        if not hasattr(front, "run_iteration"):
+            return stepwise_iteration(self, u, dt, z, heading, truth_pose)
+        if heading is not None:  # the local heading (module doc)
+            check_range("theta", heading[0], -1e6, 1e6)
+            heading = (float(wrap_angle(heading[0] - self.back_end.x[2])), heading[1])
+        if z is not None:
+            z = np.asarray(z, dtype=float).reshape(-1, 2)
+        result = front.run_iteration(u, dt, z, heading=heading, frame=self._frame(z),
+                                     truth_pose=truth_pose)
+        self._t += float(dt)
+        if z is not None:
+            self.interval_innovation_ratio = max(self.interval_innovation_ratio,
+                                                 float(result.innovation_ratio))
+        self._composed = (result.mean, result.cov, result.J_a)
+        return result.mean.copy(), result.cov.copy(), float(result.nees), float(
+            result.position_error_m)
+
+    def _frame(self, z) -> GlobalFrame:
+        """The local map's origin and, when a scan ``z`` may observe global features, the global
+        map the innovation ratio tests it against (:meth:`observation_innovation_ratio`)."""
+        g = self.back_end
+        v, P_v = g.origin()
+        if z is None or len(z) == 0 or g.n_features == 0:
+            return own_frame()._replace(origin=v, origin_cov=P_v)
+        return GlobalFrame(v, P_v, np.asarray(g.x, dtype=float), np.asarray(g.P, dtype=float),
+                           read_only(g.feature_cols()), self.closure_radius_m)
+
     def _compose_with_origin(self):
         """``(v- (+) x_v^L, its covariance, J_a)``; computed once per state (every method that
         changes the front-end or the back-end resets it)."""
         if self._composed is None:
             v, P_v = self.back_end.origin()
             xl, Pl = self.front_end.pose()
-            self._composed = _compose_with_covariance(v, P_v, xl, Pl)
+            self._composed = compose_with_covariance(v, P_v, xl, Pl)
         mean, cov, J_a = self._composed
         return mean.copy(), cov.copy(), J_a.copy()
 
@@ -293,13 +339,13 @@ class SubmapSLAM:
 
     def observation_innovation_ratio(self, z) -> float:
         """The largest CM ratio ``||nu|| / (2 sigma)`` (CM III.B) of the observations ``z`` of a
-        global feature, against the current estimate (:func:`_nearest_global_innovations`)."""
+        global feature, against the current estimate (:func:`nearest_global_innovations`)."""
         g = self.back_end
         if g.n_features == 0 or len(z) == 0:
             return 0.0
         pose, sigma, J_a = self._compose_with_origin()
         sensor = self.front_end.sensor  # R's diagonal, without forming R at every step
-        _, ratio = _nearest_global_innovations(
+        _, ratio = nearest_global_innovations(
             z, pose, sigma, J_a, np.asarray(g.x, dtype=float), np.asarray(g.P, dtype=float),
             g.feature_cols(), float(sensor.range_std_m**2), float(sensor.bearing_std_rad**2),
             self.closure_radius_m,
@@ -336,107 +382,3 @@ class SubmapSLAM:
         missing = [k for k in INTERFACE_FEATURE_NAMES if k not in out]
         require(not missing, "front_end.local_statistics()", sorted(out), f"to include {missing}")
         return {k: float(out[k]) for k in INTERFACE_FEATURE_NAMES}
-
-
-@njit(cache=True)
-def _compose_with_covariance(v, P_v, xl, Pl):
-    """``(v (+) xl, J_a P_v J_a^T + J_b Pl J_b^T, J_a)`` (BB Fig. 3; the covariance symmetrised):
-    :func:`filters.geometry.compose` and :func:`filters.geometry.compose_jacobians` written out
-    for one pair of poses, compiled because the system composes at every iteration."""
-    c, s = np.cos(v[2]), np.sin(v[2])
-    mean = np.empty(3)
-    mean[0] = v[0] + c * xl[0] - s * xl[1]
-    mean[1] = v[1] + s * xl[0] + c * xl[1]
-    mean[2] = (v[2] + xl[2] + np.pi) % (2.0 * np.pi) - np.pi
-    J_a = np.eye(3)
-    J_a[0, 2] = -s * xl[0] - c * xl[1]
-    J_a[1, 2] = c * xl[0] - s * xl[1]
-    J_b = np.zeros((3, 3))
-    J_b[0, 0], J_b[0, 1], J_b[1, 0], J_b[1, 1], J_b[2, 2] = c, -s, s, c, 1.0
-    cov = J_a @ P_v @ J_a.T + J_b @ Pl @ J_b.T
-    return mean, 0.5 * (cov + cov.T), J_a
-
-
-@njit(cache=True)
-def _nearest_global_innovations(z, pose, sigma, J_a, x, P, cols, r_var, b_var, radius_m):
-    """The global feature each observation is nearest to, and CM's innovation ratio, in metres.
-
-    Predicts each global feature ``m_n`` near an observation from the composed pose ``pose``
-    (covariance ``sigma``, ``J_a`` its Jacobian w.r.t. the origin ``v-``): ``S_n = H_p sigma
-    H_p^T + H_m P_mm H_m^T + X + X^T + R`` with the pose-feature cross term
-    ``X = H_p J_a P[v-, m_n] H_m^T`` (:func:`_predict_global_feature`).
-    Observation ``k`` is paired with the feature of smallest ``nu^T S_n^-1 nu`` among those whose
-    position lies within ``radius_m`` of the observed point -- no chi-square gate, so an
-    inconsistent re-observation is still tested (-1: no feature that near). Range and bearing
-    innovations are brought to one unit: ``T = diag(1, r_n)`` turns the bearing innovation into
-    the cross-range distance at the predicted range, and ``ratio[k] = ||T nu|| / (2 sigma_n)``
-    with ``sigma_n^2`` the largest eigenvalue of ``T S_n T``: CM's test ``||nu|| > 2 sigma``
-    (CM III.B) reads ``ratio > 1``.
-    """
-    N, K = cols.shape[0], z.shape[0]
-    z_range, z_bearing = np.empty(N), np.empty(N)
-    S00, S01, S11 = np.empty(N), np.empty(N), np.empty(N)
-    predicted = np.zeros(N, dtype=np.bool_)  # a feature's terms are formed when first needed
-    Hp = np.empty((2, 3))
-    Hm = np.empty((2, 2))
-    cross = np.empty((3, 2))  # J_a P[v-, m_n]: cov(pose, m_n)
-    nearest = np.full(K, -1, dtype=np.int64)
-    ratio = np.zeros(K)
-    for k in range(K):
-        px = pose[0] + z[k, 0] * np.cos(z[k, 1] + pose[2])
-        py = pose[1] + z[k, 0] * np.sin(z[k, 1] + pose[2])
-        best = np.inf
-        for n in range(N):
-            ex, ey = x[cols[n, 0]] - px, x[cols[n, 1]] - py
-            if ex * ex + ey * ey > radius_m * radius_m:
-                continue
-            if not predicted[n]:
-                _predict_global_feature(n, pose, sigma, J_a, x, P, cols, r_var, b_var, Hp, Hm,
-                                        cross, z_range, z_bearing, S00, S01, S11)
-                predicted[n] = True
-            nu_r = z[k, 0] - z_range[n]
-            nu_b = (z[k, 1] - z_bearing[n] + np.pi) % (2.0 * np.pi) - np.pi
-            det = S00[n] * S11[n] - S01[n] * S01[n]
-            d2 = (S11[n] * nu_r * nu_r - 2.0 * S01[n] * nu_r * nu_b + S00[n] * nu_b * nu_b) / det
-            if d2 < best:
-                best = d2
-                nearest[k] = n
-                rn = z_range[n]
-                t00, t01, t11 = S00[n], rn * S01[n], rn * rn * S11[n]
-                top = 0.5 * (t00 + t11) + np.hypot(0.5 * (t00 - t11), t01)
-                ratio[k] = np.hypot(nu_r, rn * nu_b) / (2.0 * np.sqrt(top))
-    return nearest, ratio
-
-
-@njit(cache=True)
-def _predict_global_feature(n, pose, sigma, J_a, x, P, cols, r_var, b_var, Hp, Hm, cross,
-                            z_range, z_bearing, S00, S01, S11):
-    """The predicted observation of global feature ``n`` (``z_range[n]``, ``z_bearing[n]``) and
-    its innovation covariance ``S_n`` (``S00[n]``, ``S01[n]``, ``S11[n]``) for
-    :func:`_nearest_global_innovations`, which forms them only for the features near an
-    observation (each feature's terms depend on that feature alone). ``Hp``, ``Hm``, ``cross``:
-    work space."""
-    c0, c1 = cols[n, 0], cols[n, 1]
-    dx, dy = x[c0] - pose[0], x[c1] - pose[1]
-    q = max(dx * dx + dy * dy, 1e-12)
-    r = np.sqrt(q)
-    z_range[n] = r
-    z_bearing[n] = (np.arctan2(dy, dx) - pose[2] + np.pi) % (2.0 * np.pi) - np.pi
-    Hm[0, 0], Hm[0, 1], Hm[1, 0], Hm[1, 1] = dx / r, dy / r, -dy / q, dx / q
-    Hp[0, 0], Hp[0, 1], Hp[0, 2] = -Hm[0, 0], -Hm[0, 1], 0.0
-    Hp[1, 0], Hp[1, 1], Hp[1, 2] = -Hm[1, 0], -Hm[1, 1], -1.0
-    for i in range(3):
-        for a in range(2):
-            cross[i, a] = J_a[i, 0] * P[0, cols[n, a]] + J_a[i, 1] * P[1, cols[n, a]] + (
-                J_a[i, 2] * P[2, cols[n, a]]
-            )
-    A = Hp @ sigma @ Hp.T
-    pmm = np.empty((2, 2))
-    for a in range(2):
-        for b in range(2):
-            pmm[a, b] = P[cols[n, a], cols[n, b]]
-    B = Hm @ pmm @ Hm.T
-    X = Hp @ cross @ Hm.T
-    S00[n] = A[0, 0] + B[0, 0] + 2.0 * X[0, 0] + r_var
-    S01[n] = 0.5 * (A[0, 1] + A[1, 0] + B[0, 1] + B[1, 0]) + X[0, 1] + X[1, 0]
-    S11[n] = A[1, 1] + B[1, 1] + 2.0 * X[1, 1] + b_var

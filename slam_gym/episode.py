@@ -17,8 +17,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from filters.existence import CONFIRMED_PROBABILITY
+from filters.global_frame import stepwise_iteration
 from filters.types import LandmarkEstimate
-from slam_gym.metrics import FailureDetector, FeatureTruth, nees, nees_band, score_map
+from slam_gym.metrics import FailureDetector, FeatureTruth, nees_band, score_map
 from slam_gym.world import RedrawnFuture
 
 
@@ -92,20 +93,30 @@ class Episode:
         return done
 
     def _process(self, step) -> None:
+        """One filter iteration and its metrics. A system with a compiled iteration
+        (:meth:`filters.submap.SubmapSLAM.iterate`) runs the prediction, the compass, the scan,
+        the pose and the pose's NEES and position error against the truth in one call; the
+        others (and known association) run the separate calls
+        (:func:`filters.global_frame.stepwise_iteration`). ``filter_time_s`` counts either,
+        the pose's moments included."""
         system = self.system
         if self.draws is not None:
             self.draws.iteration = self.iteration
-        start = time.perf_counter()
-        system.predict(step.odometry, step.dt_s)
+        heading = None
         if step.compass_rad is not None and self.stream.compass_std_rad is not None:
-            system.update_heading(step.compass_rad, self.stream.compass_std_rad)
-        if step.scanned:  # a step without a scan is no evidence, not a scan that saw nothing
-            if self.known_association:
-                system.update(step.z, known_ids=step.truth.landmark_ids)
-            else:
-                system.update(step.z)
-        self.compute_time_s += time.perf_counter() - start
+            heading = (step.compass_rad, self.stream.compass_std_rad)
+        z = step.z if step.scanned else None  # a step without a scan is no evidence
         truth_ids = step.truth.landmark_ids
+        iterate = None if self.known_association else getattr(system, "iterate", None)
+        start = time.perf_counter()
+        if iterate is not None:
+            mean, cov, value, error = iterate(step.odometry, step.dt_s, z, heading=heading,
+                                              truth_pose=step.truth.pose)
+        else:
+            options = {"known_ids": truth_ids} if self.known_association and z is not None else {}
+            mean, cov, value, error = stepwise_iteration(system, step.odometry, step.dt_s, z,
+                                                         heading, step.truth.pose, **options)
+        self.compute_time_s += time.perf_counter() - start
         associations = np.asarray(system.last_associations)
         if len(associations) == len(truth_ids) and len(truth_ids):
             self.feature_truth.record(associations, truth_ids)
@@ -113,26 +124,25 @@ class Episode:
         self.iteration += 1
         self.t_s = step.t_s
         self.last_step = step
-        self._measure(step)
+        self._measure(step, mean, cov, value, error)
 
-    def _measure(self, step) -> None:
+    def _measure(self, step, mean, cov, value, error) -> None:
+        """The iteration's pose metrics (``value`` its NEES, ``error`` its position error, from
+        the system's iteration) into the run's sums, the failure test and the trace."""
         true_pose = step.truth.pose
         if not np.isfinite(true_pose).all():
             return
-        mean, cov = self.system.pose()
-        value = nees(true_pose, mean, cov)
         self.last_nees = value
         self.failure.update(value, self.iteration)
         self._nees_sum += value
         self._nees_count += 1
         self._in_band += int(self.band[0] <= value <= self.band[1])
-        err = float(np.linalg.norm(np.asarray(true_pose[:2]) - mean[:2]))
-        self.last_position_error_m = err
-        self._pos_err_sum += err
+        self.last_position_error_m = error
+        self._pos_err_sum += error
         if self.trace is not None:
             self.trace.t_s.append(step.t_s)
             self.trace.nees.append(value)
-            self.trace.position_error_m.append(err)
+            self.trace.position_error_m.append(error)
             self.trace.cov_trace.append(float(np.trace(cov)))
             self.trace.est_poses.append(np.array(mean))
             self.trace.true_poses.append(np.array(true_pose))

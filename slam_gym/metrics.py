@@ -18,10 +18,10 @@ from collections import Counter, defaultdict
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
 from filters.association import chi_square_quantile
 from filters.geometry import wrap_angle
+from filters.global_frame import NEES_REGULARISATION, cholesky_nees
 
 POSE_DOF = 3
 FAILURE_SIGMA = 10.0
@@ -35,12 +35,6 @@ def pose_error(true_pose, est_pose) -> np.ndarray:
     return e
 
 
-NEES_REGULARISATION = 1e-9
-"""Added to the covariance's diagonal before NEES (a std of 3e-5 m / rad): keeps numerically
-singular covariances (a filter's first iteration, particle sets with one distinct pose) from
-producing garbage, far below any uncertainty a filter actually reports."""
-
-
 def nees(true_pose, est_pose, cov) -> float:
     """Normalised estimation error squared ``e^T P^-1 e`` of a pose (heading error wrapped);
     ``inf`` when the (symmetrised, regularised) covariance is not positive definite."""
@@ -48,36 +42,7 @@ def nees(true_pose, est_pose, cov) -> float:
     cov = np.asarray(cov, dtype=float)
     if cov.shape != (len(e), len(e)):
         raise ValueError(f"cov={cov.shape} is invalid: must be ({len(e)}, {len(e)}) like the pose")
-    return float(_cholesky_nees(e, np.ascontiguousarray(cov), NEES_REGULARISATION))
-
-
-@njit(cache=True)
-def _cholesky_nees(e, cov, regularisation):
-    """``|L^-1 e|^2`` with ``L L^T = (cov + cov^T) / 2 + regularisation I`` (Cholesky-Banachiewicz,
-    forward substitution): the episode takes a NEES at every iteration, and numpy's cholesky and
-    solve cost some microseconds each on a 3 x 3."""
-    n = len(e)
-    L = np.zeros((n, n))
-    for i in range(n):
-        for j in range(i + 1):
-            total = 0.5 * (cov[i, j] + cov[j, i]) + (regularisation if i == j else 0.0)
-            for k in range(j):
-                total -= L[i, k] * L[j, k]
-            if i == j:
-                if not total > 0.0:  # not positive definite (or NaN)
-                    return np.inf
-                L[i, i] = np.sqrt(total)
-            else:
-                L[i, j] = total / L[j, j]
-    result = 0.0
-    y = np.zeros(n)
-    for i in range(n):
-        total = e[i]
-        for k in range(i):
-            total -= L[i, k] * y[k]
-        y[i] = total / L[i, i]
-        result += y[i] * y[i]
-    return result
+    return float(cholesky_nees(e, np.ascontiguousarray(cov), NEES_REGULARISATION))
 
 
 def nees_band(

@@ -4,13 +4,13 @@ Usage: python scripts/performance/env_breakdown.py [POLICY] [DECISIONS]
 e.g.   python scripts/performance/env_breakdown.py fixed-10s 400
 
 Wraps the pieces of a ``HybridSLAMEnv(n_particles=500, clutter_level=2)`` step in
-``perf_counter`` timers (the compiled scan, FastSLAM's update around it, the compiled
-bookkeeping after the scan (votes, ids, culling), the weights and resampling,
-its prediction, the innovation ratio's prior pose, the posterior pose and NEES, the map
-score, the interface features, fusions, optimisations, resets), plays ``POLICY`` (default
+``perf_counter`` timers (since issue 47: the compiled iteration, the draws handed to it,
+FastSLAM's and the sub-map system's iteration around it, the episode's iteration with its metrics,
+the map score, the interface features, fusions, optimisations, resets), plays ``POLICY`` (default
 ``fixed-10s``) for ``DECISIONS`` decisions (default 400) from ``reset(seed=0)`` after a warm-up,
 and prints each piece's milliseconds per decision and share of the wall time. Nested pieces
-are included in their callers (the scan in FastSLAM's update, which is in the interval).
+are included in their callers (the compiled call in FastSLAM's iteration, which is in the
+sub-map system's, in the episode's, in the interval).
 
 Supports docs/PERFORMANCE.md, "The code of 15bcb7d (2026-11-25 evening, the slower machine): five
 more bit-identical speed-ups, and a sixth".
@@ -34,13 +34,13 @@ import slam_gym.episode as episode
 from slam_gym.evaluation.core import play_decisions
 
 PIECES = (
-    (fastslam, "call_update_iteration",
-     "compiled scan: scan, votes, ids, clutter rate, culling, weights, resampling"),
-    (fastslam.FastSLAM2, "update", "FastSLAM update (scan included)"),
-    (fastslam.FastSLAM2, "predict", "FastSLAM prediction"),
-    (fastslam.FastSLAM2, "_maybe_resample", "weights, resampling test, resampling (no scan)"),
-    (submap.SubmapSLAM, "observation_innovation_ratio", "innovation ratio (prior pose)"),
-    (episode.Episode, "_measure", "posterior pose, NEES, errors"),
+    (fastslam, "call_iteration",
+     "compiled iteration: prediction, scan, votes, ids, clutter rate, culling, weights, "
+     "resampling, innovation ratio, pose moments, composed pose, NEES"),
+    (fastslam.FastSLAM2, "_iteration_draws", "the iteration's draws (each role's block)"),
+    (fastslam.FastSLAM2, "run_iteration", "FastSLAM iteration (compiled call included)"),
+    (submap.SubmapSLAM, "iterate", "sub-map system's iteration (FastSLAM's included)"),
+    (episode.Episode, "_process", "episode's iteration (system's and metrics included)"),
     (episode.Episode, "map_score", "map score (reward)"),
     (episode.Episode, "fuse", "fusions"),
     (episode.Episode, "optimise", "optimisations"),

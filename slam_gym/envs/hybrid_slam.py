@@ -489,20 +489,24 @@ class HybridSLAMEnv(gym.Env):
         failed_before = ep.failure.failed
         self.system.start_interval()  # the next observation's events: this decision's and after
         modelled_s = 0.0
+        # the CPU clock is read at the decision's start and once after each component: each
+        # reading ends one component's record and starts the next's
+        cpu_s = time.process_time()
         if fuse:
-            cpu0 = time.process_time()
             report = ep.fuse()
-            modelled_s += self._record(fusion_ops(self.system, report), cpu0)
+            cpu_s, seconds = self._record(fusion_ops(self.system, report), cpu_s)
+            modelled_s += seconds
         if optimise:
-            cpu0 = time.process_time()
             result = ep.optimise()
             if not result.redundant:  # nothing fused since the optimum applied: free (#27)
-                modelled_s += self._record(optimise_ops(self.system, result), cpu0)
-        cpu0 = time.process_time()
+                cpu_s, seconds = self._record(optimise_ops(self.system, result), cpu_s)
+                modelled_s += seconds
+            else:
+                cpu_s = time.process_time()
         nees_values, errors = self._run_interval()
         features = self._features()
         kind, ops = filter_ops(c.front_end, c.n_particles, features["local_feature_count"])
-        modelled_s += self._record((kind, ops * len(nees_values)), cpu0)
+        modelled_s += self._record((kind, ops * len(nees_values)), cpu_s)[1]
         self.n_decisions += 1
         failed = ep.failure.failed
         score = ep.map_score()
@@ -602,11 +606,14 @@ class HybridSLAMEnv(gym.Env):
         drawn = np.random.default_rng(np.random.SeedSequence([int(seed), self.episode.iteration]))
         self.filter_rng.bit_generator.state = drawn.bit_generator.state
 
-    def _record(self, kind_ops, cpu_start_s: float) -> float:
-        """Keep ``(kind, ops, measured CPU s)`` for calibration; return the modelled seconds."""
+    def _record(self, kind_ops, cpu_start_s: float) -> tuple[float, float]:
+        """Keep ``(kind, ops, measured CPU s)`` for calibration, the CPU measured from
+        ``cpu_start_s`` to a reading of the clock taken here; return that reading (where the
+        next component's record starts) and the modelled seconds."""
         kind, ops = kind_ops
-        self.compute_records.append((kind, float(ops), time.process_time() - cpu_start_s))
-        return self.compute_model.seconds(kind, ops)
+        cpu_s = time.process_time()
+        self.compute_records.append((kind, float(ops), cpu_s - cpu_start_s))
+        return cpu_s, self.compute_model.seconds(kind, ops)
 
     def _remaining_decisions(self) -> int:
         """Decisions left on the path (and before truncation) after the current one."""

@@ -539,8 +539,9 @@ def test_visibility_is_soft_at_the_range_limit():
     Pc = np.zeros((3, 3))
     s = f._state
     p_vis = [
-        kernel._visibility(np.zeros(3), Pc, s.mx[0, j], s.my[0, j], s.sxx[0, j], s.sxy[0, j],
-                           s.syy[0, j], f.sensor.max_range_m, f.sensor.fov_rad)
+        kernel._visibility(s.mx[0, j], s.my[0, j], 0.0, s.sxx[0, j] + Pc[0, 0],
+                           s.sxy[0, j] + Pc[0, 1], s.syy[0, j] + Pc[1, 1], f.sensor.max_range_m,
+                           f.sensor.fov_rad)
         for j in range(5)
     ]
     sigma = 0.1  # radial std of a feature with covariance 0.01 I, pose known

@@ -11,6 +11,7 @@ from scipy.stats import chi2
 
 from filters.ekf_slam import EKFSLAM
 from filters.geometry import compose, compose_jacobians, transform_point, wrap_angle
+from filters.global_frame import nearest_global_innovations
 from filters.models import (
     ClutterModel,
     ProportionalVelocityNoise,
@@ -23,7 +24,6 @@ from filters.submap import (
     INTERFACE_FEATURE_NAMES,
     GlobalMap,
     SubmapSLAM,
-    _nearest_global_innovations,
 )
 from filters.types import GaussianMap
 from slam_gym.scenarios import SQUARE_LOOP_OVERRIDES
@@ -563,7 +563,7 @@ def test_global_innovations_match_the_dense_computation():
     z = observe(pose, m[[4, 1, 6]]) + rng.normal(size=(3, 2)) * [0.05, 0.01]
     z = np.vstack([z, [[40.0, 3.0]]])
     radius_m = 5.0
-    nearest, ratio = _nearest_global_innovations(
+    nearest, ratio = nearest_global_innovations(
         z, pose, sigma, J_a, x, P, cols, R[0, 0], R[1, 1], radius_m
     )
     Hp, Hm = observe_jacobians(pose, m)
@@ -594,14 +594,14 @@ def test_global_innovations_match_the_dense_computation():
 def test_compiled_composition_equals_the_geometry_functions():
     """Issue 27: the sub-map system's compiled composition (BB Fig. 3) against
     filters.geometry.compose / compose_jacobians and the covariance formula in numpy."""
-    from filters.submap import _compose_with_covariance
+    from filters.global_frame import compose_with_covariance
 
     rng = np.random.default_rng(11)
     for _ in range(100):
         v, xl = rng.normal(size=3) * [20, 20, 3], rng.normal(size=3) * [5, 5, 1]
         A, B = rng.normal(size=(3, 3)), rng.normal(size=(3, 3))
         P_v, P_l = A @ A.T, B @ B.T
-        mean, cov, J_a = _compose_with_covariance(v, P_v, xl, P_l)
+        mean, cov, J_a = compose_with_covariance(v, P_v, xl, P_l)
         Ja, Jb = compose_jacobians(v, xl)
         expected = Ja @ P_v @ Ja.T + Jb @ P_l @ Jb.T
         np.testing.assert_allclose(mean, compose(v, xl), rtol=0, atol=1e-12)

@@ -52,7 +52,7 @@ def test_ospa_charges_the_cutoff_for_missed_spurious_and_duplicate_features():
 
 
 def test_compiled_nees_equals_the_cholesky_solve_and_is_inf_when_not_positive_definite():
-    """Issue 27: the compiled NEES (slam_gym.metrics._cholesky_nees) against numpy's Cholesky
+    """Issue 27: the compiled NEES (filters.global_frame.cholesky_nees) against numpy's Cholesky
     and triangular solve of the symmetrised, regularised covariance; a covariance that is not
     positive definite (or NaN) gives inf, as numpy's LinAlgError did."""
     import pytest
