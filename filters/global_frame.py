@@ -54,12 +54,8 @@ def nearest_global_innovations(z, pose, sigma, J_a, x, P, cols, r_var, b_var, ra
     (CM III.B) reads ``ratio > 1``.
     """
     N, K = cols.shape[0], z.shape[0]
-    z_range, z_bearing = np.empty(N), np.empty(N)
-    S00, S01, S11 = np.empty(N), np.empty(N), np.empty(N)
+    terms = np.empty((N, 5))  # per feature: range, bearing, S00, S01, S11
     predicted = np.zeros(N, dtype=np.bool_)  # a feature's terms are formed when first needed
-    Hp = np.empty((2, 3))
-    Hm = np.empty((2, 2))
-    cross = np.empty((3, 2))  # J_a P[v-, m_n]: cov(pose, m_n)
     nearest = np.full(K, -1, dtype=np.int64)
     ratio = np.zeros(K)
     for k in range(K):
@@ -71,37 +67,39 @@ def nearest_global_innovations(z, pose, sigma, J_a, x, P, cols, r_var, b_var, ra
             if ex * ex + ey * ey > radius_m * radius_m:
                 continue
             if not predicted[n]:
-                predict_global_feature(n, pose, sigma, J_a, x, P, cols, r_var, b_var, Hp, Hm,
-                                        cross, z_range, z_bearing, S00, S01, S11)
+                predict_global_feature(n, pose, sigma, J_a, x, P, cols, r_var, b_var, terms)
                 predicted[n] = True
-            nu_r = z[k, 0] - z_range[n]
-            nu_b = (z[k, 1] - z_bearing[n] + np.pi) % (2.0 * np.pi) - np.pi
-            det = S00[n] * S11[n] - S01[n] * S01[n]
-            d2 = (S11[n] * nu_r * nu_r - 2.0 * S01[n] * nu_r * nu_b + S00[n] * nu_b * nu_b) / det
+            z_range, z_bearing = terms[n, 0], terms[n, 1]
+            S00, S01, S11 = terms[n, 2], terms[n, 3], terms[n, 4]
+            nu_r = z[k, 0] - z_range
+            nu_b = (z[k, 1] - z_bearing + np.pi) % (2.0 * np.pi) - np.pi
+            det = S00 * S11 - S01 * S01
+            d2 = (S11 * nu_r * nu_r - 2.0 * S01 * nu_r * nu_b + S00 * nu_b * nu_b) / det
             if d2 < best:
                 best = d2
                 nearest[k] = n
-                rn = z_range[n]
-                t00, t01, t11 = S00[n], rn * S01[n], rn * rn * S11[n]
+                rn = z_range
+                t00, t01, t11 = S00, rn * S01, rn * rn * S11
                 top = 0.5 * (t00 + t11) + np.hypot(0.5 * (t00 - t11), t01)
                 ratio[k] = np.hypot(nu_r, rn * nu_b) / (2.0 * np.sqrt(top))
     return nearest, ratio
 
 
 @njit(cache=True)
-def predict_global_feature(n, pose, sigma, J_a, x, P, cols, r_var, b_var, Hp, Hm, cross,
-                            z_range, z_bearing, S00, S01, S11):
-    """The predicted observation of global feature ``n`` (``z_range[n]``, ``z_bearing[n]``) and
-    its innovation covariance ``S_n`` (``S00[n]``, ``S01[n]``, ``S11[n]``) for
+def predict_global_feature(n, pose, sigma, J_a, x, P, cols, r_var, b_var, predicted):
+    """The predicted observation of global feature ``n`` and its innovation covariance ``S_n``,
+    written into row ``n`` of ``predicted`` (range, bearing, ``S00``, ``S01``, ``S11``), for
     :func:`nearest_global_innovations`, which forms them only for the features near an
-    observation (each feature's terms depend on that feature alone). ``Hp``, ``Hm``, ``cross``:
-    work space."""
+    observation (each feature's terms depend on that feature alone)."""
+    Hp = np.empty((2, 3))
+    Hm = np.empty((2, 2))
+    cross = np.empty((3, 2))  # J_a P[v-, m_n]: cov(pose, m_n)
     c0, c1 = cols[n, 0], cols[n, 1]
     dx, dy = x[c0] - pose[0], x[c1] - pose[1]
     q = max(dx * dx + dy * dy, 1e-12)
     r = np.sqrt(q)
-    z_range[n] = r
-    z_bearing[n] = (np.arctan2(dy, dx) - pose[2] + np.pi) % (2.0 * np.pi) - np.pi
+    predicted[n, 0] = r
+    predicted[n, 1] = (np.arctan2(dy, dx) - pose[2] + np.pi) % (2.0 * np.pi) - np.pi
     Hm[0, 0], Hm[0, 1], Hm[1, 0], Hm[1, 1] = dx / r, dy / r, -dy / q, dx / q
     Hp[0, 0], Hp[0, 1], Hp[0, 2] = -Hm[0, 0], -Hm[0, 1], 0.0
     Hp[1, 0], Hp[1, 1], Hp[1, 2] = -Hm[1, 0], -Hm[1, 1], -1.0
@@ -117,9 +115,9 @@ def predict_global_feature(n, pose, sigma, J_a, x, P, cols, r_var, b_var, Hp, Hm
             pmm[a, b] = P[cols[n, a], cols[n, b]]
     B = Hm @ pmm @ Hm.T
     X = Hp @ cross @ Hm.T
-    S00[n] = A[0, 0] + B[0, 0] + 2.0 * X[0, 0] + r_var
-    S01[n] = 0.5 * (A[0, 1] + A[1, 0] + B[0, 1] + B[1, 0]) + X[0, 1] + X[1, 0]
-    S11[n] = A[1, 1] + B[1, 1] + 2.0 * X[1, 1] + b_var
+    predicted[n, 2] = A[0, 0] + B[0, 0] + 2.0 * X[0, 0] + r_var
+    predicted[n, 3] = 0.5 * (A[0, 1] + A[1, 0] + B[0, 1] + B[1, 0]) + X[0, 1] + X[1, 0]
+    predicted[n, 4] = A[1, 1] + B[1, 1] + 2.0 * X[1, 1] + b_var
 
 
 @njit(cache=True)
