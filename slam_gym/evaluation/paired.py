@@ -432,6 +432,16 @@ def _lambert_x(alpha: float) -> float:
     return -float(np.real(special.lambertw(-alpha * alpha / math.e, k=-1))) - 1.0
 
 
+def _sequential_moments(d: np.ndarray, rate: bool, pseudo_weight: float):
+    """Mean, standard deviation and weight ``t`` of the differences for a sequential interval:
+    for success (``rate``) those of the sample with the pseudo-worlds of
+    :func:`matched_rate_interval` (``t = n + 2``), else the sample's (``ddof=1``, ``t = n``)."""
+    if rate:
+        mean, var, t = _augmented_moments(d, _pseudo_weight(pseudo_weight))
+        return mean, np.sqrt(var), t
+    return d.mean(axis=-1), d.std(axis=-1, ddof=1), float(d.shape[-1])
+
+
 def cs_rho(planned_worlds: int, alpha: float = 0.05) -> float:
     """The ``rho`` that makes :func:`confidence_sequence` narrowest at ``planned_worlds``:
     ``rho^2 = (-W_{-1}(-alpha^2/e) - 1) / planned_worlds``."""
@@ -459,13 +469,7 @@ def confidence_sequence(differences: Any, *, planned_worlds: int, alpha: float =
     d = _differences(differences, rate=rate)
     a = _alpha(alpha)
     rho = cs_rho(planned_worlds, a)
-    if rate:
-        mean, var, t = _augmented_moments(d, _pseudo_weight(pseudo_weight))
-        sd = np.sqrt(var)
-    else:
-        t = float(d.shape[-1])
-        mean = d.mean(axis=-1)
-        sd = d.std(axis=-1, ddof=1)
+    mean, sd, t = _sequential_moments(d, rate, pseudo_weight)
     x = t * rho * rho
     half = sd * math.sqrt(2.0 * (x + 1.0) / (t * x) * math.log(math.sqrt(x + 1.0) / a))
     lo, hi = mean - half, mean + half
@@ -560,13 +564,7 @@ def repeated_confidence_interval(differences: Any, *, bound: float, rate: bool =
     :func:`matched_rate_interval`, clipped to [-1, 1], as in :func:`confidence_sequence`."""
     d = _differences(differences, rate=rate)
     c = check_range("bound", bound, 0.0, math.inf, low_open=True)
-    if rate:
-        mean, var, t = _augmented_moments(d, _pseudo_weight(pseudo_weight))
-        sd = np.sqrt(var)
-    else:
-        t = float(d.shape[-1])
-        mean = d.mean(axis=-1)
-        sd = d.std(axis=-1, ddof=1)
+    mean, sd, t = _sequential_moments(d, rate, pseudo_weight)
     half = c * sd / math.sqrt(t)
     lo, hi = mean - half, mean + half
     if rate:
