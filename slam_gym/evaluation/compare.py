@@ -320,7 +320,10 @@ def compare(
         scale = UNIT_SCALE.get(metric, 1.0)
         d = oriented(metric, *paired_arrays(rows_a, rows_b, metric, worlds))
         first_look = paired.MIN_WORLDS if max_worlds is not None else 2
-        if len(d) < first_look:  # no sequential decision on fewer worlds (paired.MIN_WORLDS)
+        if len(d) < first_look or (look_worlds and len(d) == look_worlds[-1]):
+            # no sequential decision on fewer worlds (paired.MIN_WORLDS), nor a look again at
+            # the worlds of the last one (a batch whose runs all failed adds none): it could only
+            # repeat that undecided look, and a group-sequential design's looks must add worlds
             looks.append({"worlds": len(worlds), "decision": "undecided", "oriented_ci": None})
             continue
         rate = metric in paired.RATE_METRICS

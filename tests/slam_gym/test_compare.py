@@ -2,6 +2,7 @@
 
 import json
 
+import numpy as np
 import pytest
 
 from slam_gym.cli import main
@@ -124,9 +125,37 @@ def test_a_policy_object_that_cannot_reach_a_worker_is_refused_before_any_run(tm
             pass
 
         def act(self, obs, info):
-            return {"fuse": 0, "optimise": 0}
+            return np.zeros(2, dtype=np.int64)
 
     with pytest.raises(ValueError, match="policy 'local-rule' is invalid for executor='process'"):
         compare("fixed-10s", LocalRule(), seeds=2, clutter_levels=[1], n_particles=15,
                 n_steps=120, executor="process", out=tmp_path / "c")
     assert not (tmp_path / "c").exists()  # refused before the output folder was made
+
+
+class BreaksFromSeed8:
+    """Fuses every 10 s on worlds 0-7 and raises on every later world (a batch of failed runs)."""
+
+    name = "breaks-from-seed-8"
+
+    def reset(self):
+        pass
+
+    def act(self, obs, info):
+        if info["world_seed"] >= 8:
+            raise RuntimeError("broken from the second batch on")
+        return np.array([info["features"]["local_map_age_s"] >= 10.0, 0], dtype=np.int64)
+
+
+def test_a_batch_that_adds_no_world_is_no_new_look(tmp_path):
+    """B's second batch fails in every run: the group-sequential design does not look again at
+    the same 16 worlds (its looks must add worlds), and the comparison ends undecided with the
+    failed runs counted, instead of stopping on an error."""
+    result = compare("fixed-10s", BreaksFromSeed8(), metric="success", margin=1,
+                     draws=1, max_worlds=32, batch_seeds=8, design="group-sequential",
+                     clutter_levels=[1, 2], n_particles=15, n_steps=120, executor="serial",
+                     out=tmp_path / "c")
+    assert result.decision == "undecided"
+    assert [look["worlds"] for look in result.looks] == [16, 32]
+    assert result.looks[1]["oriented_ci"] is None
+    assert result.n_errors == 16
