@@ -73,3 +73,46 @@ def test_summary_pairs_with_the_best_rule_and_normalises_only_where_the_bound_ha
         doc["policies"]["lookahead"]["return_diff"][0] / 50.0)
     assert doc["normalised_headroom"]["map_error_m"] is None  # no room: equal map errors
     assert "best rule" in headroom.markdown(doc) and not math.isnan(bound["return_diff"][1])
+
+
+def test_common_worlds_keeps_only_the_worlds_every_policy_finished():
+    rows = [_row("rule", 0, s, True) for s in range(4)]
+    rows += [_row("lookahead", 0, s, True) for s in (1, 3)]
+    rows.append({**_row("lookahead", 0, 2, True), "status": "error"})  # unfinished
+    kept = headroom.common_worlds(rows)
+    assert {(r["policy"], r["seed"]) for r in kept if r["status"] == "ok"} == {
+        ("rule", 1), ("rule", 3), ("lookahead", 1), ("lookahead", 3)}
+    assert headroom.common_worlds([]) == []
+
+
+def test_join_rows_keeps_each_run_once_and_the_first_groups_row():
+    first = [{**_row("rule", 0, 0, True), "key": "a"}, {**_row("rule", 0, 1, True), "key": "b"}]
+    second = [{**_row("rule", 0, 1, False), "key": "b"}, {**_row("rule", 1, 0, True), "key": "c"}]
+    joined = headroom.join_rows(first, second)
+    assert [r["key"] for r in joined] == ["a", "b", "c"]
+    assert joined[1]["success"] is True
+    # rows without a key are told apart by policy, world and draw
+    assert len(headroom.join_rows([_row("rule", 0, 0, True)], [_row("rule", 0, 0, True, draw=1)],
+                                  [_row("rule", 0, 0, False)])) == 2
+
+
+def test_report_only_joins_folders_and_restricts_to_common_worlds(tmp_path):
+    import json
+
+    halves = [tmp_path / "a", tmp_path / "b"]
+    for half, seeds in zip(halves, (range(0, 3), range(3, 6)), strict=True):
+        half.mkdir()
+        rows = [_row("fixed-10s-optimise", 0, s, s % 2 == 0) for s in seeds]
+        rows += [_row("lookahead-privileged", 0, s, True) for s in seeds if s != 5]
+        (half / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    out = tmp_path / "joined"
+    args = ["--task", "SlamGym/HybridSLAM-ZonesStarved-v1", "--report-only", "--out", str(out),
+            "--rows", str(halves[0]), "--rows", str(halves[1])]
+    assert headroom.main([*args, "--best-rule", "fixed-10s-optimise"]) == 0
+    doc = json.loads((out / "headroom.json").read_text())
+    assert doc["worlds"] == 6 and doc["policies"]["fixed-10s-optimise"]["n_worlds"] == 6
+    assert headroom.main([*args, "--best-rule", "fixed-10s-optimise", "--common-worlds"]) == 0
+    doc = json.loads((out / "headroom.json").read_text())
+    assert doc["worlds"] == 5 and doc["policies"]["fixed-10s-optimise"]["n_worlds"] == 5
+    with pytest.raises(SystemExit):
+        headroom.main([*args[:-1], str(tmp_path / "missing")])

@@ -24,7 +24,10 @@ success the matched-rate interval of Agresti & Min (Biometrics 61, 2005; ``pseud
 as declared; :func:`~slam_gym.evaluation.paired.matched_rate_interval`). Normalised headroom:
 ``(lookahead - best) / (bound - best)``, reported only where the bound's interval
 excludes 0. Writes ``OUT/headroom.json`` and ``OUT/headroom.md``. ``--report-only`` recomputes
-them from the rows without running anything.
+them from the rows without running anything; ``--rows DIR`` (repeatable) adds the rows of other
+runs' folders (e.g. the halves of the declared worlds run in separate processes; a row whose key
+is already in is kept once), and ``--common-worlds`` restricts every policy to the worlds that
+all of them finished (a partial table: every mean and difference over the same worlds).
 """
 
 from __future__ import annotations
@@ -172,6 +175,33 @@ def markdown(doc: Mapping) -> str:
     return "\n".join(lines) + "\n"
 
 
+def common_worlds(rows: Sequence[Mapping]) -> list[Mapping]:
+    """``rows`` restricted to the (level, seed) worlds on which every policy has a finished
+    (``ok``) run."""
+    worlds_by_policy: dict[str, set] = defaultdict(set)
+    for r in rows:
+        if r.get("status") == "ok":
+            worlds_by_policy[r["policy"]].add((int(r["clutter_level"]), int(r["seed"])))
+    if not worlds_by_policy:
+        return []
+    shared = set.intersection(*worlds_by_policy.values())
+    return [r for r in rows if (int(r["clutter_level"]), int(r["seed"])) in shared]
+
+
+def join_rows(*groups: Sequence[Mapping]) -> list[dict]:
+    """The union of several runs' rows, each run (its ``key``, else policy, world and draw)
+    once: the first group's row wins."""
+    seen, out = set(), []
+    for group in groups:
+        for r in group:
+            key = r.get("key") or json.dumps([r["policy"], r["clutter_level"], r["seed"],
+                                              r.get("draw", 0)])
+            if key not in seen:
+                seen.add(key)
+                out.append(dict(r))
+    return out
+
+
 def read_rows(path: Path) -> list[dict]:
     rows = []
     for line in Path(path).read_text().splitlines():
@@ -197,6 +227,10 @@ def main(argv=None) -> int:
     parser.add_argument("--best-rule", default=None,
                         help="the best rule's name (else --threshold-rule's choice)")
     parser.add_argument("--report-only", action="store_true")
+    parser.add_argument("--rows", action="append", default=[], metavar="DIR",
+                        help="also report the rows of DIR/results.jsonl (repeatable)")
+    parser.add_argument("--common-worlds", action="store_true",
+                        help="report every policy on the worlds all policies finished")
     parser.add_argument("--out", required=True)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
@@ -222,8 +256,12 @@ def main(argv=None) -> int:
             best = args.best_rule or "best-threshold"
         logger.info("the threshold family's best rule: %s (%s)", chosen["rule"], best)
     out = Path(args.out)
+    for folder in args.rows:
+        if not (Path(folder) / "results.jsonl").is_file():
+            parser.error(f"--rows {folder}: no results.jsonl there")
     if args.report_only:
-        rows = read_rows(out / "results.jsonl")
+        own = out / "results.jsonl"
+        rows = read_rows(own) if own.is_file() else []
     else:
         rows = benchmark(
             specs, scenario=kwargs["scenario"], n_particles=kwargs.get("n_particles", 500),
@@ -232,9 +270,16 @@ def main(argv=None) -> int:
             compute_clip_s=args.compute_clip_s, baselines=[], out=out, workers=1,
             executor="serial", figures=False, progress=True,
         ).rows
-    doc = summarise(rows, best, args.price) | {"task": args.task, "seeds": args.seeds,
-                                                "seed_start": args.seed_start,
-                                                "draws": args.draws}
+    rows = join_rows(rows, *(read_rows(Path(folder) / "results.jsonl") for folder in args.rows))
+    if args.common_worlds:
+        rows = common_worlds(rows)
+    if not rows:
+        parser.error(f"no rows to report (--out {out}, --rows {args.rows})")
+    out.mkdir(parents=True, exist_ok=True)
+    doc = summarise(rows, best, args.price) | {
+        "task": args.task, "seeds": args.seeds, "seed_start": args.seed_start,
+        "draws": args.draws, "worlds": len({(r["clutter_level"], r["seed"]) for r in rows}),
+        "common_worlds": args.common_worlds}
     (out / "headroom.json").write_text(json.dumps(doc, indent=2) + "\n")
     (out / "headroom.md").write_text(markdown(doc))
     print(markdown(doc))
