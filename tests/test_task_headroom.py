@@ -72,6 +72,13 @@ def test_summary_pairs_with_the_best_rule_and_normalises_only_where_the_bound_ha
     assert doc["normalised_headroom"]["return"] == pytest.approx(
         doc["policies"]["lookahead"]["return_diff"][0] / 50.0)
     assert doc["normalised_headroom"]["map_error_m"] is None  # no room: equal map errors
+    # a bound that is clearly worse on a measure (here: more interface CPU) has no room there
+    for r in rows:
+        if r["policy"] == "lookahead-privileged":
+            r["fusion_cpu_s"] = 0.5
+    doc = headroom.summarise(rows, "fixed-10s-optimise", 10.0)
+    assert doc["policies"]["lookahead-privileged"]["interface_cpu_s_diff"][1] > 0
+    assert doc["normalised_headroom"]["interface_cpu_s"] is None
     assert "best rule" in headroom.markdown(doc) and not math.isnan(bound["return_diff"][1])
 
 

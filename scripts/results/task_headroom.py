@@ -22,12 +22,14 @@ world); continuous measures get the stratified cluster bootstrap interval over w
 (:func:`~slam_gym.evaluation.paired.stratified_bootstrap_interval`, strata the clutter levels),
 success the matched-rate interval of Agresti & Min (Biometrics 61, 2005; ``pseudo_weight`` 1/2,
 as declared; :func:`~slam_gym.evaluation.paired.matched_rate_interval`). Normalised headroom:
-``(lookahead - best) / (bound - best)``, reported only where the bound's interval
-excludes 0. Writes ``OUT/headroom.json`` and ``OUT/headroom.md``. ``--report-only`` recomputes
-them from the rows without running anything; ``--rows DIR`` (repeatable) adds the rows of other
-runs' folders (e.g. the halves of the declared worlds run in separate processes; a row whose key
-is already in is kept once), and ``--common-worlds`` restricts every policy to the worlds that
-all of them finished (a partial table: every mean and difference over the same worlds).
+``(lookahead - best) / (bound - best)``, reported only where the bound's interval excludes 0
+on the better side of the measure. Writes ``OUT/headroom.json`` and ``OUT/headroom.md``.
+
+``--report-only`` recomputes them from the rows without running anything. ``--rows DIR``
+(repeatable) adds the rows of other runs' folders, e.g. the halves of the declared worlds run
+in separate processes (a run whose key is already in is kept once). ``--common-worlds``
+restricts every policy to the worlds that all of them finished: a partial table, every mean
+and difference over the same worlds.
 """
 
 from __future__ import annotations
@@ -49,6 +51,11 @@ BOUND = "lookahead-privileged"
 METRICS = ("success", "nees_in_band_fraction", "anees", "map_error_m", "interface_cpu_s",
            "return")
 """The paired measures of the table (``return`` at ``--price``)."""
+
+BETTER_IF_HIGHER = {"success": True, "nees_in_band_fraction": True, "anees": False,
+                    "map_error_m": False, "interface_cpu_s": False, "return": True}
+"""The direction of improvement of each measure: room is where the bound's interval excludes 0
+on the better side (a bound that spends more CPU has no "room" in CPU)."""
 
 
 def value(row: Mapping, metric: str, price: float) -> float | None:
@@ -134,7 +141,7 @@ def summarise(rows: Sequence[Mapping], best: str, price: float) -> dict:
     if bound and look:
         for metric in METRICS:
             b, lk = bound[f"{metric}_diff"], look[f"{metric}_diff"]
-            room = not (b[1] <= 0.0 <= b[2])
+            room = b[1] > 0.0 if BETTER_IF_HIGHER[metric] else b[2] < 0.0
             out["normalised_headroom"][metric] = (lk[0] / b[0]) if room and b[0] else None
     return out
 
@@ -169,7 +176,7 @@ def markdown(doc: Mapping) -> str:
     if doc.get("normalised_headroom"):
         lines.append("")
         lines.append("Normalised headroom (lookahead - best) / (bound - best), where the bound's "
-                     "interval excludes 0: " + ", ".join(
+                     "interval excludes 0 on the better side: " + ", ".join(
                          f"{m} {v:.2f}" for m, v in doc["normalised_headroom"].items()
                          if v is not None) or "none")
     return "\n".join(lines) + "\n"
