@@ -123,3 +123,31 @@ def test_report_only_joins_folders_and_restricts_to_common_worlds(tmp_path):
     assert doc["worlds"] == 5 and doc["policies"]["fixed-10s-optimise"]["n_worlds"] == 5
     with pytest.raises(SystemExit):
         headroom.main([*args[:-1], str(tmp_path / "missing")])
+
+
+def test_headroom_table_has_a_bound_and_a_lookahead_row_per_task(tmp_path, capsys):
+    import json
+
+    rows = []
+    for s in range(40):
+        rows.append(_row("best-threshold", s % 4, s, s % 5 != 0, ret=-100.0))
+        rows.append(_row("lookahead-privileged", s % 4, s, True, ret=-50.0))
+        rows.append(_row("lookahead", s % 4, s, s % 10 != 0, ret=-75.0))
+    with_lookahead = headroom.summarise(rows, "best-threshold", 10.0) | {
+        "task": "SlamGym/A-v1", "best_rule_label": "threshold-optimise[x>=1]"}
+    without = headroom.summarise([r for r in rows if r["policy"] != "lookahead"],
+                                 "best-threshold", 10.0) | {"task": "SlamGym/B-v1"}
+    table = headroom.headroom_table([with_lookahead, without])
+    lines = table.strip().splitlines()
+    assert len(lines) == 2 + 4
+    assert "`threshold-optimise[x>=1]`" in lines[2] and "| 80 % |" in lines[2]
+    assert "+20 [" in lines[2] and "success 0.50" in lines[3]
+    assert "| lookahead | not run |" in lines[5] and "`best-threshold`" in lines[4]
+    files = []
+    for i, doc in enumerate((with_lookahead, without)):
+        files.append(tmp_path / f"{i}.json")
+        files[-1].write_text(json.dumps(doc))
+    assert headroom.main(["--table", str(files[0]), "--table", str(files[1])]) == 0
+    assert capsys.readouterr().out == table
+    with pytest.raises(SystemExit):
+        headroom.main(["--report-only"])  # neither --table nor --task/--out

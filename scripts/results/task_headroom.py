@@ -209,6 +209,45 @@ def join_rows(*groups: Sequence[Mapping]) -> list[dict]:
     return out
 
 
+def headroom_table(docs: Sequence[Mapping]) -> str:
+    """The headroom table of README and RESULTS (issue 48 item 4): per task (one ``headroom.json``
+    each) the best rule's success, then the bound's and the lookahead's paired differences with
+    the best rule, and the lookahead's normalised headroom."""
+
+    def diff(entry, metric, scale=1.0, digits=2):
+        d = entry.get(f"{metric}_diff")
+        if d is None or any(math.isnan(x) for x in d):
+            return "-"
+        m, lo, hi = (x * scale for x in d)
+        return f"{m:+.{digits}f} [{lo:+.{digits}f}, {hi:+.{digits}f}]"
+
+    names = {"nees_in_band_fraction": "NEES in band", "map_error_m": "map error",
+             "interface_cpu_s": "interface CPU"}
+    lines = ["| task | best rule | its success | arm | success (pp) | NEES in band (pp) | ANEES "
+             "| map error (m) | interface CPU (s) | return | normalised headroom | worlds |",
+             "|---|---|---:|---|---:|---:|---:|---:|---:|---:|---|---:|"]
+    for doc in docs:
+        best = doc["policies"][doc["best_rule"]]
+        for arm in (BOUND, "lookahead"):
+            entry = doc["policies"].get(arm)
+            first = arm == BOUND
+            task = [f"`{doc['task']}`", f"`{doc.get('best_rule_label', doc['best_rule'])}`",
+                    f"{best['success'] * 100:.0f} %"] if first else ["", "", ""]
+            label = "bound" if first else "lookahead"
+            if entry is None:
+                lines.append("| " + " | ".join([*task, label, "not run", *["-"] * 6, "0"]) + " |")
+                continue
+            headroom = "-" if first else ", ".join(
+                f"{names.get(m, m)} {v:.2f}" for m, v in doc["normalised_headroom"].items()
+                if v is not None) or "-"
+            lines.append("| " + " | ".join([
+                *task, label, diff(entry, "success", 100, 0),
+                diff(entry, "nees_in_band_fraction", 100, 0), diff(entry, "anees", 1, 1),
+                diff(entry, "map_error_m"), diff(entry, "interface_cpu_s", 1, 3),
+                diff(entry, "return", 1, 0), headroom, str(entry["n_worlds"])]) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def read_rows(path: Path) -> list[dict]:
     rows = []
     for line in Path(path).read_text().splitlines():
@@ -221,7 +260,7 @@ def read_rows(path: Path) -> list[dict]:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--task", required=True, help="an id of TASK_ENV_VARIANTS")
+    parser.add_argument("--task", help="an id of TASK_ENV_VARIANTS")
     parser.add_argument("--seeds", type=int, default=10, help="worlds per clutter level")
     parser.add_argument("--seed-start", type=int, default=4800)
     parser.add_argument("--clutter-levels", default="0,1,2,3")
@@ -238,9 +277,21 @@ def main(argv=None) -> int:
                         help="also report the rows of DIR/results.jsonl (repeatable)")
     parser.add_argument("--common-worlds", action="store_true",
                         help="report every policy on the worlds all policies finished")
-    parser.add_argument("--out", required=True)
+    parser.add_argument("--out")
+    parser.add_argument("--table", action="append", default=[], metavar="HEADROOM_JSON",
+                        help="print the headroom table of these tasks' headroom.json (repeatable)"
+                             " and nothing else")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
+    if args.table:
+        try:
+            docs = [json.loads(Path(f).read_text()) for f in args.table]
+        except (OSError, json.JSONDecodeError) as exc:
+            parser.error(f"--table: {exc}")
+        print(headroom_table(docs), end="")
+        return 0
+    if args.task is None or args.out is None:
+        parser.error("--task and --out are required (unless --table)")
 
     import policies
     from slam_gym.envs import TASK_ENV_VARIANTS
@@ -252,6 +303,7 @@ def main(argv=None) -> int:
     names = [n.strip() for n in args.policies.split(",") if n.strip()]
     specs: dict = {n: policies.make(n) for n in names}
     best = args.best_rule or "fixed-10s-optimise"
+    best_label = best  # the rule's own name where the best rule is the chosen threshold rule
     if args.threshold_rule:
         chosen = json.loads(Path(args.threshold_rule).read_text())["chosen"][f"{args.price:g}"]
         if chosen["feature"] is None:  # an end of the family: already a named rule
@@ -261,6 +313,7 @@ def main(argv=None) -> int:
             specs["best-threshold"] = policies.make(
                 "threshold-optimise", feature=chosen["feature"], threshold=chosen["threshold"])
             best = args.best_rule or "best-threshold"
+        best_label = chosen["rule"] if best in ("best-threshold", chosen["rule"]) else best
         logger.info("the threshold family's best rule: %s (%s)", chosen["rule"], best)
     out = Path(args.out)
     for folder in args.rows:
@@ -286,7 +339,7 @@ def main(argv=None) -> int:
     doc = summarise(rows, best, args.price) | {
         "task": args.task, "seeds": args.seeds, "seed_start": args.seed_start,
         "draws": args.draws, "worlds": len({(r["clutter_level"], r["seed"]) for r in rows}),
-        "common_worlds": args.common_worlds}
+        "common_worlds": args.common_worlds, "best_rule_label": best_label}
     (out / "headroom.json").write_text(json.dumps(doc, indent=2) + "\n")
     (out / "headroom.md").write_text(markdown(doc))
     print(markdown(doc))
