@@ -146,6 +146,15 @@ def summarise(rows: Sequence[Mapping], best: str, price: float) -> dict:
     return out
 
 
+def diff_cell(entry: Mapping, metric: str, scale: float = 1.0, digits: int = 2) -> str:
+    """``entry``'s paired difference on ``metric`` as ``mean [lo, hi]`` (``-`` if undefined)."""
+    d = entry.get(f"{metric}_diff")
+    if d is None or any(math.isnan(x) for x in d):
+        return "-"
+    m, lo, hi = (x * scale for x in d)
+    return f"{m:+.{digits}f} [{lo:+.{digits}f}, {hi:+.{digits}f}]"
+
+
 def markdown(doc: Mapping) -> str:
     head = ["policy", "worlds", "success", "vs best (pp)", "NEES in band", "vs best (pp)",
             "ANEES", "vs best", "map error (m)", "vs best (m)", "interface CPU (s)",
@@ -156,21 +165,18 @@ def markdown(doc: Mapping) -> str:
         mean = entry.get(metric)
         return "-" if mean is None else f"{mean * scale:.{digits}f}"
 
-    def diff(entry, metric, scale=1.0, digits=2):
-        d = entry.get(f"{metric}_diff")
-        if d is None or any(math.isnan(x) for x in d):
-            return "-"
-        m, lo, hi = (x * scale for x in d)
-        return f"{m:+.{digits}f} [{lo:+.{digits}f}, {hi:+.{digits}f}]"
 
     for name, e in doc["policies"].items():
         label = f"**{name}** (best rule)" if name == doc["best_rule"] else name
         lines.append("| " + " | ".join([
-            label, str(e["n_worlds"]), cell(e, "success", 100, 0) + " %",
-            diff(e, "success", 100, 0), cell(e, "nees_in_band_fraction", 100, 0) + " %",
-            diff(e, "nees_in_band_fraction", 100, 0), cell(e, "anees"), diff(e, "anees"),
-            cell(e, "map_error_m"), diff(e, "map_error_m"), cell(e, "interface_cpu_s", 1, 3),
-            diff(e, "interface_cpu_s", 1, 3), cell(e, "return", 1, 0), diff(e, "return", 1, 0),
+            label, str(e["n_worlds"]),
+            cell(e, "success", 100, 0) + " %", diff_cell(e, "success", 100, 0),
+            cell(e, "nees_in_band_fraction", 100, 0) + " %",
+            diff_cell(e, "nees_in_band_fraction", 100, 0),
+            cell(e, "anees"), diff_cell(e, "anees"),
+            cell(e, "map_error_m"), diff_cell(e, "map_error_m"),
+            cell(e, "interface_cpu_s", 1, 3), diff_cell(e, "interface_cpu_s", 1, 3),
+            cell(e, "return", 1, 0), diff_cell(e, "return", 1, 0),
             "-" if e.get("planning_cpu_s") is None else f"{e['planning_cpu_s']:.0f}",
         ]) + " |")
     if doc.get("normalised_headroom"):
@@ -214,12 +220,6 @@ def headroom_table(docs: Sequence[Mapping]) -> str:
     each) the best rule's success, then the bound's and the lookahead's paired differences with
     the best rule, and the lookahead's normalised headroom."""
 
-    def diff(entry, metric, scale=1.0, digits=2):
-        d = entry.get(f"{metric}_diff")
-        if d is None or any(math.isnan(x) for x in d):
-            return "-"
-        m, lo, hi = (x * scale for x in d)
-        return f"{m:+.{digits}f} [{lo:+.{digits}f}, {hi:+.{digits}f}]"
 
     names = {"nees_in_band_fraction": "NEES in band", "map_error_m": "map error",
              "interface_cpu_s": "interface CPU"}
@@ -241,10 +241,10 @@ def headroom_table(docs: Sequence[Mapping]) -> str:
                 f"{names.get(m, m)} {v:.2f}" for m, v in doc["normalised_headroom"].items()
                 if v is not None) or "-"
             lines.append("| " + " | ".join([
-                *task, label, diff(entry, "success", 100, 0),
-                diff(entry, "nees_in_band_fraction", 100, 0), diff(entry, "anees", 1, 1),
-                diff(entry, "map_error_m"), diff(entry, "interface_cpu_s", 1, 3),
-                diff(entry, "return", 1, 0), headroom, str(entry["n_worlds"])]) + " |")
+                *task, label, diff_cell(entry, "success", 100, 0),
+                diff_cell(entry, "nees_in_band_fraction", 100, 0), diff_cell(entry, "anees", 1, 1),
+                diff_cell(entry, "map_error_m"), diff_cell(entry, "interface_cpu_s", 1, 3),
+                diff_cell(entry, "return", 1, 0), headroom, str(entry["n_worlds"])]) + " |")
     return "\n".join(lines) + "\n"
 
 
