@@ -149,5 +149,7 @@ def test_headroom_table_has_a_bound_and_a_lookahead_row_per_task(tmp_path, capsy
         files[-1].write_text(json.dumps(doc))
     assert headroom.main(["--table", str(files[0]), "--table", str(files[1])]) == 0
     assert capsys.readouterr().out == table
+    assert headroom.main(["--table", str(files[0]), str(files[1])]) == 0
+    assert capsys.readouterr().out == table
     with pytest.raises(SystemExit):
         headroom.main(["--report-only"])  # neither --table nor --task/--out

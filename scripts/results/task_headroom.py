@@ -278,9 +278,10 @@ def main(argv=None) -> int:
     parser.add_argument("--common-worlds", action="store_true",
                         help="report every policy on the worlds all policies finished")
     parser.add_argument("--out")
-    parser.add_argument("--table", action="append", default=[], metavar="HEADROOM_JSON",
-                        help="print the headroom table of these tasks' headroom.json (repeatable)"
-                             " and nothing else")
+    parser.add_argument("--table", action="extend", nargs="+", default=[],
+                        metavar="HEADROOM_JSON",
+                        help="print the headroom table of these tasks' headroom.json and nothing "
+                             "else")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.table:
