@@ -703,16 +703,16 @@ def _f658fba_pose_moments(poses, w, pose_covs, lineages):
     return mean, 0.5 * (cov + cov.T)
 
 
-def _assert_covariances_match(name, expected, got):
-    """Each covariance relative to its scale; rounding is amplified by the small-sample factor's
-    inverse where the cloud is nearly degenerate (one step after a restart the poses lie on a
-    curve: condition number ~1e11), so the tolerance grows with it."""
+def _assert_covariances_match(name, expected, got, relative=1e-12):
+    """Each covariance relative to its scale (``relative``); rounding is amplified by the
+    small-sample factor's inverse where the cloud is nearly degenerate (one step after a restart
+    the poses lie on a curve: condition number ~1e11), so the tolerance grows with it."""
     matrices = expected.reshape(-1, *expected.shape[-2:])
     for k, (want, have) in enumerate(zip(matrices, got.reshape(matrices.shape), strict=True)):
         lam = np.linalg.eigvalsh(want)
         condition = lam[-1] / max(lam[0], 1e-300)
         error = np.abs(have - want).max() / np.abs(want).max()
-        assert error <= 1e-12 + 1e-15 * condition, (name, k, error, condition)
+        assert error <= relative + 1e-15 * condition, (name, k, error, condition)
 
 
 @pytest.fixture(scope="module")
@@ -766,9 +766,12 @@ def test_seeded_run_reproduces_the_recorded_poses_and_local_maps(pose_replay):
         expected, got = reference[name], replay[name]
         assert got.shape == expected.shape, name
         if name.endswith(("mean", "_x")):
-            np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12, err_msg=name)
-        elif name not in ("prior_cov", "post_cov"):
-            _assert_covariances_match(name, expected, got)
+            # 1e-9 (m, rad) across CPUs: the rounding accumulated over the run differs between
+            # machines (8e-12 in the composed global mean on 2026-11-28's AMD EPYC against the
+            # file's machine); any change of the filter moves these by far more
+            np.testing.assert_allclose(got, expected, rtol=0, atol=1e-9, err_msg=name)
+        elif name not in ("prior_cov", "post_cov"):  # the same across CPUs
+            _assert_covariances_match(name, expected, got, relative=1e-9)
 
 
 @pytest.mark.parametrize("trailing", [(), (2,), (2, 2)])
