@@ -10,7 +10,8 @@ headroom = load_script("results/task_headroom.py")
 
 
 def _row(policy, level, seed, success, map_error=1.0, draw=0, ret=-100.0):
-    return {"policy": policy, "clutter_level": level, "seed": seed, "draw": draw,
+    return {"policy": policy, "scenario": "brooks-bailey", "clutter_level": level, "seed": seed,
+            "options": {"draw": draw}, "draw": draw,
             "status": "ok", "success": success, "map_error_m": map_error, "anees": 3.0,
             "nees_in_band_fraction": 0.9, "return": ret, "w_compute": 10.0,
             "compute_term_s": 1.0, "fusion_cpu_s": 0.1, "optimise_cpu_s": 0.1}
@@ -98,7 +99,7 @@ def test_join_rows_keeps_each_run_once_and_the_first_groups_row():
     joined = headroom.join_rows(first, second)
     assert [r["key"] for r in joined] == ["a", "b", "c"]
     assert joined[1]["success"] is True
-    # rows without a key are told apart by policy, world and draw
+    # rows without a key are told apart by their job (policy, world, options: the draw)
     assert len(headroom.join_rows([_row("rule", 0, 0, True)], [_row("rule", 0, 0, True, draw=1)],
                                   [_row("rule", 0, 0, False)])) == 2
 

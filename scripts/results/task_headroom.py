@@ -44,6 +44,8 @@ from pathlib import Path
 
 import numpy as np
 
+from slam_gym.evaluation.results import read_results, row_key
+
 logger = logging.getLogger("task_headroom")
 
 RULES = ("fixed-10s", "fixed-10s-optimise", "esdf-innovation")
@@ -202,13 +204,12 @@ def common_worlds(rows: Sequence[Mapping]) -> list[Mapping]:
 
 
 def join_rows(*groups: Sequence[Mapping]) -> list[dict]:
-    """The union of several runs' rows, each run (its ``key``, else policy, world and draw)
-    once: the first group's row wins."""
+    """The union of several runs' rows, each run (its job key, :func:`results.row_key`) once: the
+    first group's row wins."""
     seen, out = set(), []
     for group in groups:
         for r in group:
-            key = r.get("key") or json.dumps([r["policy"], r["clutter_level"], r["seed"],
-                                              r.get("draw", 0)])
+            key = row_key(r)
             if key not in seen:
                 seen.add(key)
                 out.append(dict(r))
@@ -219,8 +220,6 @@ def headroom_table(docs: Sequence[Mapping]) -> str:
     """The headroom table of README and RESULTS (issue 48 item 4): per task (one ``headroom.json``
     each) the best rule's success, then the bound's and the lookahead's paired differences with
     the best rule, and the lookahead's normalised headroom."""
-
-
     names = {"nees_in_band_fraction": "NEES in band", "map_error_m": "map error",
              "interface_cpu_s": "interface CPU"}
     lines = ["| task | best rule | its success | arm | success (pp) | NEES in band (pp) | ANEES "
@@ -246,16 +245,6 @@ def headroom_table(docs: Sequence[Mapping]) -> str:
                 diff_cell(entry, "map_error_m"), diff_cell(entry, "interface_cpu_s", 1, 3),
                 diff_cell(entry, "return", 1, 0), headroom, str(entry["n_worlds"])]) + " |")
     return "\n".join(lines) + "\n"
-
-
-def read_rows(path: Path) -> list[dict]:
-    rows = []
-    for line in Path(path).read_text().splitlines():
-        try:
-            rows.append(json.loads(line))
-        except json.JSONDecodeError:  # a partial last line left by a kill
-            continue
-    return rows
 
 
 def main(argv=None) -> int:
@@ -321,8 +310,7 @@ def main(argv=None) -> int:
         if not (Path(folder) / "results.jsonl").is_file():
             parser.error(f"--rows {folder}: no results.jsonl there")
     if args.report_only:
-        own = out / "results.jsonl"
-        rows = read_rows(own) if own.is_file() else []
+        rows = read_results(out)
     else:
         rows = benchmark(
             specs, scenario=kwargs["scenario"], n_particles=kwargs.get("n_particles", 500),
@@ -331,7 +319,7 @@ def main(argv=None) -> int:
             compute_clip_s=args.compute_clip_s, baselines=[], out=out, workers=1,
             executor="serial", figures=False, progress=True,
         ).rows
-    rows = join_rows(rows, *(read_rows(Path(folder) / "results.jsonl") for folder in args.rows))
+    rows = join_rows(rows, *(read_results(folder) for folder in args.rows))
     if args.common_worlds:
         rows = common_worlds(rows)
     if not rows:
