@@ -19,6 +19,11 @@ A model whose system fingerprint (its ``model.json``'s ``fingerprint``,
 :mod:`slam_gym.training.provenance`) does not match the code it would ship with is refused,
 naming what differs (exit 1): it was trained on another system. ``--force`` ships it anyway,
 with a warning (the packaged-model test then fails until a matching model ships).
+
+A model trained on a later env version than the one it replaces (``-v1`` after ``-v0``: issue
+46) records so under ``env_version_check``: ``outcome`` "retrained on <id>", the replaced
+model's env id and the ``git show`` that restores it, and why it was retrained (the replaced
+model's own ``env_version_check``, when it has one). ``slam-gym fingerprint`` prints it.
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ import argparse
 import json
 import logging
 import shutil
+import subprocess
 import sys
 from pathlib import Path
 
@@ -62,6 +68,36 @@ def provenance_differences(config: dict) -> list[str]:
     return compare_fingerprints(config.get("fingerprint"), fingerprint_of_config(config))
 
 
+def retraining_record(replaced: dict | None, shipped: dict, commit: str | None) -> dict | None:
+    """The ``env_version_check`` of a model that replaces one trained on an earlier env version
+    (``None`` when there is no such model, or the versions are the same)."""
+    from slam_gym.envs import env_version
+
+    if not replaced or not replaced.get("env_id") or not shipped.get("env_id"):
+        return None
+    old_id, new_id = replaced["env_id"], shipped["env_id"]
+    if env_version(new_id) <= env_version(old_id):
+        return None
+    old_check = replaced.get("env_version_check") or {}
+    restore = f"git show {commit}:policies/models/{TARGET.name}" if commit else None
+    return {"checked_on": new_id, "outcome": f"retrained on {new_id}",
+            "why": (f"replaces a model trained on {old_id}"
+                    + (f" (on {old_check.get('checked_on')}: {old_check.get('outcome')} - "
+                       f"{old_check.get('why')})" if old_check else "")),
+            "replaces": {"env_id": old_id, "command": replaced.get("command"),
+                         "restore": restore}}
+
+
+def head_commit() -> str | None:
+    """The repository's HEAD (short), or ``None`` outside a git checkout."""
+    try:
+        done = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, check=True,
+                              capture_output=True, text=True)
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    return done.stdout.strip() or None
+
+
 def parse_args(argv: list[str]) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("train_out", nargs="+", metavar="TRAIN_OUT",
@@ -88,6 +124,12 @@ def main(argv: list[str]) -> int:
             logger.error("%s\nnot shipped (retrain on this code, or --force)", message)
             return 1
         logger.warning("%s\nshipping it anyway (--force)", message)
+    old_json = TARGET.with_suffix(".json")
+    replaced = json.loads(old_json.read_text()) if old_json.is_file() else None
+    record = retraining_record(replaced, config, head_commit())
+    if record is not None:
+        config["env_version_check"] = record
+        logger.info("%s; %s", record["outcome"], record["why"])
     shutil.copyfile(source, TARGET)
     config["chosen_among_algorithms"] = found
     config["shipped_by"] = "python scripts/tools/ship_model.py " + " ".join(argv)

@@ -12,7 +12,8 @@ that the model was trained on this code; the fingerprint then carries ``"stamped
 A model trained on an env id's earlier version (``-v0``: the filter's random numbers in one
 ordered stream) says so, with what its config's ``env_version_check`` records: whether it was
 compared on the current version against its earlier self and re-stamped, or not and why
-(issue 46).
+(issue 46). A model retrained on the current version says that it was, and which model it
+replaced (recorded by ``scripts/tools/ship_model.py``).
 """
 
 from __future__ import annotations
@@ -50,7 +51,13 @@ def env_version_lines(config: dict) -> tuple[list[str], dict]:
     version = {"env_id": env_id, "trained_on_version": trained, "current_id": current_id,
                "check": check}
     if trained >= 1:
-        return [f"  env {env_id}: the current version"], version
+        lines = [f"  env {env_id}: the current version"]
+        if isinstance(check, dict):
+            replaces = check.get("replaces") or {}
+            lines.append(f"  {check.get('outcome', '?')} - {check.get('why', '')}"
+                         + (f"; restore the replaced model with `{replaces['restore']}`"
+                            if replaces.get("restore") else ""))
+        return lines, version
     lines = [f"  env {env_id}: trained on v{trained} (the filter's random numbers in one ordered "
              f"stream); the current version is {current_id} (synchronised numbers)"]
     if not isinstance(check, dict):

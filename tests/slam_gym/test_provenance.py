@@ -358,3 +358,39 @@ def test_fingerprint_says_which_env_version_a_model_was_trained_on_and_what_was_
     assert version["trained_on_version"] == 1 and "the current version" in lines[0]
     with pytest.raises(ValueError, match="env_id="):
         env_version_lines({"env_id": "SlamGym/HybridSLAM"})
+
+
+def test_shipping_a_model_of_a_later_env_version_records_that_it_was_retrained(
+        model_zip, tmp_path, monkeypatch):
+    from script_loader import load_script
+
+    from slam_gym.commands.fingerprint import env_version_lines
+
+    ship = load_script("tools/ship_model.py")
+    monkeypatch.setattr(ship, "TARGET", tmp_path / "shipped" / "learned-default.zip")
+    monkeypatch.setattr(ship, "FIGURES", tmp_path / "figures")
+    monkeypatch.setattr(ship, "head_commit", lambda: "abc1234")
+    (tmp_path / "shipped").mkdir()
+    old_check = {"checked_on": "SlamGym/HybridSLAM-v1", "outcome": "not re-stamped",
+                 "why": "undecided at 40 worlds"}
+    ship.TARGET.with_suffix(".json").write_text(json.dumps(
+        {"env_id": "SlamGym/HybridSLAM-v0", "command": "slam-gym train --env v0",
+         "env_version_check": old_check}))
+    out = model_zip.parent
+    (out / "summary.json").write_text(json.dumps({
+        "chosen_seed": 0, "algo": "ppo", "seeds": [0],
+        "final_evaluation": {"0": {"mean_return": -1.0, "success_rate": 1.0, "mode": "sampled"}},
+    }))
+    assert ship.main([str(out)]) == 0
+    shipped = json.loads(ship.TARGET.with_suffix(".json").read_text())
+    check = shipped["env_version_check"]
+    assert check["outcome"] == "retrained on SlamGym/HybridSLAM-v1"
+    assert "replaces a model trained on SlamGym/HybridSLAM-v0" in check["why"]
+    assert "undecided at 40 worlds" in check["why"]
+    assert check["replaces"]["restore"] == "git show abc1234:policies/models/learned-default.zip"
+    lines, version = env_version_lines(shipped)
+    assert version["trained_on_version"] == 1 and "the current version" in lines[0]
+    assert "retrained on SlamGym/HybridSLAM-v1" in lines[1] and "git show abc1234" in lines[1]
+    # shipping it again over itself (same version) records no retraining
+    assert ship.retraining_record(shipped, shipped, "abc1234") is None
+    assert ship.retraining_record(None, shipped, None) is None
