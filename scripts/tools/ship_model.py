@@ -82,10 +82,10 @@ def retraining_record(replaced: dict | None, shipped: dict, commit: str | None) 
     restore = f"git show {commit}:policies/models/{TARGET.name}" if commit else None
     return {"checked_on": new_id, "outcome": f"retrained on {new_id}",
             "why": (f"replaces a model trained on {old_id}"
-                    + (f" (on {old_check.get('checked_on')}: {old_check.get('outcome')} - "
-                       f"{old_check.get('why')})" if old_check else "")),
+                    + (f", whose check on {old_check.get('checked_on')} was: "
+                       f"{old_check.get('outcome')}" if old_check else "")),
             "replaces": {"env_id": old_id, "command": replaced.get("command"),
-                         "restore": restore}}
+                         "env_version_check": old_check or None, "restore": restore}}
 
 
 def head_commit() -> str | None:

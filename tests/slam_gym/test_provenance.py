@@ -386,7 +386,8 @@ def test_shipping_a_model_of_a_later_env_version_records_that_it_was_retrained(
     check = shipped["env_version_check"]
     assert check["outcome"] == "retrained on SlamGym/HybridSLAM-v1"
     assert "replaces a model trained on SlamGym/HybridSLAM-v0" in check["why"]
-    assert "undecided at 40 worlds" in check["why"]
+    assert "whose check on SlamGym/HybridSLAM-v1 was: not re-stamped" in check["why"]
+    assert check["replaces"]["env_version_check"] == old_check
     assert check["replaces"]["restore"] == "git show abc1234:policies/models/learned-default.zip"
     lines, version = env_version_lines(shipped)
     assert version["trained_on_version"] == 1 and "the current version" in lines[0]
