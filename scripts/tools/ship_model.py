@@ -89,11 +89,19 @@ def retraining_record(replaced: dict | None, shipped: dict, commit: str | None) 
 
 
 def head_commit() -> str | None:
-    """The repository's HEAD (short), or ``None`` outside a git checkout."""
+    """The repository's HEAD (short) when the packaged model there is the one in the working tree
+    (so that ``git show HEAD:...`` restores it); ``None`` outside a git checkout or when the
+    working tree's model differs from HEAD's."""
     try:
         done = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, check=True,
                               capture_output=True, text=True)
+        changed = subprocess.run(["git", "status", "--porcelain", "--", str(TARGET)], cwd=ROOT,
+                                 check=True, capture_output=True, text=True)
     except (OSError, subprocess.CalledProcessError):
+        return None
+    if changed.stdout.strip():
+        logger.warning("%s differs from the commit's: the record names no commit to restore it",
+                       TARGET)
         return None
     return done.stdout.strip() or None
 

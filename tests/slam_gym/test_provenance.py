@@ -395,3 +395,29 @@ def test_shipping_a_model_of_a_later_env_version_records_that_it_was_retrained(
     # shipping it again over itself (same version) records no retraining
     assert ship.retraining_record(shipped, shipped, "abc1234") is None
     assert ship.retraining_record(None, shipped, None) is None
+
+
+def test_the_restore_command_names_a_commit_only_when_it_holds_the_replaced_model(
+        tmp_path, monkeypatch):
+    import subprocess
+
+    from script_loader import load_script
+
+    ship = load_script("tools/ship_model.py")
+    repo = tmp_path / "repo"
+    (repo / "models").mkdir(parents=True)
+    target = repo / "models" / "learned-default.zip"
+    target.write_bytes(b"old model")
+    git = ["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@t"]
+    subprocess.run(["git", "init", "-q", str(repo)], check=True)
+    subprocess.run([*git, "add", "."], check=True)
+    subprocess.run([*git, "commit", "-qm", "model"], check=True)
+    monkeypatch.setattr(ship, "ROOT", repo)
+    monkeypatch.setattr(ship, "TARGET", target)
+    head = subprocess.run([*git, "rev-parse", "--short", "HEAD"], check=True,
+                          capture_output=True, text=True).stdout.strip()
+    assert ship.head_commit() == head
+    target.write_bytes(b"a model not committed")
+    assert ship.head_commit() is None
+    monkeypatch.setattr(ship, "ROOT", tmp_path)  # not a checkout
+    assert ship.head_commit() is None
