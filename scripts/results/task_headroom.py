@@ -167,7 +167,6 @@ def markdown(doc: Mapping) -> str:
         mean = entry.get(metric)
         return "-" if mean is None else f"{mean * scale:.{digits}f}"
 
-
     for name, e in doc["policies"].items():
         label = f"**{name}** (best rule)" if name == doc["best_rule"] else name
         lines.append("| " + " | ".join([

@@ -68,7 +68,7 @@ def provenance_differences(config: dict) -> list[str]:
     return compare_fingerprints(config.get("fingerprint"), fingerprint_of_config(config))
 
 
-def retraining_record(replaced: dict | None, shipped: dict, commit: str | None) -> dict | None:
+def retraining_record(replaced: dict | None, shipped: dict) -> dict | None:
     """The ``env_version_check`` of a model that replaces one trained on an earlier env version
     (``None`` when there is no such model, or the versions are the same)."""
     from slam_gym.envs import env_version
@@ -79,6 +79,7 @@ def retraining_record(replaced: dict | None, shipped: dict, commit: str | None) 
     if env_version(new_id) <= env_version(old_id):
         return None
     old_check = replaced.get("env_version_check") or {}
+    commit = head_commit()
     restore = f"git show {commit}:policies/models/{TARGET.name}" if commit else None
     return {"checked_on": new_id, "outcome": f"retrained on {new_id}",
             "why": (f"replaces a model trained on {old_id}"
@@ -134,7 +135,7 @@ def main(argv: list[str]) -> int:
         logger.warning("%s\nshipping it anyway (--force)", message)
     old_json = TARGET.with_suffix(".json")
     replaced = json.loads(old_json.read_text()) if old_json.is_file() else None
-    record = retraining_record(replaced, config, head_commit())
+    record = retraining_record(replaced, config)
     if record is not None:
         config["env_version_check"] = record
         logger.info("%s; %s", record["outcome"], record["why"])

@@ -322,18 +322,30 @@ def test_the_front_table_marks_a_model_that_does_not_match():
     assert "†" not in _markdown(table)
 
 
-def test_ship_model_refuses_a_model_of_another_system(stale_zip, tmp_path, monkeypatch):
+@pytest.fixture
+def ship(tmp_path, monkeypatch):
+    """scripts/tools/ship_model.py, shipping into tmp_path/shipped (figures into tmp_path)."""
     from script_loader import load_script
 
     ship = load_script("tools/ship_model.py")
     monkeypatch.setattr(ship, "TARGET", tmp_path / "shipped" / "learned-default.zip")
     monkeypatch.setattr(ship, "FIGURES", tmp_path / "figures")
     (tmp_path / "shipped").mkdir()
-    out = stale_zip.parent
+    return ship
+
+
+def _one_seed_train_out(model_zip):
+    """The folder of ``model_zip`` made a one-seed ``slam-gym train`` output (its summary)."""
+    out = model_zip.parent
     (out / "summary.json").write_text(json.dumps({
         "chosen_seed": 0, "algo": "ppo", "seeds": [0],
         "final_evaluation": {"0": {"mean_return": -1.0, "success_rate": 1.0, "mode": "sampled"}},
     }))
+    return out
+
+
+def test_ship_model_refuses_a_model_of_another_system(stale_zip, ship):
+    out = _one_seed_train_out(stale_zip)
     assert ship.main([str(out)]) == 1
     assert not ship.TARGET.exists()
     assert ship.main(["--force", str(out)]) == 0
@@ -361,26 +373,16 @@ def test_fingerprint_says_which_env_version_a_model_was_trained_on_and_what_was_
 
 
 def test_shipping_a_model_of_a_later_env_version_records_that_it_was_retrained(
-        model_zip, tmp_path, monkeypatch):
-    from script_loader import load_script
-
+        model_zip, ship, monkeypatch):
     from slam_gym.commands.fingerprint import env_version_lines
 
-    ship = load_script("tools/ship_model.py")
-    monkeypatch.setattr(ship, "TARGET", tmp_path / "shipped" / "learned-default.zip")
-    monkeypatch.setattr(ship, "FIGURES", tmp_path / "figures")
     monkeypatch.setattr(ship, "head_commit", lambda: "abc1234")
-    (tmp_path / "shipped").mkdir()
     old_check = {"checked_on": "SlamGym/HybridSLAM-v1", "outcome": "not re-stamped",
                  "why": "undecided at 40 worlds"}
     ship.TARGET.with_suffix(".json").write_text(json.dumps(
         {"env_id": "SlamGym/HybridSLAM-v0", "command": "slam-gym train --env v0",
          "env_version_check": old_check}))
-    out = model_zip.parent
-    (out / "summary.json").write_text(json.dumps({
-        "chosen_seed": 0, "algo": "ppo", "seeds": [0],
-        "final_evaluation": {"0": {"mean_return": -1.0, "success_rate": 1.0, "mode": "sampled"}},
-    }))
+    out = _one_seed_train_out(model_zip)
     assert ship.main([str(out)]) == 0
     shipped = json.loads(ship.TARGET.with_suffix(".json").read_text())
     check = shipped["env_version_check"]
@@ -393,17 +395,14 @@ def test_shipping_a_model_of_a_later_env_version_records_that_it_was_retrained(
     assert version["trained_on_version"] == 1 and "the current version" in lines[0]
     assert "retrained on SlamGym/HybridSLAM-v1" in lines[1] and "git show abc1234" in lines[1]
     # shipping it again over itself (same version) records no retraining
-    assert ship.retraining_record(shipped, shipped, "abc1234") is None
-    assert ship.retraining_record(None, shipped, None) is None
+    assert ship.retraining_record(shipped, shipped) is None
+    assert ship.retraining_record(None, shipped) is None
 
 
 def test_the_restore_command_names_a_commit_only_when_it_holds_the_replaced_model(
-        tmp_path, monkeypatch):
+        ship, tmp_path, monkeypatch):
     import subprocess
 
-    from script_loader import load_script
-
-    ship = load_script("tools/ship_model.py")
     repo = tmp_path / "repo"
     (repo / "models").mkdir(parents=True)
     target = repo / "models" / "learned-default.zip"
