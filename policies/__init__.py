@@ -102,8 +102,25 @@ def _make_builtin(name: str, **options: Any) -> Policy:
     return cls(**{**fixed, **options})
 
 
+class _BuiltinFactory:
+    """The registry's factory of the project's policy ``name``: :func:`_make_builtin`, and the
+    class's reading of a name with parameters (``threshold-optimise[...]``,
+    :data:`policies.registry.PARAMETERISED`) when it has one."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+
+    def __call__(self, **options: Any) -> Policy:
+        return _make_builtin(self.name, **options)
+
+    @property
+    def parse_parameters(self) -> Callable[[str], dict] | None:
+        target = _ALIASES[self.name][0] if self.name in _ALIASES else self.name
+        return getattr(_CLASSES[target], "parse_parameters", None)
+
+
 REGISTRY = PolicyRegistry(
-    {name: functools.partial(_make_builtin, name) for name in _builtin_names()},
+    {name: _BuiltinFactory(name) for name in _builtin_names()},
     group=ENTRY_POINT_GROUP,
 )
 """The default registry: the project's policies, the entry points of group

@@ -51,10 +51,11 @@ from __future__ import annotations
 
 import abc
 import math
+import re
 from collections.abc import Mapping
 from types import MappingProxyType
 
-from filters.validation import check_choice, check_int_range, check_range
+from filters.validation import check_choice, check_int_range, check_range, require
 from policies.base import HeuristicPolicy
 
 AGE_TOLERANCE_S = 1e-4
@@ -204,6 +205,41 @@ class ThresholdOptimise(FixedInterval):
         self.required_features = (*self.required_features, self.feature)
         self.options = {"interval_s": self.interval_s, "feature": self.feature,
                         "threshold": self.threshold}
+        #: the rule's own name, which tables print and every command accepts back
+        self.name = self.format_name(self.feature, self.threshold, self.interval_s)
+
+    @staticmethod
+    def format_name(feature: str, threshold: float, interval_s: float = 10.0) -> str:
+        """The name of one rule of the family, in the one form tables print and
+        :func:`policies.make` parses (:meth:`parse_parameters`):
+        ``threshold-optimise[FEATURE>=THRESHOLD]``, with ``,interval_s=S`` when the fusion
+        interval is not BB's 10 s. Numbers are written shortest (``2``, ``0.005``) unless that
+        would lose digits, so the name gives back the same rule."""
+        def number(x: float) -> str:
+            short = f"{float(x):g}"
+            return short if float(short) == float(x) else repr(float(x))
+
+        extra = "" if float(interval_s) == 10.0 else f",interval_s={number(interval_s)}"
+        return f"{ThresholdOptimise.name}[{feature}>={number(threshold)}{extra}]"
+
+    @classmethod
+    def parse_parameters(cls, text: str) -> dict:
+        """The keyword options of the rule named ``threshold-optimise[TEXT]`` (the form of
+        :meth:`format_name`); ``ValueError`` naming what does not parse."""
+        match = re.fullmatch(r"\s*(\w+)\s*>=\s*([^,\s]+)\s*(?:,\s*interval_s\s*=\s*([^,\s]+)"
+                             r"\s*)?", text)
+        require(match is not None, "policy name", f"{cls.name}[{text}]",
+                f"of the form {cls.name}[FEATURE>=THRESHOLD] or "
+                f"{cls.name}[FEATURE>=THRESHOLD,interval_s=S], e.g. "
+                f"{cls.format_name('global_position_std_m', 2.0)}")
+        try:
+            options = {"feature": match.group(1), "threshold": float(match.group(2))}
+            if match.group(3) is not None:
+                options["interval_s"] = float(match.group(3))
+        except ValueError as exc:
+            raise ValueError(f"policy name={cls.name}[{text}] is invalid: the threshold and "
+                             "interval must be numbers") from exc
+        return options
 
     def decide(self, f: Mapping[str, float]) -> tuple[bool, bool]:
         fuse = self.fuse_now(f)

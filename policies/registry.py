@@ -52,6 +52,17 @@ ENTRY_POINT_GROUP = "slam_gym.policies"
 
 Factory = Callable[..., Any]
 
+PARAMETERISED = re.compile(r"(?P<base>[A-Za-z0-9_.-]+)\[(?P<inner>.*)\]", re.S)
+"""A name with its parameters: ``BASE[...]`` (``threshold-optimise[global_position_std_m>=2]``),
+where the factory of ``BASE`` reads the bracket with its ``parse_parameters(text) -> options``
+(:meth:`policies.heuristics.ThresholdOptimise.parse_parameters`): the form tables print a rule
+of a family in, so every name they print can be typed back."""
+
+
+def _parameter_parser(target: Any) -> Callable[[str], dict] | None:
+    fn = target.func if isinstance(target, functools.partial) else target
+    return getattr(fn, "parse_parameters", None)
+
 
 def is_reference(spec: Any) -> bool:
     """Whether ``spec`` is a ``package.module:attribute`` reference (not a policy name)."""
@@ -282,6 +293,9 @@ class PolicyRegistry:
             raise self._unknown(spec)
         if spec in self._builtin:
             return self._builtin[spec]
+        parameterised = self._builtin_parameterised(spec)
+        if parameterised is not None:
+            return parameterised
         if spec in self._registered:
             return self._registered[spec]
         if is_reference(spec):
@@ -295,6 +309,19 @@ class PolicyRegistry:
             raise ValueError(f"policy name={spec!r} is invalid: its entry point {ep.value!r} "
                              f"failed to load ({type(exc).__name__}: {exc})") from exc
 
+    def _builtin_parameterised(self, spec: str) -> Any:
+        """The factory of a project name with parameters (:data:`PARAMETERISED`), its options
+        bound; None when ``spec`` is not of that form with a project name."""
+        match = PARAMETERISED.fullmatch(spec)
+        if match is None or match["base"] not in self._builtin:
+            return None
+        target = self._builtin[match["base"]]
+        parse = _parameter_parser(target)
+        require(parse is not None, "policy name", spec,
+                f"{match['base']!r} without brackets ({match['base']} takes no parameters in "
+                "its name)")
+        return functools.partial(target, **parse(match["inner"]))
+
     def _unknown(self, spec: Any) -> ValueError:
         return ValueError(f"policy name={spec!r} is invalid: must be one of "
                           f"{', '.join(self.available())} or a 'package.module:attribute' "
@@ -303,14 +330,14 @@ class PolicyRegistry:
     def make(self, spec: str, **options: Any) -> Any:
         """Build the policy ``spec`` names with keyword ``options``."""
         target = self.factory(spec)
-        if spec in self._builtin:
+        if spec in self._builtin or self._builtin_parameterised(spec) is not None:
             return target(**options)
         return build(target, spec, options)
 
     def digest(self, spec: str) -> str | None:
         """:func:`policy_digest` of what ``spec`` resolves to, or None for the project's own
         names (whose code is the project's)."""
-        if spec in self._builtin:
+        if spec in self._builtin or self._builtin_parameterised(spec) is not None:
             return None
         return policy_digest(self.factory(spec))
 

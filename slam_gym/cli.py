@@ -94,9 +94,14 @@ OPTIONAL_EXTRAS = {"ray": "ray", "sb3_contrib": "contrib"}
 """Top-level module -> the extra of pyproject.toml that installs it."""
 
 
-FIELD_OPTIONS = {"n_particles": "particles", "seeds": "trials", "clutter_level": "clutter_levels"}
+FIELD_OPTIONS = {"seeds": "trials", "clutter_level": "clutter_levels", "env_id": "env"}
 """The Python names of options (:func:`slam_gym.evaluation.benchmark`'s, the env's) whose
-command-line option has another destination (used where the name is not an option itself)."""
+command-line option has another destination (used where the name is not an option itself); an
+env keyword argument ``NAME`` is shorthand ``env_NAME``'s (:mod:`slam_gym.commands.envargs`)."""
+
+EXIT_CLOSED_PIPE = 141
+"""The output pipe was closed by its reader (``| head -1``): 128 + SIGPIPE, as a Unix tool that
+the signal ends (the shell's convention); nothing more is printed."""
 
 _INVALID = re.compile(r"(\w+)=(.*?) is invalid((?::| with| without| for) .*)", re.S)
 
@@ -138,12 +143,15 @@ def option_message(exc: ValueError, args=None, argv: list[str] | None = None) ->
     except (ValueError, SyntaxError, MemoryError, RecursionError):
         value = match.group(2)
     flags = getattr(args, "option_flags", None) or {}
-    dest = field if field in flags else FIELD_OPTIONS.get(field)
-    if dest not in flags:
+    dest = next((d for d in (field, f"env_{field}", FIELD_OPTIONS.get(field)) if d in flags),
+                None)
+    if dest is None:
         return str(exc)
     flag = flags[dest]
     typed = typed_text(list(argv or []), flag) if flag.startswith("-") else None
     if typed is None:
+        if getattr(args, dest, None) is None:  # not from this option (e.g. --env-kwargs)
+            return str(exc)
         typed = _plain(getattr(args, dest, value))
     same = typed == _plain(value)
     if not same:
@@ -193,7 +201,11 @@ def main(argv: list[str] | None = None) -> int:
     configure_logging(args.verbose)
     one_blas_thread_per_process()
     try:
-        return int(args.run(args) or 0)
+        code = int(args.run(args) or 0)
+        sys.stdout.flush()  # a closed pipe shows here, not in the interpreter's exit
+        return code
+    except BrokenPipeError:
+        return _closed_pipe()
     except (Exception, KeyboardInterrupt) as exc:
         known = one_line_error(exc, args, argv)
         if known is None or args.debug:
@@ -201,6 +213,19 @@ def main(argv: list[str] | None = None) -> int:
         message, code = known
         print(f"slam-gym {args.command}: error: {message}", file=sys.stderr)
         return code
+
+
+def _closed_pipe() -> int:
+    """The reader of stdout went away: end quietly (:data:`EXIT_CLOSED_PIPE`). stdout is pointed
+    at /dev/null so that the interpreter's flush at exit cannot fail again."""
+    import os
+
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass
+    return EXIT_CLOSED_PIPE
 
 
 if __name__ == "__main__":

@@ -96,7 +96,7 @@ def main(argv: list[str]) -> int:
     for level in levels:
         for seed in range(seed_start, seed_start + n_seeds):
             policy = policies.make(name)
-            timeline, _, env = decision_timeline(policy, "brooks-bailey", level, seed)
+            timeline, _, env = decision_timeline(policy, "SlamGym/HybridSLAM-v1", level, seed)
             turn_rates = interval_turn_rates(env.stream, np.asarray(timeline["t_s"]))
             row = decision_counts(timeline, turn_rates) | {
                 "level": level, "seed": seed,

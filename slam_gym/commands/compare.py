@@ -4,14 +4,13 @@ on common random numbers, with a sequential test (:mod:`slam_gym.evaluation.comp
 from __future__ import annotations
 
 import json
-import math
 
 from slam_gym.commands.common import emit, to_jsonable
+from slam_gym.commands.envargs import add_env_options, env_from_args
 from slam_gym.commands.runs import (
     add_run_options,
     check_run_options,
     errors_exit_code,
-    int_list,
     run_options,
 )
 
@@ -72,63 +71,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--plan", action="store_true",
                    help="run a pilot (--seeds, default one batch) and print the worlds needed "
                    "to decide --metric at --margin with 80 %% power, sequential and fixed")
-    p.add_argument("--env", default=None, metavar="ID",
-                   help="a registered simulated env id whose front-end, back-end and random "
-                   "streams to use (default SlamGym/HybridSLAM-v1)")
-    p.add_argument("--clutter-levels", default="0,1,2,3", help="clutter levels (strata)")
-    p.add_argument("--scenario", default="brooks-bailey", help="simulated scenario")
-    p.add_argument("--particles", type=int, default=500, help="FastSLAM particles")
-    p.add_argument("--n-steps", type=int, default=None, metavar="N",
-                   help="cut every path to N steps (quick looks, tests)")
-    p.add_argument("--w-compute", type=float, default=None,
-                   help="the reward's price of compute (/s; default the env's)")
-    p.add_argument("--compute-clip-s", type=float, default=None,
-                   help="the reward's compute clip (s; default the env's)")
+    add_env_options(p)
     add_run_options(p, default_out="out/compare", trials_flag=None)
     p.set_defaults(run=run)
-
-
-def check_options(args) -> None:
-    """Every option before any run (``ValueError`` naming it as typed: exit 2)."""
-    if args.margin is not None and args.metric is None:
-        raise ValueError(f"--margin {args.margin:g} is invalid without --metric: name the "
-                         "metric the margin is a distance in")
-    if args.margin is not None and not (math.isfinite(args.margin) and args.margin >= 0):
-        raise ValueError(f"--margin {args.margin} is invalid: must be a number >= 0")
-    if args.draws < 1:
-        raise ValueError(f"--draws {args.draws} is invalid: must be >= 1")
-    if args.batch_seeds < 1:
-        raise ValueError(f"--batch-seeds {args.batch_seeds} is invalid: must be >= 1")
-    levels = int_list(args.clutter_levels)
-    batch_worlds = args.batch_seeds * max(len(levels), 1)
-    if args.max_worlds is not None:
-        if args.metric is None:
-            raise ValueError(f"--max-worlds {args.max_worlds} is invalid without --metric: the "
-                             "sequential design stops when its question is decided")
-        if args.max_worlds < batch_worlds:
-            raise ValueError(f"--max-worlds {args.max_worlds} is invalid: must be at least one "
-                             f"batch, {batch_worlds} worlds (--batch-seeds {args.batch_seeds} x "
-                             f"{len(levels)} clutter levels)")
-        if args.trials is not None:
-            raise ValueError("--seeds is invalid with --max-worlds: the sequential design "
-                             "chooses how many worlds it runs")
-    if args.design != "confidence-sequence":
-        if args.max_worlds is None:
-            raise ValueError(f"--design {args.design} is invalid without --max-worlds: it is a "
-                             "sequential design, planned for --max-worlds worlds")
-        if args.metric != "success":
-            raise ValueError(f"--design {args.design} is invalid with --metric {args.metric}: "
-                             "it is checked on success only (continuous metrics take the "
-                             "confidence sequence)")
-    if args.trials is not None and args.trials < 2:
-        raise ValueError(f"--seeds {args.trials} is invalid: must be >= 2")
-    if args.plan and (args.metric is None or args.max_worlds is not None):
-        raise ValueError("--plan is invalid without --metric or with --max-worlds: it plans "
-                         "the worlds of a question from a pilot")
-    if not 0 < args.alpha < 1:
-        raise ValueError(f"--alpha {args.alpha} is invalid: must be in (0, 1)")
-    if args.seed_start < 0 or args.seed_start >= 2**31:
-        raise ValueError(f"--seed-start {args.seed_start} is invalid: must be in [0, 2**31)")
 
 
 def _num(value, digits=2, signed=False) -> str:
@@ -139,8 +84,8 @@ def _num(value, digits=2, signed=False) -> str:
 
 def text_report(result) -> list[str]:
     """The human summary: one line per metric and the question's answer."""
-    lines = [f"{result.b} against {result.a}: {result.worlds} worlds x {result.draws} draws "
-             "(paired by world; 95 % intervals of B - A)"]
+    lines = [f"{result.b} against {result.a} in {result.env_id}: {result.worlds} worlds x "
+             f"{result.draws} draws (paired by world; 95 % intervals of B - A)"]
     width = max(len(m) for m in result.metrics)
     for name, m in result.metrics.items():
         unit = f" {m['unit']}" if m["unit"] else ""
@@ -164,19 +109,19 @@ def text_report(result) -> list[str]:
 def run(args) -> int:
     from slam_gym.evaluation.compare import compare, plan
 
-    check_options(args)
     check_run_options(args)
-    common = dict(
-        clutter_levels=int_list(args.clutter_levels), draws=args.draws,
-        seed_start=args.seed_start, alpha=args.alpha, scenario=args.scenario, env=args.env,
-        n_particles=args.particles, n_steps=args.n_steps, w_compute=args.w_compute,
-        compute_clip_s=args.compute_clip_s, out=args.out, **run_options(args))
+    if args.plan and (args.metric is None or args.max_worlds is not None):
+        raise ValueError("--plan is invalid without --metric or with --max-worlds: it plans "
+                         "the worlds of a question from a pilot")
+    env = env_from_args(args)
+    common = dict(env=env, draws=args.draws, seed_start=args.seed_start, alpha=args.alpha,
+                  out=args.out, **run_options(args))
     if args.plan:
         pilot_seeds = args.trials or max(args.batch_seeds, 2)
         result = compare(args.a, args.b, seeds=pilot_seeds, **common)
         half = len(result.rows) // 2
         rows_a, rows_b = result.rows[:half], result.rows[half:]
-        levels = len(int_list(args.clutter_levels))
+        levels = len(env.levels)
         planned = plan(rows_a, rows_b, args.metric, args.margin or 0.0, alpha=args.alpha,
                        batch_worlds=args.batch_seeds * levels)
         emit(args, {"plan": planned, "pilot": result.as_dict()},

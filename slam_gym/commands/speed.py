@@ -82,11 +82,16 @@ def add_parser(subparsers) -> None:
                    "env schedules on a few hundred decisions, optimise() at 10/20/40 sub-maps on "
                    "one world; writes speed_record.json")
     p.add_argument("--tasks", default="",
-                   help="issue 48's task ids (comma-separated, 'all' for every one of "
+                   help="env ids (comma-separated; 'all' for issue 48's tasks, "
                    "TASK_ENV_VARIANTS) to time over one whole episode each under "
                    "fixed-10s-optimise's schedule on training-time world 900000: decisions/s, "
                    "the episode's CPU, and the CPU per decision by third of the episode against "
                    "the stored sub-maps; recorded in speed_record.json with --quick")
+    p.add_argument("--env", default=None, metavar="ID",
+                   help="an env id timed like --tasks' (one whole episode), with --env-kwargs")
+    p.add_argument("--env-kwargs", nargs="+", default=None, metavar="KEY:VALUE",
+                   help="keyword arguments of --env's gym.make over the id's own (KEY:VALUE, "
+                   "VALUE read as JSON)")
     p.add_argument("--compare", metavar="BASELINE", default=None,
                    help="a speed record to compare with: prints every figure's speed ratio "
                    "and exits 1 when one falls below half of the baseline's")
@@ -146,23 +151,30 @@ TASK_SEED = 900000
 """The training-time world :func:`measure_task` times each task on."""
 
 
+TASK_CLUTTER_LEVEL = 2
+"""The clutter level a task is timed at when its episodes draw one (the env's default level,
+what the speed record has timed the tasks at since issue 47)."""
+
+
 def measure_task(env_id: str, seed: int = TASK_SEED, schedule: str = "fixed-10s-optimise",
                  **config) -> dict:
-    """One whole episode of an issue-48 task (an id of ``TASK_ENV_VARIANTS``, its defaults
-    unless ``config`` says otherwise) on world ``seed`` under ``schedule``
-    (:data:`ENV_SCHEDULES`): decisions per CPU second (the reset included), the episode's CPU,
-    and per third of the episode the mean CPU per decision and the stored sub-maps and global
-    features at its end, so a cost per decision that grows faster than the map shows."""
-    import gymnasium as gym
+    """One whole episode of env ``env_id`` (a registered simulated id such as an issue-48 task,
+    or a :class:`~slam_gym.envs.spec.ResolvedEnv`; the id's options unless ``config`` says
+    otherwise) on world ``seed`` under ``schedule`` (:data:`ENV_SCHEDULES`): decisions per CPU
+    second (the reset included), the episode's CPU, and per third of the episode the mean CPU
+    per decision and the stored sub-maps and global features at its end, so a cost per decision
+    that grows faster than the map shows."""
+    from slam_gym.envs.spec import ResolvedEnv, resolve_env
 
-    from slam_gym.envs import TASK_ENV_VARIANTS
-
-    if env_id not in TASK_ENV_VARIANTS:
-        raise ValueError(f"env_id={env_id!r} is invalid: must be one of "
-                         f"{sorted(TASK_ENV_VARIANTS)}")
-    env = gym.make(f"slam_gym:{env_id}", **config).unwrapped
+    spec = env_id if isinstance(env_id, ResolvedEnv) else resolve_env(env_id, config,
+                                                                       per_decision=True)
+    env_id = spec.env_id
+    env = spec.make().unwrapped
+    options = {"world_seed": int(seed)}
+    if env.episode_levels is not None:
+        options["clutter_level"] = TASK_CLUTTER_LEVEL
     start = time.process_time()
-    env.reset(seed=int(seed), options={"world_seed": int(seed)})
+    env.reset(seed=int(seed), options=options)
     reset_s = time.process_time() - start
     step_s, submaps, features = [], [], []
     while True:
@@ -550,6 +562,27 @@ def record_figures(result) -> dict:
     return out
 
 
+def check_timed_envs(args) -> list:
+    """The envs ``--tasks`` and ``--env`` name, resolved (``ValueError`` naming the option and
+    the closest ids for an unknown one), before any measurement."""
+    from slam_gym.envs import TASK_ENV_VARIANTS
+    from slam_gym.envs.spec import check_env_id, parse_env_kwargs, resolve_env
+
+    tasks = sorted(TASK_ENV_VARIANTS) if args.tasks == "all" else name_list(args.tasks)
+    envs = [resolve_env(check_env_id(t, "tasks"), per_decision=True) for t in tasks]
+    if args.env is not None:
+        envs.append(resolve_env(check_env_id(args.env), parse_env_kwargs(args.env_kwargs),
+                                per_decision=True))
+    elif args.env_kwargs:
+        raise ValueError(f"env_kwargs={args.env_kwargs!r} is invalid without --env: they are "
+                         "options of the env --env names")
+    for spec in envs:
+        if spec.scenario == "recorded":
+            raise ValueError(f"env={spec.env_id!r} is invalid: a simulated env (a recording's "
+                             "speed is timed by slam-gym reproduce mrclam)")
+    return envs
+
+
 def run(args) -> int:
     from tqdm import tqdm
 
@@ -564,6 +597,7 @@ def run(args) -> int:
         except ValueError as exc:
             logger.error("%s", exc)
             return 2
+    timed_envs = check_timed_envs(args)  # every id before any measurement
     worst_case_decisions = args.env_decisions
     optimise_steps = args.iterations
     if args.quick:
@@ -635,16 +669,8 @@ def run(args) -> int:
     if counts:
         result["optimise"] = measure_optimise(int_list(args.optimise_seeds, "optimise_seeds"),
                                               counts, n_steps=optimise_steps)
-    if args.tasks:
-        from slam_gym.envs import TASK_ENV_VARIANTS
-
-        tasks = sorted(TASK_ENV_VARIANTS) if args.tasks == "all" else name_list(args.tasks)
-        bad = [t for t in tasks if t not in TASK_ENV_VARIANTS]
-        if bad:
-            logger.error("--tasks=%s is invalid: must be among %s or 'all'", ",".join(bad),
-                         ", ".join(sorted(TASK_ENV_VARIANTS)))
-            return 2
-        result["tasks"] = [measure_task(t) for t in tqdm(tasks, desc="tasks",
+    if timed_envs:
+        result["tasks"] = [measure_task(t) for t in tqdm(timed_envs, desc="tasks",
                                                          disable=args.quiet or args.json)]
     if not args.skip_first_reset:
         result["env_first_reset"] = measure_first_reset(args.seed)

@@ -91,7 +91,11 @@ def candidates(grid: Mapping[str, Sequence[float]] = DEFAULT_GRID) -> dict[str, 
 
 
 def rule_name(feature: str, threshold: float) -> str:
-    return f"threshold-optimise[{feature}>={float(threshold):g}]"
+    """The rule's name as every command accepts it back
+    (:meth:`policies.heuristics.ThresholdOptimise.format_name`)."""
+    from policies.heuristics import ThresholdOptimise
+
+    return ThresholdOptimise.format_name(feature, threshold)
 
 
 def score(rows: Sequence[Mapping[str, Any]], prices: Sequence[float]) -> list[dict[str, Any]]:

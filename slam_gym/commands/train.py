@@ -29,7 +29,9 @@ import logging
 import sys
 from pathlib import Path
 
+from filters.validation import require
 from slam_gym.commands.common import add_common_options, emit, out_dir
+from slam_gym.commands.envargs import add_env_options
 from slam_gym.commands.runs import int_list
 from slam_gym.evaluation.executors import EXECUTORS
 from slam_gym.training.hyperparams import ALGOS, load_hyperparams, parse_overrides
@@ -48,7 +50,6 @@ def add_parser(subparsers) -> None:
     p = subparsers.add_parser("train", help="train learned interface policies (SB3), resumable")
     p.add_argument("--algo", choices=ALGOS, default="ppo",
                    help="the stable-baselines3 (or sb3-contrib) algorithm (default ppo)")
-    p.add_argument("--env", default="SlamGym/HybridSLAM-v1", help="env id to train on")
     p.add_argument("--hyperparams", default=None,
                    help="YAML file (rl-zoo3 layout; default: the packaged <algo>.yml)")
     p.add_argument("--hp", action="append", default=[], metavar="KEY=VALUE",
@@ -58,12 +59,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--n-envs", type=int, default=None,
                    help="parallel envs (default: the YAML's n_envs)")
     p.add_argument("--seeds", default="0,1,2", help="training seeds, each its own run")
-    p.add_argument("--particles", type=int, default=None,
-                   help="FastSLAM particles (default: the YAML's env_kwargs)")
-    p.add_argument("--n-steps", type=int, default=None,
-                   help="cut every training and evaluation path to this many iterations")
-    p.add_argument("--clutter-levels", default="0,1,2,3", metavar="L,...",
-                   help="clutter levels the training and evaluation worlds are drawn from")
+    add_env_options(p, ("scenario", "n_particles", "n_steps", "compute_clip_s"))
     p.add_argument("--eval-every", type=int, default=25_000, help="decisions between evaluations")
     p.add_argument("--eval-seeds", default=DEFAULT_EVAL_SEEDS,
                    help="evaluation worlds per level (seeds < 1e6, never trained on)")
@@ -77,8 +73,6 @@ def add_parser(subparsers) -> None:
                    help="decisions between checkpoints (what --resume continues from)")
     p.add_argument("--resume", action="store_true",
                    help="continue unfinished seeds from their newest checkpoints")
-    p.add_argument("--compute-clip-s", type=float, default=None,
-                   help="the reward's clip of compute per decision (s; default: the env's)")
     p.add_argument("--prices", default=None,
                    help="a sweep: prices of compute (per s), each x every seed an independent "
                         "resumable job in OUT/price-<p>/seed-<s>/")
@@ -93,31 +87,62 @@ def add_parser(subparsers) -> None:
 
 
 def build_hyperparams(args) -> dict:
+    """The run's settings: the YAML entry of ``--env`` (a task reads its system's), ``--hp``,
+    and the env's keyword arguments (``--env-kwargs`` and the shorthands) under
+    ``env_kwargs``."""
+    from slam_gym.commands.envargs import env_shorthands
+    from slam_gym.envs.spec import DEFAULT_ENV_ID, check_env_id, parse_env_kwargs
+
+    args.env = check_env_id(DEFAULT_ENV_ID if args.env is None else args.env)
     overrides = parse_overrides(args.hp)
     if args.timesteps is not None:
         overrides["n_timesteps"] = args.timesteps
     if args.n_envs is not None:
         overrides["n_envs"] = args.n_envs
-    env_kwargs = {}
-    if args.particles is not None:
-        env_kwargs["n_particles"] = args.particles
-    if args.n_steps is not None:
-        env_kwargs["n_steps"] = args.n_steps
-    if args.compute_clip_s is not None:
-        env_kwargs["compute_clip_s"] = args.compute_clip_s
+    env_kwargs = parse_env_kwargs(args.env_kwargs)
+    for name, value in env_shorthands(args).items():
+        if name in env_kwargs and env_kwargs[name] != value:
+            raise ValueError(f"{name}={value!r} is invalid: --env-kwargs gives "
+                             f"{name}:{env_kwargs[name]!r} (given twice, differently)")
+        env_kwargs[name] = value
     if env_kwargs:
         overrides["env_kwargs"] = {**overrides.get("env_kwargs", {}), **env_kwargs}
     return load_hyperparams(args.algo, args.env, args.hyperparams, overrides)
 
 
+def training_setups(args, params: dict, seeds: list[int]) -> list:
+    """One :class:`~slam_gym.training.run.TrainingSetup` per seed, every option checked (the
+    env's through :func:`slam_gym.envs.spec.resolve_env`, which says in one line where an option
+    overrides the id's) before anything is written or trained."""
+    from slam_gym.training.run import TrainingSetup, training_env
+
+    env = training_env(args.env, params.get("env_kwargs"), None if args.clutter_levels is None
+                       else int_list(args.clutter_levels, "clutter_levels"))
+    require(None not in env.levels, "env", args.env, "an env with clutter levels to train in")
+    return [TrainingSetup(
+        algo=args.algo, env_id=args.env, seed=seed, hyperparams=params,
+        clutter_levels=tuple(env.levels),
+        eval_seeds=tuple(int_list(args.eval_seeds, "eval_seeds")), eval_every=args.eval_every,
+        eval_workers=args.eval_workers or params["n_envs"],
+        checkpoint_every=args.checkpoint_every,
+        command="slam-gym " + " ".join(sys.argv[1:]),
+    ) for seed in seeds]
+
+
+def check_seeds(text: str) -> list[int]:
+    """``--seeds``: distinct integers >= 0 (``ValueError`` naming ``seeds``)."""
+    seeds = int_list(text, "seeds")
+    require(bool(seeds) and len(set(seeds)) == len(seeds) and all(s >= 0 for s in seeds),
+            "seeds", text, "distinct integers >= 0")
+    return seeds
+
+
 def run(args) -> int:
     from slam_gym.training.report import summarise_runs
-    from slam_gym.training.run import TrainingSetup, train_run
+    from slam_gym.training.run import train_run
 
     params = build_hyperparams(args)
-    seeds = int_list(args.seeds, "seeds")
-    if not seeds or len(set(seeds)) != len(seeds):
-        raise ValueError(f"seeds={args.seeds!r} is invalid: must be distinct integers")
+    seeds = check_seeds(args.seeds)
     if args.prices is not None:
         if args.baseline is not None:
             raise ValueError(f"baseline={args.baseline!r} is invalid with --prices: a sweep's "
@@ -130,26 +155,20 @@ def run(args) -> int:
                 f"{field}={getattr(args, field)!r} is invalid without --prices: the jobs of a "
                 "sweep (prices x seeds) go through executors; without --prices the seeds train "
                 "here, one after the other")
-    out = out_dir(args)
     if baseline_name != "none":
         import policies
 
         policies.make(baseline_name)  # an unknown name fails here, before any training
+    setups = training_setups(args, params, seeds)
+    out = out_dir(args)
     runs = {}
-    for seed in seeds:
-        setup = TrainingSetup(
-            algo=args.algo, env_id=args.env, seed=seed, hyperparams=params,
-            clutter_levels=tuple(int_list(args.clutter_levels, "clutter_levels")),
-            eval_seeds=tuple(int_list(args.eval_seeds, "eval_seeds")), eval_every=args.eval_every,
-            eval_workers=args.eval_workers or params["n_envs"],
-            checkpoint_every=args.checkpoint_every,
-            command="slam-gym " + " ".join(sys.argv[1:]),
-        )
-        run_dir = out / f"seed-{seed}"
-        logger.warning("training %s seed %d for %d decisions into %s", args.algo.upper(), seed,
-                       params["n_timesteps"], run_dir)
+    for setup in setups:
+        run_dir = out / f"seed-{setup.seed}"
+        logger.warning("training %s seed %d on %s for %d decisions into %s", args.algo.upper(),
+                       setup.seed, args.env, params["n_timesteps"], run_dir)
         train_run(setup, run_dir, resume=args.resume, progress=not args.quiet and not args.json)
-        runs[seed] = run_dir
+        runs[setup.seed] = run_dir
+    setup = setups[-1]
     baseline = None if baseline_name == "none" else (baseline_name, evaluate_baseline(
         baseline_name, setup, out / f"baseline-{baseline_name}",
         progress=not args.quiet and not args.json))
@@ -170,13 +189,10 @@ def run(args) -> int:
 def evaluate_baseline(policy: str, setup, out: Path, progress: bool) -> dict:
     """``policy``'s evaluation record on the training's evaluation worlds with the env options
     its snapshots are evaluated with (rows in ``out``, resumable)."""
-    from slam_gym.evaluation.core import POLICY_OPTIONS
     from slam_gym.training.evaluation import evaluate_policy
 
-    env_options = {k: v for k, v in setup.env_options().items() if k in POLICY_OPTIONS}
-    return evaluate_policy(policy, clutter_levels=setup.clutter_levels, seeds=setup.eval_seeds,
-                           env_kwargs=env_options, out=out, workers=setup.eval_workers,
-                           progress=progress)
+    return evaluate_policy(policy, env_id=setup.evaluation_env(), seeds=setup.eval_seeds,
+                           out=out, workers=setup.eval_workers, progress=progress)
 
 
 def run_sweep_command(args, params: dict, seeds: list[int]) -> int:
@@ -194,13 +210,14 @@ def run_sweep_command(args, params: dict, seeds: list[int]) -> int:
     if args.ray_address and executor != "ray":
         raise ValueError(f"ray_address={args.ray_address!r} is invalid with executor="
                          f"{executor!r}: give --executor ray")
+    levels = training_setups(args, params, seeds[:1])[0].clutter_levels  # every option checked
     out = out_dir(args)
     spec = SweepSpec(
         algo=args.algo, env_id=args.env, hyperparams=params, out=str(out.resolve()),
-        clutter_levels=tuple(int_list(args.clutter_levels, "clutter_levels")),
+        clutter_levels=levels,
         eval_seeds=tuple(int_list(args.eval_seeds, "eval_seeds")), eval_every=args.eval_every,
         eval_workers=args.eval_workers or params["n_envs"],
-        checkpoint_every=args.checkpoint_every, compute_clip_s=args.compute_clip_s,
+        checkpoint_every=args.checkpoint_every, compute_clip_s=args.env_compute_clip_s,
         command="slam-gym " + " ".join(sys.argv[1:]))
     logger.warning("sweep of %s: %d prices x %d seeds = %d jobs (%s, %d at once) into %s",
                    args.algo.upper(), len(prices), len(seeds), len(prices) * len(seeds),

@@ -92,17 +92,24 @@ def max_episode_steps(kwargs: dict) -> int:
     return math.ceil(1.5 * steps / config.decision_interval)
 
 
-#: the tasks of issue 48 (slam_gym.envs.tasks), only at -v1: id -> (entry point, default
-#: keyword arguments)
-TASK_ENV_VARIANTS: dict[str, tuple[str, dict]] = {
-    "SlamGym/HybridSLAM-Zones-v1": ("slam_gym.envs.tasks:ZonesEnv",
-                                    {"scenario": "brooks-bailey-zones"}),
-    "SlamGym/HybridSLAM-ZonesStarved-v1": ("slam_gym.envs.tasks:ZonesStarvedEnv",
-                                           {"scenario": "brooks-bailey-zones",
-                                            "n_particles": 150}),
-    "SlamGym/HybridSLAM-LongMission-v1": ("slam_gym.envs.tasks:LongMissionEnv",
-                                          {"scenario": "long-mission"}),
+#: the tasks of issue 48 (slam_gym.envs.tasks), only at -v1: id -> entry point; each is
+#: registered with its class's own defaults (``DEFAULTS``), so ``gym.spec(id).kwargs`` shows them
+TASK_ENTRY_POINTS: dict[str, str] = {
+    "SlamGym/HybridSLAM-Zones-v1": "slam_gym.envs.tasks:ZonesEnv",
+    "SlamGym/HybridSLAM-ZonesStarved-v1": "slam_gym.envs.tasks:ZonesStarvedEnv",
+    "SlamGym/HybridSLAM-LongMission-v1": "slam_gym.envs.tasks:LongMissionEnv",
 }
+
+
+def _task_variants() -> dict[str, tuple[str, dict]]:
+    from gymnasium.envs.registration import load_env_creator
+
+    return {env_id: (entry_point, dict(load_env_creator(entry_point).DEFAULTS))
+            for env_id, entry_point in TASK_ENTRY_POINTS.items()}
+
+
+#: id -> (entry point, default keyword arguments: the class's ``DEFAULTS``)
+TASK_ENV_VARIANTS: dict[str, tuple[str, dict]] = _task_variants()
 
 
 def register_envs() -> list[str]:

@@ -234,7 +234,7 @@ class HybridSLAMConfig:
     """
 
     scenario: str = "brooks-bailey"
-    clutter_level: int | None = 2
+    clutter_level: int | tuple | None = 2
     alpha: float | None = None
     beta: float | None = None
     scenario_overrides: tuple = ()
@@ -264,9 +264,14 @@ class HybridSLAMConfig:
             f"one of {scenario_names()}",
         )
         if self.clutter_level is not None:
+            levels = self.episode_levels or (self.clutter_level,)
             require(
-                self.clutter_level in CLUTTER_LEVELS, "clutter_level", self.clutter_level,
-                f"one of {sorted(CLUTTER_LEVELS)} or None",
+                len(levels) > 0 and len(set(levels)) == len(levels)
+                and all(isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+                        and v in CLUTTER_LEVELS for v in levels),
+                "clutter_level", self.clutter_level,
+                f"one of {sorted(CLUTTER_LEVELS)}, a tuple of distinct levels (one drawn per "
+                "episode), or None",
             )
             require(
                 self.alpha is None and self.beta is None, "alpha, beta", (self.alpha, self.beta),
@@ -319,6 +324,20 @@ class HybridSLAMConfig:
         self.scenario_config()
 
     @property
+    def episode_levels(self) -> tuple[int, ...] | None:
+        """The clutter levels an episode's level is drawn from (``clutter_level`` a tuple: the
+        tasks of :mod:`slam_gym.envs.tasks`), or None when the level is fixed."""
+        return tuple(self.clutter_level) if isinstance(self.clutter_level, tuple) else None
+
+    def as_kwargs(self) -> dict:
+        """Every field as a ``gym.make`` keyword argument in plain JSON types (tuples as lists):
+        :meth:`from_kwargs` of it is this config again."""
+        def plain(value):
+            return [plain(v) for v in value] if isinstance(value, (tuple, list)) else value
+
+        return {f.name: plain(getattr(self, f.name)) for f in dataclasses.fields(self)}
+
+    @property
     def observation_features(self) -> tuple[str, ...]:
         return FEATURE_NAMES if self.features is None else tuple(self.features)
 
@@ -339,7 +358,9 @@ class HybridSLAMConfig:
 
     def scenario_config(self):
         overrides = dict(self.scenario_overrides)
-        if self.clutter_level is not None:
+        if self.episode_levels is not None:  # the path and rates do not depend on the level
+            overrides["clutter_level"] = self.episode_levels[0]
+        elif self.clutter_level is not None:
             overrides["clutter_level"] = self.clutter_level
         else:
             overrides.update(clutter_level=None, alpha=self.alpha, beta=self.beta)
@@ -355,8 +376,14 @@ class HybridSLAMConfig:
             raise ValueError(f"unknown option(s) {unknown}: must be among {sorted(known)}")
         if isinstance(kwargs.get("scenario_overrides"), dict):
             kwargs["scenario_overrides"] = tuple(sorted(kwargs["scenario_overrides"].items()))
+        elif isinstance(kwargs.get("scenario_overrides"), list):  # as_kwargs' JSON form
+            kwargs["scenario_overrides"] = tuple(
+                tuple(pair) if isinstance(pair, list) else pair
+                for pair in kwargs["scenario_overrides"])
         if isinstance(kwargs.get("features"), (list, tuple)):
             kwargs["features"] = tuple(kwargs["features"])
+        if isinstance(kwargs.get("clutter_level"), list):
+            kwargs["clutter_level"] = tuple(kwargs["clutter_level"])
         given_rates = kwargs.get("alpha") is not None or kwargs.get("beta") is not None
         if given_rates and "clutter_level" not in kwargs:
             kwargs["clutter_level"] = None
@@ -368,6 +395,10 @@ class HybridSLAMEnv(gym.Env):
 
     metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 1.0}
 
+    #: the defaults of this class's options over :class:`HybridSLAMConfig`'s (a task's world:
+    #: :mod:`slam_gym.envs.tasks`); the registration of a class's id reads them
+    DEFAULTS: dict = {}
+
     #: options of ``reset(options=...)``: a world seed and fields of the config that may change
     #: between episodes without changing the spaces
     RESET_OPTIONS = ("world_seed", "draw", "clutter_level", "alpha", "beta", "n_steps",
@@ -378,7 +409,10 @@ class HybridSLAMEnv(gym.Env):
             render_mode is None or render_mode in self.metadata["render_modes"],
             "render_mode", render_mode, f"None or one of {self.metadata['render_modes']}",
         )
-        self.config = HybridSLAMConfig.from_kwargs(**config)
+        self.config = HybridSLAMConfig.from_kwargs(**(type(self).DEFAULTS | config))
+        #: the clutter levels an episode's level is drawn from when reset names none (None: the
+        #: configured level; :attr:`HybridSLAMConfig.episode_levels`)
+        self.episode_levels = self.config.episode_levels
         self.render_mode = render_mode
         period_s = 1.0 / self.config.scenario_config().filter_rate_hz
         self.metadata = {
@@ -405,6 +439,13 @@ class HybridSLAMEnv(gym.Env):
         self._figure = None
         self._warned_headless = False
 
+    @classmethod
+    def resolved_kwargs(cls, **kwargs) -> dict:
+        """Every option of an env of this class made with ``kwargs`` (the class's
+        :attr:`DEFAULTS` under them, then :class:`HybridSLAMConfig`'s), as plain JSON
+        (``ValueError`` naming an invalid option): ``cls(**resolved)`` is the same env."""
+        return HybridSLAMConfig.from_kwargs(**(cls.DEFAULTS | kwargs)).as_kwargs()
+
     # ------------------------------------------------------------------ gym API
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         with limited_blas_threads(self.config.blas_threads):
@@ -430,14 +471,19 @@ class HybridSLAMEnv(gym.Env):
         draw = options.pop("draw", 0)
         require(isinstance(draw, (int, np.integer)) and not isinstance(draw, bool)
                 and 0 <= draw < 2**31, "draw", draw, "an integer in [0, 2**31)")
+        if world_seed is None:
+            world_seed = int(self.np_random.integers(0, 2**31 - 1))
+        if self.episode_levels is not None and "clutter_level" not in options \
+                and "alpha" not in options and "beta" not in options:
+            # a task's episode draws its level (after its world seed) from the env's generator
+            options["clutter_level"] = int(
+                self.episode_levels[self.np_random.integers(len(self.episode_levels))])
         if options:
             merged = dataclasses.asdict(self.config)
             if "clutter_level" in options:
                 merged.update(alpha=None, beta=None)
             merged.update(options)
             self.config = HybridSLAMConfig.from_kwargs(**merged)
-        if world_seed is None:
-            world_seed = int(self.np_random.integers(0, 2**31 - 1))
         self.stream = self._make_stream(int(world_seed))
         from slam_gym.systems import make_system
 

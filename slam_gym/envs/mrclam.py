@@ -212,6 +212,32 @@ class MRCLAMEnv(HybridSLAMEnv):
         self._streams: dict[tuple, object] = {}
         super().__init__(render_mode=render_mode, **config)
 
+    @classmethod
+    def resolved_kwargs(cls, **kwargs) -> dict:
+        """Every option of an env made with ``kwargs``: this class's own (the recording, the
+        robot, the sensor's treatment), then the system's (:class:`HybridSLAMConfig`'s, less
+        the simulation's :data:`SIMULATION_ONLY_OPTIONS`), as plain JSON."""
+        import inspect
+
+        from slam_gym.envs.hybrid_slam import HybridSLAMConfig
+
+        own = {name: p.default for name, p in inspect.signature(cls.__init__).parameters.items()
+               if p.kind is inspect.Parameter.KEYWORD_ONLY}
+        given = cls.DEFAULTS | kwargs
+        for name in SIMULATION_ONLY_OPTIONS:
+            require(name not in given, name, given.get(name),
+                    "left out for MRCLAMEnv (the recording fixes the world, the sensor and the "
+                    "clutter; choose data_dir and robot)")
+        config = {k: v for k, v in given.items() if k not in own}
+        resolved = HybridSLAMConfig.from_kwargs(**config).as_kwargs()
+        for name in SIMULATION_ONLY_OPTIONS:
+            resolved.pop(name, None)
+        check_robot(given.get("robot", own["robot"]))
+        mine = own | {k: v for k, v in given.items() if k in own}
+        if mine.get("data_dir") is not None:
+            mine["data_dir"] = str(mine["data_dir"])
+        return mine | resolved
+
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         """As the base class; ``options["world_seed"]`` is accepted and ignored (one recording
         per robot), so it changes nothing at all (the base class would otherwise draw the

@@ -197,15 +197,6 @@ def _seed_range(seeds: int | Iterable[int], seed_start: int, runs_per_seed: int 
     return [int(s) for s in values]
 
 
-def check_env_options(scenario: str, levels: Sequence[int], **options: Any) -> None:
-    """The env's own validation of every option, at every level, before any run."""
-    from slam_gym.envs.hybrid_slam import HybridSLAMConfig
-
-    given = {k: v for k, v in options.items() if v is not None}
-    for level in levels:
-        HybridSLAMConfig.from_kwargs(scenario=scenario, clutter_level=level, **given)
-
-
 def make_out_dir(out: str | os.PathLike) -> Path:
     """Create the output folder ``out``; ``ValueError`` naming it when it cannot be (a file is
     in the way, no permission, a read-only file system)."""
@@ -228,59 +219,42 @@ MAX_DRAWS = 1000
 """Filter draws per world a benchmark accepts."""
 
 
-def policy_job_options(*, n_particles: int, decision_interval: int, front_end: str,
-                       back_end: str, random_streams: str, n_steps: int | None = None,
-                       w_compute: float | None = None,
-                       compute_clip_s: float | None = None) -> dict[str, Any]:
-    """The options every policy job of a benchmark or a comparison carries (the optional ones
-    only when given, so a key names just what was chosen)."""
-    options: dict[str, Any] = {"n_particles": n_particles, "decision_interval": decision_interval,
-                               "front_end": front_end, "back_end": back_end,
-                               "random_streams": random_streams}
-    for key, value in (("n_steps", n_steps), ("w_compute", w_compute),
-                       ("compute_clip_s", compute_clip_s)):
-        if value is not None:
-            options[key] = value
-    return options
+def env_of(env: Any = None, env_kwargs: Mapping[str, Any] | None = None,
+           clutter_levels: Iterable[int] | None = None):
+    """The :class:`~slam_gym.envs.spec.ResolvedEnv` of a library call's ``env`` (an id, None
+    for the default, or an env already resolved) with ``env_kwargs`` and ``clutter_levels``
+    (None: the env's own), interface policies deciding every decision
+    (:func:`slam_gym.envs.spec.resolve_env`: where every option of the env is checked)."""
+    from slam_gym.envs.spec import ResolvedEnv, resolve_env
+
+    if isinstance(env, ResolvedEnv):
+        require(not env_kwargs, "env_kwargs", env_kwargs,
+                "left out when env is already resolved (resolve them together)")
+        if clutter_levels is None:
+            return env
+        return resolve_env(env.env_id, env.kwargs, clutter_levels=clutter_levels,
+                           per_decision=True)
+    return resolve_env(env, env_kwargs, clutter_levels=clutter_levels, per_decision=True)
 
 
-def _env_variant(env: str) -> dict:
-    """The registration options of a simulated env id (``ValueError`` naming ``env``)."""
-    from slam_gym.envs import ENV_VARIANTS
-
-    require(env in ENV_VARIANTS, "env", env, f"one of {sorted(ENV_VARIANTS)}")
-    return ENV_VARIANTS[env]
-
-
-def env_id_streams(env: str) -> str:
-    """The ``random_streams`` of a registered simulated env id (``-v1``: synchronised)."""
-    return _env_variant(env).get("random_streams", "synchronised")
-
-
-def env_id_ends(env: str) -> tuple[str, str]:
-    """The (front-end, back-end) of a registered simulated env id."""
-    kwargs = _env_variant(env)
-    return kwargs.get("front_end", "fastslam"), kwargs.get("back_end", "ekf")
+def check_draws(draws: Any) -> int:
+    """Filter draws per world (``ValueError`` naming ``draws``): the one check of every
+    command and function that takes them."""
+    require(isinstance(draws, (int, np.integer)) and not isinstance(draws, bool)
+            and 1 <= draws <= MAX_DRAWS, "draws", draws, f"an integer in [1, {MAX_DRAWS}]")
+    return int(draws)
 
 
 def benchmark(
     policies: Any,
     *,
-    clutter_levels: Iterable[int] = (0, 1, 2, 3),
+    env: Any = None,
+    env_kwargs: Mapping[str, Any] | None = None,
+    clutter_levels: Iterable[int] | None = None,
     seeds: int | Iterable[int] = 3,
     seed_start: int = 0,
-    scenario: str = "brooks-bailey",
-    env: str | None = None,
-    n_particles: int = 500,
-    decision_interval: int = 10,
-    front_end: str | None = None,
-    back_end: str | None = None,
-    n_steps: int | None = None,
-    w_compute: float | None = None,
-    compute_clip_s: float | None = None,
     model: str | None = None,
     draws: int = 1,
-    random_streams: str | None = None,
     baselines: Iterable[str] = BASELINE_SYSTEMS,
     out: str | os.PathLike = "out/benchmark",
     workers: int | None = None,
@@ -296,75 +270,51 @@ def benchmark(
     same worlds), write ``results.jsonl`` (resumable: rows already in ``out`` are reused),
     ``summary.json``, ``table.md`` and, with ``figures``, the plots of ``slam-gym benchmark``.
 
-    ``seeds``: a number of worlds from ``seed_start``, or the seeds themselves. ``env``: a
-    registered simulated env id whose front-end and back-end to use (else ``front_end``,
-    default ``"fastslam"``, and ``back_end``, default ``"ekf"``). ``n_steps`` cuts the path
-    (quick looks and tests); ``w_compute`` and ``compute_clip_s`` (None: the env's defaults) set
-    the reward's price of compute, so a policy's return is scored under the reward it was
-    trained for. ``model``: the model zip of policy ``learned`` (None: the shipped
-    one). ``draws``: filter draws per world for every policy (each run's row carries its
-    ``draw``; a draw is the same on every policy: common random numbers, issue 46).
-    ``random_streams``: ``"synchronised"`` (``-v1``, the default) or ``"ordered"`` (``-v0``;
-    else ``env``'s). ``workers``, ``executor`` (``"process"``, ``"ray"``, ``"serial"``) and
+    ``env``: a registered env id (default ``SlamGym/HybridSLAM-v1``) or a
+    :class:`~slam_gym.envs.spec.ResolvedEnv`, with ``env_kwargs`` over the id's own (every run's
+    env is ``gym.make(id, **kwargs)``; :func:`env_of`). ``clutter_levels``: None runs the env's
+    own (a task's four, the level an id fixes, BB's four otherwise). ``seeds``: a number of
+    worlds from ``seed_start``, or the seeds themselves. ``model``: the model zip of policy
+    ``learned`` (None: the shipped one). ``draws``: filter draws per world for every policy (each
+    run's row carries its ``draw``; a draw is the same on every policy: common random numbers,
+    issue 46). ``workers``, ``executor`` (``"process"``, ``"ray"``, ``"serial"``) and
     ``ray_address`` as :func:`slam_gym.evaluation.run_jobs`, and so are ``retry_errors`` (run
     the error rows again), ``rerun_changed`` (replace the rows of a user policy whose code or
     options changed; without it such rows make the call refuse with ``ValueError`` naming the
     policy) and ``run_timeout_s`` (the time limit of one run; None: none).
 
-    Every option is checked before any run (``ValueError`` naming it): the env's options
-    through :class:`~slam_gym.envs.hybrid_slam.HybridSLAMConfig` at every clutter level.
+    Every option is checked before any run (``ValueError`` naming it).
     """
     from slam_gym.evaluation.core import learned_options
     from slam_gym.evaluation.executors import run_jobs
     from slam_gym.evaluation.jobs import Job
     from slam_gym.evaluation.summary import write_summary
 
+    spec = env_of(env, env_kwargs, clutter_levels)
+    levels = list(spec.levels)
     entries = resolve_policies(policies, model)
-    if env is not None:
-        env_front, env_back = env_id_ends(env)
-        for field, given, implied in (("front_end", front_end, env_front),
-                                      ("back_end", back_end, env_back)):
-            require(given in (None, implied), field, given, f"{implied!r} for env={env!r} "
-                    "(or left out)")
-        front_end, back_end = env_front, env_back
-        implied = env_id_streams(env)
-        require(random_streams in (None, implied), "random_streams", random_streams,
-                f"{implied!r} for env={env!r} (or left out)")
-        random_streams = implied
-    front_end, back_end = front_end or "fastslam", back_end or "ekf"
-    random_streams = random_streams or "synchronised"
-    require(isinstance(draws, (int, np.integer)) and not isinstance(draws, bool)
-            and 1 <= draws <= MAX_DRAWS, "draws", draws, f"an integer in [1, {MAX_DRAWS}]")
+    draws = check_draws(draws)
     baselines = list(baselines)
     bad = [b for b in baselines if b not in BASELINE_SYSTEMS]
     require(not bad, "baselines", bad, f"among {list(BASELINE_SYSTEMS)}")
     require(len(set(baselines)) == len(baselines), "baselines", baselines, "distinct systems")
-    levels = [int(level) for level in clutter_levels]
-    require(bool(levels), "clutter_levels", levels, "at least one level")
-    require(len(set(levels)) == len(levels), "clutter_levels", levels, "distinct levels")
+    if spec.scenario == "recorded":
+        require(not baselines, "baselines", baselines,
+                f"none for {spec.env_id} (the baselines run on simulated worlds)")
     seed_list = _seed_range(seeds, seed_start, len(entries) + len(baselines), len(levels),
                             executor)
-    check_env_options(scenario, levels, n_particles=n_particles,
-                       decision_interval=decision_interval, front_end=front_end,
-                       back_end=back_end, n_steps=n_steps, w_compute=w_compute,
-                       compute_clip_s=compute_clip_s, random_streams=random_streams)
     if executor != "serial":
         check_picklable(entries, executor)
     out = make_out_dir(out)
 
-    options = policy_job_options(n_particles=n_particles, decision_interval=decision_interval,
-                                 front_end=front_end, back_end=back_end,
-                                 random_streams=random_streams, n_steps=n_steps,
-                                 w_compute=w_compute, compute_clip_s=compute_clip_s)
     jobs = []
     for entry in entries:
-        opts = options | (learned_options(model) if entry.name == "learned" else {})
+        opts = learned_options(model) if entry.name == "learned" else {}
         if entry.digest is not None:
             opts["policy_sha256"] = entry.digest
-        jobs += [Job("policy", entry.name, scenario, level, seed, opts | {"draw": draw})
+        jobs += [Job.in_env("policy", entry.name, spec, level, seed, opts | {"draw": draw})
                  for level in levels for seed in seed_list for draw in range(draws)]
-    system_opts = {"n_steps": int(n_steps)} if n_steps is not None else {}
-    jobs += [Job("system", name, scenario, level, seed, system_opts)
+    jobs += [Job.in_env("system", name, spec, level, seed)
              for name in baselines for level in levels for seed in seed_list]
     shipped = {e.name: e.shipped for e in entries if e.shipped is not None}
     world = (levels[-1], seed_list[0])  # the world of the episode figures
@@ -384,8 +334,7 @@ def benchmark(
     written: dict[str, str] = {}
     errors: dict[str, str] = {}
     if figures:
-        env_name = env or f"{front_end} front-end, {back_end} back-end"
-        summary_figures(doc, out, f"{env_name}, {n_particles} particles", written, errors)
+        summary_figures(doc, out, spec.describe(), written, errors)
         world_jobs = [j for j in jobs if j.key in recorder.keys]
         _record_missing(world_jobs, rows, jobs, out, run_fn, run_kwargs, errors)
         draw_figure("episodes", lambda: episode_figures(

@@ -94,11 +94,14 @@ class ComparisonResult:
     rows: list
     out: Path
     n_errors: int
+    env_id: str | None = None
+    env_kwargs: dict = field(default_factory=dict)
 
     def as_dict(self) -> dict:
         return {"a": self.a, "b": self.b, "decision": self.decision, "question": self.question,
                 "worlds": self.worlds, "draws": self.draws, "metrics": self.metrics,
-                "looks": self.looks, "n_errors": self.n_errors, "out": str(self.out)}
+                "looks": self.looks, "n_errors": self.n_errors, "out": str(self.out),
+                "env_id": self.env_id, "env_kwargs": self.env_kwargs}
 
 
 def resolve_arm(spec: Any) -> Arm:
@@ -200,7 +203,9 @@ def compare(
     *,
     metric: str | None = None,
     margin: float | None = None,
-    clutter_levels: Iterable[int] = (0, 1, 2, 3),
+    env: Any = None,
+    env_kwargs: Any = None,
+    clutter_levels: Iterable[int] | None = None,
     draws: int = 2,
     seeds: int | None = None,
     max_worlds: int | None = None,
@@ -208,13 +213,6 @@ def compare(
     batch_seeds: int = 2,
     seed_start: int = 0,
     alpha: float = 0.05,
-    scenario: str = "brooks-bailey",
-    env: str | None = None,
-    n_particles: int = 500,
-    decision_interval: int = 10,
-    n_steps: int | None = None,
-    w_compute: float | None = None,
-    compute_clip_s: float | None = None,
     out: str | os.PathLike = "out/compare",
     workers: int | None = None,
     executor: str = "process",
@@ -224,17 +222,17 @@ def compare(
     rerun_changed: bool = False,
     run_timeout_s: float | None = None,
 ) -> ComparisonResult:
-    """Compare policies ``a`` and ``b`` (module docstring). Every option is checked before any
-    run (``ValueError`` naming it)."""
+    """Compare policies ``a`` and ``b`` (module docstring) in ``env`` (a registered id, default
+    ``SlamGym/HybridSLAM-v1``, or a :class:`~slam_gym.envs.spec.ResolvedEnv`) with
+    ``env_kwargs`` over the id's own, at ``clutter_levels`` (None: the env's own). Every option
+    is checked before any run, here and only here (``ValueError`` naming it; the command shows
+    these messages)."""
     from slam_gym.evaluation import paired
     from slam_gym.evaluation.benchmarking import (
-        MAX_DRAWS,
-        check_env_options,
+        check_draws,
         check_picklable,
-        env_id_ends,
-        env_id_streams,
+        env_of,
         make_out_dir,
-        policy_job_options,
     )
     from slam_gym.evaluation.core import run_job
     from slam_gym.evaluation.executors import run_jobs
@@ -242,17 +240,19 @@ def compare(
 
     check_question(metric, margin)
     check_choice("design", design, paired.SEQUENTIAL_DESIGNS)
+    if design != "confidence-sequence":
+        require(max_worlds is not None, "design", design,
+                "'confidence-sequence' without max_worlds (a group-sequential design is planned "
+                "for max_worlds worlds)")
     if max_worlds is not None and metric is not None:
         paired.check_design(design, metric in paired.RATE_METRICS)
     if metric is not None and margin is None:
         margin = 0.0
-    levels = [int(v) for v in clutter_levels]
-    require(bool(levels) and len(set(levels)) == len(levels), "clutter_levels", levels,
-            "distinct levels, at least one")
-    require(isinstance(draws, int) and not isinstance(draws, bool) and 1 <= draws <= MAX_DRAWS,
-            "draws", draws, f"an integer in [1, {MAX_DRAWS}]")
-    require(isinstance(batch_seeds, int) and batch_seeds >= 1, "batch_seeds", batch_seeds,
-            "an integer >= 1")
+    spec = env_of(env, env_kwargs, clutter_levels)
+    levels = list(spec.levels)
+    draws = check_draws(draws)
+    require(isinstance(batch_seeds, int) and not isinstance(batch_seeds, bool)
+            and batch_seeds >= 1, "batch_seeds", batch_seeds, "an integer >= 1")
     batch_worlds = batch_seeds * len(levels)
     require(0 < alpha < 1, "alpha", alpha, "in (0, 1)")
     if max_worlds is not None:
@@ -274,27 +274,15 @@ def compare(
     require(isinstance(seed_start, int) and 0 <= seed_start
             and seed_start + n_batches * batch_seeds < 2**31, "seed_start", seed_start,
             "an integer >= 0 with every seed below 2**31")
-    front_end, back_end, random_streams = "fastslam", "ekf", "synchronised"
-    if env is not None:
-        front_end, back_end = env_id_ends(env)
-        random_streams = env_id_streams(env)
-    check_env_options(scenario, levels, n_particles=n_particles,
-                       decision_interval=decision_interval, front_end=front_end,
-                       back_end=back_end, n_steps=n_steps, w_compute=w_compute,
-                       compute_clip_s=compute_clip_s, random_streams=random_streams)
     arm_a, arm_b = resolve_arm(a), resolve_arm(b)
     if executor != "serial":
         check_picklable((arm_a, arm_b), executor)
     out = make_out_dir(out)
-    base = policy_job_options(n_particles=n_particles, decision_interval=decision_interval,
-                              front_end=front_end, back_end=back_end,
-                              random_streams=random_streams, n_steps=n_steps,
-                              w_compute=w_compute, compute_clip_s=compute_clip_s)
     shipped = {arm.name: arm.shipped for arm in (arm_a, arm_b) if arm.shipped is not None}
     run_fn = functools.partial(run_job, policy_factories=shipped) if shipped else run_job
 
     def jobs_of(arm: Arm, seed_list: list[int]) -> list:
-        return [Job("policy", arm.name, scenario, level, seed, base | arm.options | {"draw": k})
+        return [Job.in_env("policy", arm.name, spec, level, seed, arm.options | {"draw": k})
                 for seed in seed_list for level in levels for k in range(draws)]
 
     rows_a: list[dict] = []
@@ -356,7 +344,7 @@ def compare(
     n_errors = sum(r.get("status") == "error" for r in rows_a + rows_b)
     return ComparisonResult(arm_a.label, arm_b.label, decision or ("undecided" if metric else None),
                             question, len(worlds), draws, metrics, looks, rows_a + rows_b, out,
-                            n_errors)
+                            n_errors, spec.env_id, spec.kwargs)
 
 
 def plan(rows_a: list[dict], rows_b: list[dict], metric: str, margin: float, *,

@@ -15,17 +15,17 @@ fusion had touched for 60 s),
 ``existence_model`` (``"gate"``/``"bb"``: the reading of BB (11), :mod:`filters.existence`),
 ``path_perturbation_m`` (None: the scenario's; else the waypoint jitter of the world's path, a
 scenario field, so the world of the job changes with it: issue 28's calibration).
-Policy jobs take ``n_particles`` (500), ``decision_interval`` (10), ``front_end``, ``back_end``,
-``model_path``, ``model_sha256`` (the model file's :func:`policies.learned.model_digest`: a run
-checks it, so a job key names the model it was run with) and ``deterministic`` (for ``learned``),
-``policy_sha256`` (a user policy's :func:`policies.registry.policy_digest`, checked likewise),
-``draw`` (0: which draw of the filter's random numbers on the world) and ``random_streams``
-(``"synchronised"``, the ``-v1`` envs; ``"ordered"``, ``-v0``);
-the env ends an episode at BB's failure. A learned policy's rows carry ``model_matches_code`` and
+Policy jobs run in their env (``job.env``, :class:`~slam_gym.envs.spec.ResolvedEnv`: built by
+``gym.make(id, **kwargs)``; the world ``seed`` at the job's clutter level and the filter's
+``draw`` are ``reset`` options) and take only the policy's own options: ``model_path``,
+``model_sha256`` (the model file's :func:`policies.learned.model_digest`: a run checks it, so a
+job key names the model it was run with) and ``deterministic`` (for ``learned``),
+``policy_sha256`` (a user policy's :func:`policies.registry.policy_digest`, checked likewise)
+and ``draw`` (0: which draw of the filter's random numbers on the world). Every option of the env
+(particles, back-end, the price of compute, ...) is in its keyword arguments, never a job option.
+The env ends an episode at BB's failure. A learned policy's rows carry ``model_matches_code`` and
 ``model_differences`` (:func:`provenance_fields`: whether the model's fingerprint matches the code
-that ran it). ``w_compute`` and ``compute_clip_s`` (None: the env's
-defaults) change the reward's price of compute, so a policy trained under another price is
-evaluated (its return) under the reward it was trained for.
+that ran it).
 """
 
 from __future__ import annotations
@@ -50,20 +50,13 @@ SYSTEM_OPTIONS = {
     "path_perturbation_m": None,
 }
 POLICY_OPTIONS = {
-    "n_particles": 500,
-    "decision_interval": 10,
-    "front_end": "fastslam",
-    "back_end": "ekf",
     "model_path": None,
     "model_sha256": None,
     "deterministic": None,
-    "n_steps": None,
-    "w_compute": None,
-    "compute_clip_s": None,
     "policy_sha256": None,
     "draw": 0,
-    "random_streams": "synchronised",
 }
+"""A policy job's own options (the env's are in ``job.env``)."""
 OPTIMISE_MODES = ("never", "at-end", "every-fusion", "after-loop-closure")
 LOOP_CLOSURE_UNSEEN_S = 60.0
 """A fusion closes a loop when it matches a global feature no fusion has touched for this long."""
@@ -71,7 +64,9 @@ LOOP_CLOSURE_UNSEEN_S = 60.0
 
 def _options(given: dict, defaults: dict, what: str) -> dict:
     unknown = sorted(set(given) - set(defaults))
-    require(not unknown, f"{what} options", unknown, f"among {sorted(defaults)}")
+    require(not unknown, f"{what} options", unknown, f"among {sorted(defaults)}"
+            + (" (an env's options are keyword arguments of the job's env)"
+               if what == "policy" else ""))
     return defaults | given
 
 
@@ -157,7 +152,7 @@ def run_system(
 
 def run_policy(
     policy_name: str,
-    scenario: str,
+    env,
     clutter_level,
     seed: int,
     *,
@@ -165,16 +160,18 @@ def run_policy(
     model_sha256=None,
     deterministic=None,
     factories=None,
-    **env_options,
+    **run_options,
 ):
-    """Run the named interface policy in the env for one episode; (episode, env).
+    """Run the named interface policy in ``env`` (a :class:`~slam_gym.envs.spec.ResolvedEnv`
+    or a registered id) for one episode; (episode, env).
 
     ``model_path``, ``model_sha256`` and ``deterministic`` are options of ``learned``,
-    ``factories`` the policies only this process knows (:func:`make_policy`)."""
+    ``factories`` the policies only this process knows (:func:`make_policy`), ``run_options``
+    those of :func:`run_policy_object` (``draw``, ``on_step``)."""
     policy = make_policy(policy_name, model_path=model_path, model_sha256=model_sha256,
                          deterministic=deterministic, factories=factories)
-    return run_policy_object(policy, scenario, clutter_level, seed, policy_name=policy_name,
-                             **env_options)
+    return run_policy_object(policy, env, clutter_level, seed, policy_name=policy_name,
+                             **run_options)
 
 
 def learned_options(model_path: str | None = None) -> dict:
@@ -239,62 +236,49 @@ def provenance_fields(policy) -> dict:
 
 def run_policy_object(
     policy,
-    scenario: str,
+    env,
     clutter_level,
     seed: int,
     *,
-    n_particles=500,
-    decision_interval=10,
-    front_end="fastslam",
-    back_end="ekf",
-    n_steps=None,
     on_step=None,
-    w_compute=None,
-    compute_clip_s=None,
     policy_name=None,
     draw=0,
-    random_streams="synchronised",
 ):
-    """Run a policy object (``act(obs, info)``, ``reset()``) for one episode; (episode, env).
+    """Run a policy object (``act(obs, info)``, ``reset()``) for one episode; (episode, env),
+    the env unwrapped.
 
-    The world is the scenario's world for ``seed`` (the same as a system run with that seed);
-    the episode ends at the end of the path or at BB's failure. ``draw`` chooses the draw of the
-    filter's random numbers on that world (``reset``'s option), ``random_streams`` how they are
-    drawn (:class:`~slam_gym.envs.hybrid_slam.HybridSLAMConfig`). ``on_step(action, info)``, if
-    given, sees every decision and the info that followed it. Every action is checked
-    (:func:`policies.base.check_action`): a wrong shape, dtype or value raises ``ValueError``
-    naming the policy (``policy_name``, else the object's name) and what it returned.
+    ``env`` is a :class:`~slam_gym.envs.spec.ResolvedEnv` or a registered id (with its own
+    options), built with ``gym.make``. The world is the env's world for ``seed`` at
+    ``clutter_level`` (None: the env's own level, e.g. a recording's), the same as a system run
+    with that seed; the episode ends at the end of the path or at BB's failure. ``draw`` chooses
+    the draw of the filter's random numbers on that world (``reset``'s option).
+    ``on_step(action, info)``, if given, sees every decision and the info that followed it. Every
+    action is checked (:func:`policies.base.check_action`): a wrong shape, dtype or value raises
+    ``ValueError`` naming the policy (``policy_name``, else the object's name) and what it
+    returned.
     """
     from policies.base import check_action
     from policies.registry import policy_label
-    from slam_gym.envs.hybrid_slam import HybridSLAMEnv
+    from slam_gym.envs.spec import ResolvedEnv, resolve_env
 
     label = policy_name or policy_label(policy)
-
-    reward = {k: v for k, v in (("w_compute", w_compute), ("compute_clip_s", compute_clip_s))
-              if v is not None}
-    env = HybridSLAMEnv(
-        scenario=scenario,
-        clutter_level=clutter_level,
-        n_particles=n_particles,
-        decision_interval=decision_interval,
-        front_end=front_end,
-        back_end=back_end,
-        n_steps=n_steps,
-        random_streams=random_streams,
-        **reward,
-    )
+    spec = env if isinstance(env, ResolvedEnv) else resolve_env(env)
+    gym_env = spec.make()
+    inner = gym_env.unwrapped
     if callable(getattr(policy, "bind_env", None)):  # a planning policy acts on copies of env
-        policy.bind_env(env)
+        policy.bind_env(inner)
     policy.reset()
-    obs, info = env.reset(seed=int(seed), options={"world_seed": int(seed), "draw": int(draw)})
+    options = {"world_seed": int(seed), "draw": int(draw)}
+    if clutter_level is not None:
+        options["clutter_level"] = int(clutter_level)
+    obs, info = gym_env.reset(seed=int(seed), options=options)
     while True:
         action = check_action(policy.act(obs, info), label)
-        obs, _, terminated, truncated, info = env.step(action)
+        obs, _, terminated, truncated, info = gym_env.step(action)
         if on_step is not None:
             on_step(action, info)
         if terminated or truncated:
-            return env.episode, env
+            return inner.episode, inner
 
 
 def play_decisions(env, policy, obs, info, n_decisions: int, *, seed: int = 0) -> int:
@@ -332,23 +316,28 @@ def run_job(job, policy_factories=None, recorder=None) -> dict:
     """
     if job.kind == "system":
         opts = _options(job.options_dict(), SYSTEM_OPTIONS, "system")
+        world = {}
+        if job.env is not None:  # a baseline on an env's worlds: its scenario and path cut
+            world = dict(job.env.get("scenario_overrides") or [])
+            if opts["n_steps"] is None:
+                opts["n_steps"] = job.env.get("n_steps")
         stream = make_job_stream(job.scenario, job.clutter_level, job.seed, opts.pop("n_steps"),
-                                 path_perturbation_m=opts.pop("path_perturbation_m"))
+                                 path_perturbation_m=opts.pop("path_perturbation_m"), **world)
         cpu_start = time.process_time()
         episode = run_system(job.name, stream, job.seed, **opts)
         row = episode_result(episode, stream)
         row["total_cpu_s"] = time.process_time() - cpu_start
         return row
     opts = _options(job.options_dict(), POLICY_OPTIONS, "policy")
+    require(job.env is not None, "job", job.key, "a policy job with its env (Job.in_env)")
     check_policy_digest(job.name, opts.pop("policy_sha256"), policy_factories)
     policy = make_policy(job.name, model_path=opts.pop("model_path"),
                          model_sha256=opts.pop("model_sha256"),
                          deterministic=opts.pop("deterministic"), factories=policy_factories)
     recording = recorder.start(job) if recorder is not None else None
-    episode, env = run_policy_object(policy, job.scenario, job.clutter_level, job.seed,
-                                     policy_name=job.name,
-                                     on_step=None if recording is None else recording.on_step,
-                                     **opts)
+    episode, env = run_policy_object(policy, job.env, job.clutter_level, job.seed,
+                                     policy_name=job.name, draw=opts["draw"],
+                                     on_step=None if recording is None else recording.on_step)
     if recording is not None:
         recording.finish(episode, env)
     row = episode_result(episode, env.stream)

@@ -63,6 +63,7 @@ from slam_gym.evaluation.results import (
     RESULTS_FILENAME,
     STATUS_ERROR,
     ResultsWriter,
+    code_identity,
     make_row,
     row_key,
     validate_result,
@@ -456,6 +457,7 @@ def run_jobs(
 
     path = Path(out_dir) / RESULTS_FILENAME
     wanted = set(keys)
+    code = code_identity()  # every row says which code made it
     with ResultsWriter(path) as writer:
         existing = writer.existing
         stale = _changed_rows(existing, jobs, wanted)
@@ -503,6 +505,7 @@ def run_jobs(
                 error=outcome["error"],
                 traceback_text=outcome["traceback"],
                 wall_time_s=outcome["wall_time_s"],
+                code=code,
             )
             writer.write(row)
             rows_by_key[job.key] = row

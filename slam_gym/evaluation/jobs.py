@@ -1,4 +1,5 @@
-"""Benchmark jobs: one job = one run of a system or policy on a scenario, clutter level and seed.
+"""Benchmark jobs: one job = one run of a system or policy in an env (or on a scenario), at a
+clutter level and seed.
 
 A :class:`Job` is frozen and hashable, pickles to worker processes (process pool or Ray) and has a
 stable string :attr:`Job.key` that identifies it in ``results.jsonl`` (docs/ARCHITECTURE.md, "The
@@ -76,6 +77,17 @@ class Job:
     clutter_level: int | None
     seed: int
     options: tuple[tuple[str, Any], ...] = field(default=())
+    env: Any = None
+    """The env the run is made in (:class:`~slam_gym.envs.spec.ResolvedEnv`: an id and every
+    keyword argument of ``gym.make``), or None for a system run on its own schedule outside any
+    env (BB's Table 1, CM)."""
+
+    @classmethod
+    def in_env(cls, kind: str, name: str, env: Any, clutter_level: int | None, seed: int,
+               options: Mapping[str, Any] | None = None) -> Job:
+        """A job in ``env`` (a :class:`~slam_gym.envs.spec.ResolvedEnv`): its scenario is the
+        env's, the world ``seed`` at ``clutter_level`` and the options the policy's own."""
+        return cls(kind, name, env.scenario, clutter_level, seed, options or (), env)
 
     def __post_init__(self) -> None:
         require(self.kind in JOB_KINDS, "kind", self.kind, f"one of {JOB_KINDS}")
@@ -97,15 +109,29 @@ class Job:
         seed_ok = isinstance(self.seed, int) and not isinstance(self.seed, bool) and self.seed >= 0
         require(seed_ok, "seed", self.seed, "an int >= 0")
         object.__setattr__(self, "options", normalise_options(self.options))
+        if self.env is not None:
+            require(hasattr(self.env, "env_id") and hasattr(self.env, "kwargs_json"), "env",
+                    self.env, "a slam_gym.envs.spec.ResolvedEnv or None")
+            require(self.scenario == self.env.scenario, "scenario", self.scenario,
+                    f"the env's ({self.env.scenario!r})")
+
+    def _where(self) -> Any:
+        """The key's part that says where the run is: the env (id and resolved keyword
+        arguments) or, outside any env, the scenario."""
+        if self.env is None:
+            return self.scenario
+        return {"env_id": self.env.env_id, "env_kwargs": self.env.kwargs}
 
     @property
     def key(self) -> str:
-        """Stable identity used for resuming: compact JSON of the job's fields, options sorted."""
+        """Stable identity used for resuming: compact JSON of the job's fields, options sorted
+        (a job in an env: its id and every resolved keyword argument instead of the scenario,
+        so a change of any option of the env is another run)."""
         return json.dumps(
             [
                 self.kind,
                 self.name,
-                self.scenario,
+                self._where(),
                 self.clutter_level,
                 self.seed,
                 dict(self.options),
@@ -119,7 +145,7 @@ class Job:
         """:attr:`key` without the :data:`VERSION_OPTIONS`: the same run whatever the version of
         a user policy's code."""
         return json.dumps(
-            [self.kind, self.name, self.scenario, self.clutter_level, self.seed,
+            [self.kind, self.name, self._where(), self.clutter_level, self.seed,
              {k: v for k, v in self.options if k not in VERSION_OPTIONS}],
             sort_keys=True,
             separators=(",", ":"),
@@ -133,6 +159,8 @@ class Job:
         """The job's part of a ``results.jsonl`` row: ``system``/``policy`` key named by kind."""
         return {
             self.kind: self.name,
+            "env_id": None if self.env is None else self.env.env_id,
+            "env_kwargs": None if self.env is None else self.env.kwargs,
             "scenario": self.scenario,
             "clutter_level": self.clutter_level,
             "seed": self.seed,
@@ -145,6 +173,11 @@ class Job:
         """Rebuild the job a results row came from (exactly one of ``system``/``policy``)."""
         kinds = [k for k in JOB_KINDS if row.get(k) is not None]
         require(len(kinds) == 1, "row kind", kinds, f"exactly one of {JOB_KINDS} set")
+        env = None
+        if row.get("env_id") is not None:
+            from slam_gym.envs.spec import ResolvedEnv
+
+            env = ResolvedEnv.of(row["env_id"], row.get("env_kwargs") or {})
         return cls(
             kind=kinds[0],
             name=row[kinds[0]],
@@ -152,6 +185,7 @@ class Job:
             clutter_level=row["clutter_level"],
             seed=row["seed"],
             options=row.get("options") or {},
+            env=env,
         )
 
 
@@ -163,8 +197,10 @@ def expand_grid(
     kind: str = "policy",
     scenario: str = "brooks-bailey",
     options: Mapping[str, Any] | None = None,
+    env: Any = None,
 ) -> list[Job]:
-    """All jobs ``seeds x names x clutter_levels``, one scenario, seed-major order.
+    """All jobs ``seeds x names x clutter_levels``, one scenario (or ``env``, a
+    :class:`~slam_gym.envs.spec.ResolvedEnv`, whose scenario it is), seed-major order.
 
     Seed-major order means an interrupted benchmark has results spread over every (name, clutter
     level) cell rather than all seeds of the first cells. Duplicate names, levels or seeds are
@@ -176,6 +212,7 @@ def expand_grid(
         require(len(set(values)) == len(values), field_name, values, "distinct values")
     opts = normalise_options(options)
     return [
-        Job(kind=kind, name=n, scenario=scenario, clutter_level=c, seed=s, options=opts)
+        Job(kind=kind, name=n, scenario=scenario if env is None else env.scenario,
+            clutter_level=c, seed=s, options=opts, env=env)
         for s, n, c in itertools.product(seeds, names, levels)
     ]

@@ -1,13 +1,18 @@
 """``results.jsonl``: one JSON object per finished run, a public contract (docs/ARCHITECTURE.md,
 "The command line and its output files").
 
-Each row carries the job's fields (``system`` or ``policy``, ``scenario``, ``clutter_level``,
-``seed``, ``options``, ``key``), the run function's returned metrics (at least
-:data:`RESULT_KEYS`), and ``status`` (``"ok"`` or ``"error"``), ``error`` (``"Type: message"`` or
-null), ``traceback`` (text or null) and ``wall_time_s``. The file is append-only: every row is
-written as one line, flushed and ``fsync``-ed as soon as its run finishes, so a killed benchmark
-loses at most the line being written. A partial last line (no trailing newline, or not valid JSON)
-is ignored by :func:`read_results` and cut off by :class:`ResultsWriter` before it appends.
+Each row carries the job's fields (``system`` or ``policy``, ``env_id`` and ``env_kwargs``:
+the env's id and every resolved keyword argument of ``gym.make``, null for a run outside any env,
+``scenario``, ``clutter_level``, ``seed``, ``options``, ``key``), the run function's returned
+metrics (at least :data:`RESULT_KEYS`), and ``status`` (``"ok"`` or ``"error"``), ``error``
+(``"Type: message"`` or null), ``traceback`` (text or null), ``wall_time_s``, and what made it
+(issue 55): ``code`` (``commit``: the git commit of the code that ran, null outside a git
+checkout; ``dirty``: whether the tree had uncommitted changes to tracked files; ``version``: the
+package's version) and ``finished_at`` (UTC, ISO 8601, when its run finished). The file is
+append-only: every row is written as one line, flushed and ``fsync``-ed as soon as its run
+finishes, so a killed benchmark loses at most the line being written. A partial last line (no
+trailing newline, or not valid JSON) is ignored by :func:`read_results` and cut off by
+:class:`ResultsWriter` before it appends.
 
 Values are plain JSON: numpy scalars and arrays become numbers and lists, and non-finite floats
 (NaN, inf) are written as ``null`` so that any strict JSON reader accepts the file.
@@ -59,9 +64,40 @@ REQUIRED_ROW_KEYS = ("scenario", "clutter_level", "seed", "status", "error", *RE
 
 #: Keys the runner owns; a run function's result may not set them.
 RESERVED_KEYS = frozenset(
-    (*JOB_KINDS, "scenario", "clutter_level", "seed", "options", "key")
-    + ("status", "error", "traceback", "wall_time_s")
+    (*JOB_KINDS, "env_id", "env_kwargs", "scenario", "clutter_level", "seed", "options", "key")
+    + ("status", "error", "traceback", "wall_time_s", "code", "finished_at")
 )
+
+
+def code_identity() -> dict[str, Any]:
+    """What code runs: ``commit`` (the git commit of this package's checkout, None when it is
+    not one or git is missing), ``dirty`` (uncommitted changes to tracked files; None when
+    unknown) and ``version`` (the installed package's). Asked once per :func:`run_jobs` call,
+    in the process that writes the rows."""
+    import subprocess
+    from importlib import metadata
+
+    try:
+        version = metadata.version("slam-gym")
+    except metadata.PackageNotFoundError:
+        version = None
+    root = Path(__file__).resolve().parents[2]
+    commit = dirty = None
+    try:
+        done = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True,
+                              text=True, timeout=10, check=False)
+        if done.returncode == 0:
+            commit = done.stdout.strip()
+            status = subprocess.run(["git", "-C", str(root), "status", "--porcelain",
+                                     "--untracked-files=no"], capture_output=True, text=True,
+                                    timeout=30, check=False)
+            dirty = bool(status.stdout.strip()) if status.returncode == 0 else None
+    except (OSError, subprocess.SubprocessError):
+        pass
+    return {"commit": commit, "dirty": dirty, "version": version}
+
+RUN_TIME_KEYS = ("wall_time_s", "finished_at")
+"""Row keys that differ between two runs of the same job by the clock alone."""
 
 STATUS_OK = "ok"
 STATUS_ERROR = "error"
@@ -137,11 +173,15 @@ def make_row(
     error: str | None = None,
     traceback_text: str | None = None,
     wall_time_s: float,
+    code: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """One ``results.jsonl`` row: job fields, metrics (null for an error), status, timing.
+    """One ``results.jsonl`` row: job fields, metrics (null for an error), status, timing, the
+    code that ran it (``code``: :func:`code_identity`; None asks now) and when it finished.
 
     ``result`` must already have passed :func:`validate_result` when ``error`` is None.
     """
+    import datetime
+
     row = job.row_fields()
     if error is None:
         if result is None:
@@ -153,6 +193,9 @@ def make_row(
         row.update(dict.fromkeys(RESULT_KEYS))
         row.update(status=STATUS_ERROR, error=error, traceback=traceback_text)
     row["wall_time_s"] = to_jsonable(float(wall_time_s))
+    row["code"] = dict(code if code is not None else code_identity())
+    row["finished_at"] = datetime.datetime.now(datetime.UTC).isoformat(
+        timespec="seconds")
     return row
 
 

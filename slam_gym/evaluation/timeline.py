@@ -36,12 +36,16 @@ __all__ = ["TimelineRecorder", "decision_timeline", "decisions_figure",
            "plot_decision_timelines", "true_loop_closure_s"]
 
 
-def decision_timeline(policy, scenario: str, clutter_level, seed: int, **env_options):
-    """One episode of ``policy`` with its decisions recorded (see the module docstring);
+def decision_timeline(policy, env, clutter_level, seed: int, *, draw: int = 0):
+    """One episode of ``policy`` in ``env`` (a :class:`~slam_gym.envs.spec.ResolvedEnv` or a
+    registered id) with its decisions recorded (see the module docstring);
     ``(timeline, episode, env)``."""
-    recorder = TimelineRecorder(get_scenario(scenario).filter_rate_hz)
-    episode, env = run_policy_object(policy, scenario, clutter_level, seed,
-                                     on_step=recorder.on_step, **env_options)
+    from slam_gym.envs.spec import ResolvedEnv, resolve_env
+
+    spec = env if isinstance(env, ResolvedEnv) else resolve_env(env)
+    recorder = TimelineRecorder(get_scenario(spec.scenario).filter_rate_hz)
+    episode, env = run_policy_object(policy, spec, clutter_level, seed, draw=draw,
+                                     on_step=recorder.on_step)
     return recorder.finish(episode, env), episode, env
 
 

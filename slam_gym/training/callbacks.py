@@ -46,7 +46,7 @@ from slam_gym.training.evaluation import (
     EVAL_METRICS,
     append_csv_row,
     evaluate_model_file,
-    evaluation_options,
+    evaluation_env,
     evaluation_record,
 )
 
@@ -62,9 +62,10 @@ class BenchmarkEvalCallback(BaseCallback):
     metrics (see the module docstring).
 
     ``env_id`` and ``env_kwargs``: what the training env was made with (``gym.make(env_id,
-    **env_kwargs)``); the evaluation's env takes the same particles, decision interval, ends and
-    price of compute (:func:`~slam_gym.training.evaluation.evaluation_options`), and a model
-    trained on a subset of the features (``features=``) reads them by name. ``clutter_levels``
+    **env_kwargs)``; default ``SlamGym/HybridSLAM-v1``; a task id evaluates on the task's
+    worlds); the evaluation's env is that env with every option the same
+    (:func:`~slam_gym.training.evaluation.evaluation_env`), and a model trained on a subset of
+    the features (``features=``) reads them by name. ``clutter_levels`` (None: the env's own)
     and ``seeds``: the fixed worlds. ``observation_transform``: ``"log1p"`` if the training env
     was wrapped in ``LogFeatures``. ``deterministic``: act by the mode of the action distribution
     (True) or by draws from it with a seeded generator (False). ``log_path``: where snapshots,
@@ -78,9 +79,8 @@ class BenchmarkEvalCallback(BaseCallback):
         *,
         env_id: str | None = None,
         env_kwargs: Mapping[str, Any] | None = None,
-        clutter_levels: Iterable[int] = (0, 1, 2, 3),
+        clutter_levels: Iterable[int] | None = None,
         seeds: Iterable[int] = DEFAULT_EVAL_SEEDS,
-        scenario: str = "brooks-bailey",
         observation_transform: str = "none",
         deterministic: bool = True,
         log_path: str | Path | None = None,
@@ -95,15 +95,18 @@ class BenchmarkEvalCallback(BaseCallback):
         require(isinstance(deterministic, bool), "deterministic", deterministic, "True or False")
         require(isinstance(workers, int) and workers >= 1, "workers", workers, "an integer >= 1")
         self.eval_freq = eval_freq
+        from slam_gym.envs.spec import DEFAULT_ENV_ID, registered_kwargs, system_id
+
         kwargs = dict(env_kwargs or {})
         self.feature_names = kwargs.pop("features", None)
-        self.env_options = evaluation_options(env_id, kwargs)
-        self.env_id = env_id
-        self.clutter_levels = tuple(int(level) for level in clutter_levels)
+        self.env_id = DEFAULT_ENV_ID if env_id is None else env_id
+        self.env = evaluation_env(self.env_id, kwargs, clutter_levels)
+        #: what the snapshot's config records (``model.json``'s ``env_options``, as ``slam-gym
+        #: train`` writes them): the id's registered options, then the given ones
+        self.env_options = {**registered_kwargs(system_id(self.env_id)), **kwargs}
+        self.clutter_levels = tuple(self.env.levels)
         self.seeds = tuple(int(seed) for seed in seeds)
-        require(bool(self.clutter_levels) and bool(self.seeds), "clutter_levels and seeds",
-                (self.clutter_levels, self.seeds), "both non-empty")
-        self.scenario = scenario
+        require(bool(self.seeds), "seeds", self.seeds, "at least one seed")
         self.observation_transform = observation_transform
         self.deterministic = deterministic
         self.workers = workers
@@ -131,10 +134,10 @@ class BenchmarkEvalCallback(BaseCallback):
     def save_snapshot(self, path: Path) -> Path:
         """Save the model and the JSON :class:`policies.learned.LearnedPolicy` needs to act as
         it does in training; returns the zip's path."""
-        from slam_gym.training.provenance import DEFAULT_ENV_ID, system_fingerprint
+        from slam_gym.training.provenance import system_fingerprint
         from slam_gym.training.run import observation_normalisation
 
-        env_id = self.env_id or DEFAULT_ENV_ID
+        env_id = self.env_id
 
         path.parent.mkdir(parents=True, exist_ok=True)
         self.model.save(path)
@@ -157,9 +160,8 @@ class BenchmarkEvalCallback(BaseCallback):
         """Evaluate the model now; the record (also logged and appended to ``evaluations``)."""
         t = int(self.num_timesteps)
         snapshot = self.save_snapshot(self.log_path / "evals" / f"t{t}" / "model.zip")
-        rows = evaluate_model_file(
-            snapshot, snapshot.parent, clutter_levels=self.clutter_levels, seeds=self.seeds,
-            env_options=self.env_options, scenario=self.scenario, workers=self.workers)
+        rows = evaluate_model_file(snapshot, snapshot.parent, env=self.env, seeds=self.seeds,
+                                   workers=self.workers)
         record = {"timesteps": t, **evaluation_record(rows, self.clutter_levels)}
         self.evaluations.append(record)
         for key, value in record.items():

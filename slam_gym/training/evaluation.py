@@ -40,13 +40,6 @@ EVAL_METRICS: tuple[str, ...] = (
 )
 """The keys of an evaluation record (then ``success_level_<L>`` per clutter level)."""
 
-FORWARDED_ENV_OPTIONS: tuple[str, ...] = (
-    "n_particles", "decision_interval", "front_end", "back_end", "n_steps", "w_compute",
-    "compute_clip_s",
-)
-"""Env options the evaluation builds its env with (the benchmark's policy-job options)."""
-
-
 def append_csv_row(path: Path, fields: list[str], record: Mapping[str, Any]) -> None:
     """Append ``record`` (its ``fields``, in order; other keys ignored) to the CSV log ``path``,
     writing the header first when the file is new (the training logs)."""
@@ -89,28 +82,22 @@ def evaluation_record(rows: Sequence[Mapping[str, Any]], levels: Iterable[int]) 
     return record
 
 
-def evaluation_options(env_id: str | None = None,
-                       env_kwargs: Mapping[str, Any] | None = None) -> dict[str, Any]:
-    """The env options of an evaluation from a registered env id and the keyword arguments the
-    policy was trained with (as given to ``gym.make``). ``scenario`` and ``clutter_level`` are
-    left out (the evaluation chooses its worlds), and so is ``features`` (the evaluation's env
-    shows every feature in ``info["features"]``; a model trained on a subset reads its own by
-    name, from the ``feature_names`` of its config JSON); an option the evaluation cannot forward to
-    its env (e.g. another reward weight) raises ``ValueError`` naming it, since the return would
-    then be scored under another reward than the one trained for."""
-    from slam_gym.envs import ENV_VARIANTS
+def evaluation_env(env_id: Any = None, env_kwargs: Mapping[str, Any] | None = None,
+                   clutter_levels: Iterable[int] | None = None):
+    """The env of an evaluation: ``env_id`` (a registered id, default
+    ``SlamGym/HybridSLAM-v1``, or a :class:`~slam_gym.envs.spec.ResolvedEnv`; a wrapped id's
+    system) with the keyword arguments the policy was trained with, every feature in the
+    observation (``features`` is left out: a model trained on a subset reads its own by name,
+    from the ``feature_names`` of its config JSON), at ``clutter_levels`` (None: the env's own,
+    a task's four). Every option is the env's to check (``ValueError`` naming it)."""
+    from slam_gym.envs.spec import ResolvedEnv, resolve_env, system_id
 
-    kwargs: dict[str, Any] = {}
-    if env_id is not None:
-        require(env_id in ENV_VARIANTS, "env_id", env_id, f"one of {sorted(ENV_VARIANTS)}")
-        kwargs.update(ENV_VARIANTS[env_id])
-    kwargs.update(env_kwargs or {})
-    for key in ("scenario", "clutter_level", "features"):
-        kwargs.pop(key, None)
-    unknown = sorted(set(kwargs) - set(FORWARDED_ENV_OPTIONS))
-    require(not unknown, "env_kwargs", unknown,
-            f"among {FORWARDED_ENV_OPTIONS} (the options the evaluation's env takes)")
-    return kwargs
+    if isinstance(env_id, ResolvedEnv):
+        require(not env_kwargs, "env_kwargs", env_kwargs, "left out with a resolved env")
+        env_id, env_kwargs = env_id.env_id, env_id.kwargs
+    kwargs = {k: v for k, v in (env_kwargs or {}).items() if k != "features"}
+    return resolve_env(None if env_id is None else system_id(env_id), kwargs,
+                       clutter_levels=clutter_levels)
 
 
 def _check_rows(rows: Sequence[Mapping[str, Any]], what: str) -> None:
@@ -123,19 +110,19 @@ def _check_rows(rows: Sequence[Mapping[str, Any]], what: str) -> None:
 def evaluate_policy(
     policy: Any,
     *,
-    clutter_levels: Iterable[int] = (0, 1, 2, 3),
-    seeds: Iterable[int] = DEFAULT_EVAL_SEEDS,
-    scenario: str = "brooks-bailey",
-    env_id: str | None = None,
+    env_id: Any = None,
     env_kwargs: Mapping[str, Any] | None = None,
+    clutter_levels: Iterable[int] | None = None,
+    seeds: Iterable[int] = DEFAULT_EVAL_SEEDS,
     out: str | Path | None = None,
     workers: int = 1,
     progress: bool = False,
 ) -> dict[str, Any]:
     """Evaluate ``policy`` (object, name or reference) on the worlds ``seeds`` x
-    ``clutter_levels``; the record of :data:`EVAL_METRICS` (see :func:`evaluation_record`).
+    ``clutter_levels`` of ``env_id`` (a task id evaluates on the task's worlds); the record of
+    :data:`EVAL_METRICS` (see :func:`evaluation_record`).
 
-    The env is the one of ``env_id`` with ``env_kwargs`` (:func:`evaluation_options`). Runs go
+    The env is the one of ``env_id`` with ``env_kwargs`` (:func:`evaluation_env`). Runs go
     through :func:`slam_gym.evaluation.benchmark` (``workers`` > 1: a process pool, so the
     policy must pickle); their rows are written into ``out`` (None: a temporary folder). A run
     that raises makes this raise ``RuntimeError`` with the first error: a training loop should
@@ -143,40 +130,38 @@ def evaluate_policy(
     """
     from slam_gym.evaluation import benchmark
 
-    levels = [int(level) for level in clutter_levels]
-    options = evaluation_options(env_id, env_kwargs)
+    env = evaluation_env(env_id, env_kwargs, clutter_levels)
     with tempfile.TemporaryDirectory(prefix="slam-gym-eval-") as tmp:
         result = benchmark(
-            [policy], clutter_levels=levels, seeds=list(seeds), scenario=scenario,
-            baselines=[], figures=False, out=out if out is not None else tmp, workers=workers,
-            executor="process" if workers > 1 else "serial", progress=progress, **options)
+            [policy], env=env, seeds=list(seeds), baselines=[], figures=False,
+            out=out if out is not None else tmp, workers=workers,
+            executor="process" if workers > 1 else "serial", progress=progress)
     _check_rows(result.rows, repr(policy))
-    return evaluation_record(result.rows, levels)
+    return evaluation_record(result.rows, env.levels)
 
 
 def evaluate_model_file(
     model_path: str | Path,
     out: str | Path,
     *,
-    clutter_levels: Iterable[int],
+    env: Any,
     seeds: Iterable[int] = DEFAULT_EVAL_SEEDS,
-    env_options: Mapping[str, Any] | None = None,
     deterministic: bool | None = None,
-    scenario: str = "brooks-bailey",
     workers: int = 1,
     progress: bool = False,
 ) -> list[dict[str, Any]]:
     """The benchmark rows of a saved stable-baselines3 model (policy ``learned``, its config
-    JSON beside it) on ``seeds`` x ``clutter_levels``, written into ``out`` (resumable).
-    ``deterministic`` None: the model's own mode; False: draws from its action distribution."""
+    JSON beside it) in ``env`` (a :class:`~slam_gym.envs.spec.ResolvedEnv`: :func:`evaluation_env`)
+    on ``seeds`` x its levels, written into ``out`` (resumable). ``deterministic`` None: the
+    model's own mode; False: draws from its action distribution."""
     from slam_gym.evaluation import Job, run_jobs
     from slam_gym.evaluation.core import run_job
 
-    options = {**(env_options or {}), "model_path": str(model_path)}
+    options: dict[str, Any] = {"model_path": str(model_path)}
     if deterministic is False:
         options["deterministic"] = False
-    jobs = [Job("policy", "learned", scenario, int(level), int(seed), options)
-            for level in clutter_levels for seed in seeds]
+    jobs = [Job.in_env("policy", "learned", env, level, int(seed), options)
+            for level in env.levels for seed in seeds]
     rows = run_jobs(jobs, run_job, out, workers=min(workers, len(jobs)),
                     executor="process" if workers > 1 else "serial", progress=progress)
     _check_rows(rows, str(model_path))

@@ -5,8 +5,9 @@ An entry holds two kinds of keys:
 
 * the training run's own (:data:`RUN_KEYS`): ``n_timesteps`` (env decisions), ``n_envs``
   (``SubprocVecEnv`` workers), ``policy`` (SB3 policy name), ``normalize`` / ``norm_reward`` /
-  ``clip_obs`` (``VecNormalize``, saved with the model), ``env_kwargs`` (options of the env,
-  restricted to :data:`ENV_KWARGS`, the ones the evaluation code forwards too),
+  ``clip_obs`` (``VecNormalize``, saved with the model), ``env_kwargs`` (keyword arguments of the
+  env over the id's own, checked by the env before any run; the packaged files set none: the
+  ids say the env, and training, evaluation and the model's record use the same ones),
   ``initial_fuse_probability`` / ``initial_optimise_probability`` (PPO, A2C and MaskablePPO: the
   untrained policy's chance of each action per decision, set through the action head's bias;
   default 0.5, SB3's uniform start; MaskablePPO's one ``Discrete(4)`` head starts at the product
@@ -52,10 +53,6 @@ RUN_KEYS: tuple[str, ...] = (
     "initial_fuse_probability", "initial_optimise_probability", "compute_price_range",
     "behaviour_cloning_decisions", "rule_anchor_weight", "rule_anchor_fraction",
 )
-ENV_KWARGS: tuple[str, ...] = ("n_particles", "decision_interval", "front_end", "back_end",
-                               "n_steps", "w_compute", "compute_clip_s")
-"""The env options a training entry may set: the ones evaluation runs with the same values."""
-
 _ON_POLICY = ("learning_rate", "n_steps", "gamma", "gae_lambda", "ent_coef", "vf_coef",
               "max_grad_norm", "policy_kwargs", "normalize_advantage")
 _PPO = _ON_POLICY + ("batch_size", "n_epochs", "clip_range", "clip_range_vf", "target_kl")
@@ -99,6 +96,15 @@ def _number_if_numeric(value: Any) -> Any:
     return value
 
 
+TASK_IDS_SETTINGS_OF: dict[str, str] = {
+    "SlamGym/HybridSLAM-Zones-v1": "SlamGym/HybridSLAM-v0",
+    "SlamGym/HybridSLAM-ZonesStarved-v1": "SlamGym/HybridSLAM-v0",
+    "SlamGym/HybridSLAM-LongMission-v1": "SlamGym/HybridSLAM-v0",
+}
+"""The entry a task's training reads when a file has none of its own: the settings of the
+system it is a world of (the env's options are the task's own: an entry holds none of them)."""
+
+
 def load_hyperparams(
     algo: str,
     env_id: str,
@@ -119,6 +125,8 @@ def load_hyperparams(
     key = env_id
     if isinstance(doc, dict) and key not in doc and key.endswith("-v1"):
         key = key[:-3] + "-v0"  # -v1 is -v0 with synchronised draws: the same settings
+    if isinstance(doc, dict) and key not in doc and env_id in TASK_IDS_SETTINGS_OF:
+        key = TASK_IDS_SETTINGS_OF[env_id]  # a task: its system's settings
     if not isinstance(doc, dict) or key not in doc:
         ids = sorted(doc) if isinstance(doc, dict) else []
         raise ValueError(f"env_id={env_id!r} is invalid: {file} has entries for {ids}")
@@ -156,10 +164,6 @@ def validate_hyperparams(algo: str, params: dict[str, Any], where: str = "hyperp
     if not isinstance(params["env_kwargs"], dict):
         raise ValueError(f"{where}: env_kwargs={params['env_kwargs']!r} is invalid: "
                          "must be a mapping")
-    bad = sorted(set(params["env_kwargs"]) - set(ENV_KWARGS))
-    if bad:
-        raise ValueError(f"{where}: env_kwargs keys {bad} are invalid: must be among "
-                         f"{list(ENV_KWARGS)} (the options evaluation forwards)")
     for key in ("initial_fuse_probability", "initial_optimise_probability"):
         if key not in params:
             continue

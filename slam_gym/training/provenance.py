@@ -92,17 +92,17 @@ def system_options(env_id: str | None = None,
     """The options of the rollout's env: ``env_id``'s registered keyword arguments, then
     ``env_options``, without :data:`IGNORED_OPTIONS`; ``ValueError`` naming ``env_id`` or the
     option when the env cannot be fingerprinted."""
-    from slam_gym.envs import ENV_VARIANTS
     from slam_gym.envs.hybrid_slam import HybridSLAMConfig
+    from slam_gym.envs.spec import check_env_id, registered_kwargs, resolve_env, system_id
 
-    env_id = DEFAULT_ENV_ID if env_id is None else env_id
-    if env_id not in ENV_VARIANTS:
-        raise ValueError(f"env_id={env_id!r} is invalid: must be one of {sorted(ENV_VARIANTS)} "
-                         "(a simulated env; recorded data has no fixed rollout)")
+    env_id = system_id(check_env_id(DEFAULT_ENV_ID if env_id is None else env_id, "env_id"))
     if env_options is not None and not isinstance(env_options, Mapping):
         raise ValueError(f"env_options={env_options!r} is invalid: must be a mapping of env "
                          "options")
-    options = {**ENV_VARIANTS[env_id], **dict(env_options or {})}
+    if resolve_env(env_id).scenario == "recorded":
+        raise ValueError(f"env_id={env_id!r} is invalid: must be a simulated env (recorded "
+                         "data has no fixed rollout)")
+    options = {**registered_kwargs(env_id), **dict(env_options or {})}
     for key in IGNORED_OPTIONS:
         options.pop(key, None)
     HybridSLAMConfig.from_kwargs(**options)  # ValueError naming an unknown or bad option

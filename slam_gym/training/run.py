@@ -90,6 +90,10 @@ class TrainingSetup:
         for name in ("eval_every", "eval_workers", "checkpoint_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name}={getattr(self, name)} is invalid: must be >= 1")
+        if not (isinstance(self.seed, int) and not isinstance(self.seed, bool)
+                and 0 <= self.seed < 2**32):
+            raise ValueError(f"seed={self.seed!r} is invalid: must be an integer in [0, 2**32)")
+        self.evaluation_env()  # the id and every env option, checked before anything runs
 
     @property
     def discrete(self) -> bool:
@@ -105,6 +109,19 @@ class TrainingSetup:
     def env_options(self) -> dict[str, Any]:
         """The env's options: the id's registered keyword arguments, then ``env_kwargs``."""
         return {**registered_kwargs(self.env_id), **self.hyperparams.get("env_kwargs", {})}
+
+    def evaluation_env(self):
+        """The env the run's evaluations (and its baseline) are made in: the system of
+        :attr:`env_id` (a wrapped id's) with the run's options, every feature in the
+        observation (a model reads its own by name), at :attr:`clutter_levels`
+        (a :class:`~slam_gym.envs.spec.ResolvedEnv`; the options were checked when the run
+        was set up)."""
+        from slam_gym.envs.spec import ResolvedEnv, env_class, system_id
+
+        kwargs = {**self.env_options(), "features": None}
+        env_id = system_id(self.env_id)
+        return ResolvedEnv.of(env_id, env_class(env_id).resolved_kwargs(**kwargs),
+                              self.clutter_levels)
 
     @property
     def price_range(self) -> tuple[float, float] | None:
@@ -122,21 +139,27 @@ class TrainingSetup:
 
 
 def registered_kwargs(env_id: str) -> dict[str, Any]:
-    """The keyword arguments ``env_id`` is registered with (a trainable simulated id; a wrapped
-    variant such as ``SlamGym/HybridSLAM-Interval-v1`` has those of the system it wraps)."""
-    from slam_gym.envs import ENV_VARIANTS, system_env_id
+    """The keyword arguments ``env_id`` is registered with (a simulated id; a wrapped variant
+    such as ``SlamGym/HybridSLAM-Interval-v1`` has those of the system it wraps): a task's are
+    its class's defaults (:mod:`slam_gym.envs.tasks`)."""
+    from slam_gym.envs import spec
 
-    env_id = system_env_id(env_id)
-    if env_id not in ENV_VARIANTS:
-        raise ValueError(f"env_id={env_id!r} is invalid: must be one of {list(ENV_VARIANTS)}")
-    kwargs = dict(ENV_VARIANTS[env_id])
-    if "clutter_level" in kwargs or "scenario" in kwargs:
-        trainable = [i for i, k in ENV_VARIANTS.items()
-                     if "clutter_level" not in k and "scenario" not in k]
-        raise ValueError(f"env_id={env_id!r} is invalid for training (its clutter level or "
-                         f"scenario is fixed; training draws the level): must be one of "
-                         f"{trainable}")
-    return kwargs
+    env_id = spec.system_id(spec.check_env_id(env_id, "env_id"))
+    if spec.resolve_env(env_id).scenario == "recorded":
+        raise ValueError(f"env_id={env_id!r} is invalid for training: a recording is one "
+                         "episode per robot (train on a simulated id, e.g. "
+                         f"{spec.DEFAULT_ENV_ID} or SlamGym/HybridSLAM-Zones-v1)")
+    return spec.registered_kwargs(env_id)
+
+
+def training_env(env_id: str, env_kwargs: dict[str, Any] | None = None,
+                 clutter_levels=None):
+    """The :class:`~slam_gym.envs.spec.ResolvedEnv` a run trains in, evaluates in and records
+    in its model (every option checked before anything runs or is written)."""
+    from slam_gym.envs.spec import resolve_env
+
+    registered_kwargs(env_id)  # a simulated id
+    return resolve_env(env_id, env_kwargs, clutter_levels=clutter_levels)
 
 
 def make_env_fn(setup: TrainingSetup, rank: int):
@@ -293,17 +316,16 @@ def evaluate_snapshot(model_path: Path, setup: TrainingSetup, out: Path,
     """Run the saved model on the evaluation worlds with the benchmark's code, in both
     :data:`EVAL_MODES` (DQN: deterministic only); one summary row
     (:func:`slam_gym.training.evaluation.evaluation_record`, the callback's figures)."""
-    from slam_gym.evaluation.core import POLICY_OPTIONS
     from slam_gym.training.evaluation import evaluate_model_file, evaluation_record
 
-    env_options = {k: v for k, v in setup.env_options().items() if k in POLICY_OPTIONS}
+    env = setup.evaluation_env()
     modes = EVAL_MODES if setup.samples else EVAL_MODES[:1]
     start = time.perf_counter()
     record: dict[str, Any] = {}
     for mode in modes:
         rows = evaluate_model_file(
-            model_path, out, clutter_levels=setup.clutter_levels, seeds=setup.eval_seeds,
-            env_options=env_options, deterministic=None if mode == "deterministic" else False,
+            model_path, out, env=env, seeds=setup.eval_seeds,
+            deterministic=None if mode == "deterministic" else False,
             workers=setup.eval_workers, progress=progress)
         prefix = "" if mode == "deterministic" else "sampled_"
         summary = evaluation_record(rows, setup.clutter_levels)

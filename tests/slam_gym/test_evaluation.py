@@ -29,7 +29,12 @@ from slam_gym.evaluation import (
     wilson_interval,
     write_summary,
 )
-from slam_gym.evaluation.results import REQUIRED_ROW_KEYS, ResultsWriter, finished_keys
+from slam_gym.evaluation.results import (
+    REQUIRED_ROW_KEYS,
+    RUN_TIME_KEYS,
+    ResultsWriter,
+    finished_keys,
+)
 from slam_gym.evaluation.summary import format_table
 
 TEST_DIR = Path(__file__).resolve().parent
@@ -96,7 +101,7 @@ def slow_jobs() -> list[Job]:
 
 
 def _stable(row: dict) -> dict:
-    return {k: v for k, v in row.items() if k != "wall_time_s"}
+    return {k: v for k, v in row.items() if k not in RUN_TIME_KEYS}
 
 
 def _lines(path: Path) -> list[str]:
