@@ -60,7 +60,9 @@ def main() -> None:
     result = benchmark(
         ["distance-or-ambiguity", "fixed-10s", "fixed-10s-optimise"],
         clutter_levels=[int(c) for c in args.clutter_levels.split(",")],
-        seeds=args.seeds, n_particles=args.particles, n_steps=args.n_steps,
+        seeds=args.seeds,
+        env_kwargs={k: v for k, v in (("n_particles", args.particles), ("n_steps", args.n_steps))
+                    if v is not None},
         workers=args.workers, executor="process" if args.workers > 1 else "serial",
         out=args.out, progress=True,
     )

@@ -1,9 +1,12 @@
 """Train a PPO interface policy with stable-baselines3 on ``gym.make``, then benchmark it.
 
-    .venv/bin/python examples/train_ppo.py [--timesteps 3000] [--particles 100] [--out out/ppo]
+    .venv/bin/python examples/train_ppo.py [--env ID] [--timesteps 3000] [--particles P] \
+        [--out out/ppo]
 
 Plain stable-baselines3 on the registered env (no project training code but one helper): PPO on
-``SlamGym/HybridSLAM-Light-v1`` at clutter level 2, with
+``--env`` (default ``SlamGym/HybridSLAM-Light-v1``; a task id such as
+``SlamGym/HybridSLAM-Zones-v1`` trains, evaluates and benchmarks on the task's worlds) at
+clutter level 2, with
 :class:`slam_gym.BenchmarkEvalCallback` evaluating snapshots on two held-out
 worlds during training (success, ANEES, map error, completeness, interface CPU, return on the
 model's logger under ``eval/``, and in ``OUT/eval/evaluations.csv``). The model is saved with the
@@ -40,8 +43,11 @@ ENV_ID = "SlamGym/HybridSLAM-Light-v1"
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--env", default=ENV_ID, help=f"the env id to train on (default {ENV_ID}; "
+                        "e.g. SlamGym/HybridSLAM-Zones-v1)")
     parser.add_argument("--timesteps", type=int, default=3000, help="training decisions")
-    parser.add_argument("--particles", type=int, default=100)
+    parser.add_argument("--particles", type=int, default=None,
+                        help="FastSLAM particles (default: the env id's own)")
     parser.add_argument("--n-steps", type=int, default=None, help="cut every path (tests)")
     parser.add_argument("--seeds", type=int, default=2, help="benchmark worlds")
     parser.add_argument("--workers", type=int, default=2)
@@ -51,14 +57,14 @@ def main() -> None:
 
     env_kwargs = {"n_particles": args.particles, "n_steps": args.n_steps}
     env_kwargs = {k: v for k, v in env_kwargs.items() if v is not None}
-    env = gym.make(f"slam_gym:{ENV_ID}", clutter_level=2, **env_kwargs)
+    env = gym.make(f"slam_gym:{args.env}", clutter_level=2, **env_kwargs)
     rollout = min(512, max(16, args.timesteps // 4))
     model = PPO("MlpPolicy", env, n_steps=rollout, batch_size=min(64, rollout), n_epochs=5,
                 learning_rate=3e-4, seed=0, device="cpu", verbose=0)
     set_initial_action_probabilities(
         model, {"initial_fuse_probability": 0.1, "initial_optimise_probability": 0.1})
     callback = BenchmarkEvalCallback(
-        eval_freq=max(rollout, args.timesteps // 2), env_id=ENV_ID, env_kwargs=env_kwargs,
+        eval_freq=max(rollout, args.timesteps // 2), env_id=args.env, env_kwargs=env_kwargs,
         clutter_levels=(2,), seeds=(900_000, 900_001), deterministic=False,
         log_path=out / "eval", workers=args.workers)
     model.learn(args.timesteps, callback=callback, progress_bar=False)
@@ -70,8 +76,8 @@ def main() -> None:
     env.close()
 
     result = benchmark(
-        ["learned", "fixed-10s"], model=str(model_path), clutter_levels=[2], seeds=args.seeds,
-        n_particles=args.particles, n_steps=args.n_steps, workers=args.workers,
+        ["learned", "fixed-10s"], model=str(model_path), env=args.env, env_kwargs=env_kwargs,
+        clutter_levels=[2], seeds=args.seeds, workers=args.workers,
         executor="process" if args.workers > 1 else "serial", out=out / "benchmark",
         baselines=[], figures=False,  # figures=True adds the plots of slam-gym benchmark
     )

@@ -32,7 +32,6 @@ wherever a name is accepted (``policies.make("my_package.rules:MyRule")``, ``sla
 
 from __future__ import annotations
 
-import functools
 import inspect
 from collections.abc import Callable, Mapping
 from types import MappingProxyType

@@ -197,7 +197,10 @@ def main(argv: list[str] | None = None) -> int:
     from slam_gym.commands.common import configure_logging
 
     argv = sys.argv[1:] if argv is None else list(argv)
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except BrokenPipeError:  # --help into a closed pipe
+        return _closed_pipe()
     configure_logging(args.verbose)
     one_blas_thread_per_process()
     try:

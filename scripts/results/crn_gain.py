@@ -148,11 +148,14 @@ def main(argv: list[str]) -> int:
     levels = [int(v) for v in args.clutter_levels.split(",")]
     stats, rows = {}, {}
     for design in DESIGNS:
-        result = benchmark(policy_factories(), clutter_levels=levels, seeds=args.seeds,
-                           seed_start=args.seed_start, n_particles=args.particles,
-                           n_steps=args.n_steps, w_compute=10.0, compute_clip_s=0.2,
-                           random_streams=design, baselines=[], figures=False,
-                           out=args.out / design, workers=args.workers, progress=True)
+        env_id = "SlamGym/HybridSLAM-v1" if design == "synchronised" else "SlamGym/HybridSLAM-v0"
+        kwargs = {"n_particles": args.particles, "n_steps": args.n_steps, "w_compute": 10.0,
+                  "compute_clip_s": 0.2}
+        result = benchmark(policy_factories(), env=env_id,
+                           env_kwargs={k: v for k, v in kwargs.items() if v is not None},
+                           clutter_levels=levels, seeds=args.seeds, seed_start=args.seed_start,
+                           baselines=[], figures=False, out=args.out / design,
+                           workers=args.workers, progress=True)
         stats[design] = [pair_statistics(result.rows, a, b) for a, b in PAIRS]
         rows[design] = result.rows
     check = version_check(rows["ordered"], rows["synchronised"])

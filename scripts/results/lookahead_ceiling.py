@@ -62,9 +62,11 @@ def main(argv=None) -> int:
     levels = [int(v) for v in args.clutter_levels.split(",") if v.strip()]
     out = Path(args.out)
     result = benchmark(
-        names, clutter_levels=levels, seeds=args.seeds, seed_start=args.seed_start,
-        n_particles=args.particles, n_steps=args.n_steps, w_compute=args.price,
-        compute_clip_s=args.compute_clip_s, baselines=[], out=out, workers=args.workers,
+        names, env_kwargs={k: v for k, v in (
+            ("n_particles", args.particles), ("n_steps", args.n_steps), ("w_compute", args.price),
+            ("compute_clip_s", args.compute_clip_s)) if v is not None},
+        clutter_levels=levels, seeds=args.seeds, seed_start=args.seed_start,
+        baselines=[], out=out, workers=args.workers,
         executor="process" if args.workers > 1 else "serial", figures=False, progress=True,
     )
     errors = [r for r in result.rows if r.get("status") != "ok"]

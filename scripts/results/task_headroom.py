@@ -8,12 +8,13 @@ runs (one worker; resumable: a rerun with the same ``--out`` keeps the finished 
         --seeds 10 --seed-start 4800 --threshold-rule out/tr48-starved/chosen.json \
         --out out/headroom48-starved
 
-``--task`` is one of the ids of :data:`slam_gym.envs.TASK_ENV_VARIANTS` (its scenario and
-particles). Policies: ``--policies`` (default the three rules and ``lookahead-privileged``) and,
-with ``--threshold-rule`` (the ``chosen.json`` of ``slam-gym threshold-rule`` on the task's
-training-time worlds), the chosen threshold rule as ``best-threshold``. The **best rule** is
-the threshold family's rule chosen there (the family includes its ends ``fixed-10s`` and
-``fixed-10s-optimise``; the chosen one by mean return at ``--price``), else ``--best-rule``.
+``--task`` is a registered env id (an issue-48 task: its worlds, particles and clutter levels,
+``gym.make(task)``'s env). Policies: ``--policies`` (default the three rules and
+``lookahead-privileged``) and, with ``--threshold-rule`` (the ``chosen.json`` of ``slam-gym
+threshold-rule`` on the task's training-time worlds), the chosen threshold rule as
+``best-threshold``. The **best rule** is the threshold family's rule chosen there (the family
+includes its ends ``fixed-10s`` and ``fixed-10s-optimise``; the chosen one by mean return at
+``--price``), else ``--best-rule``.
 
 Statistics (``slam_gym.evaluation.paired``, the library of ``slam-gym compare``, issue 46):
 every run is paired with the best rule's run on the same world and draw (common random numbers);
@@ -248,7 +249,7 @@ def headroom_table(docs: Sequence[Mapping]) -> str:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--task", help="an id of TASK_ENV_VARIANTS")
+    parser.add_argument("--task", help="a registered env id (an issue-48 task)")
     parser.add_argument("--seeds", type=int, default=10, help="worlds per clutter level")
     parser.add_argument("--seed-start", type=int, default=4800)
     parser.add_argument("--clutter-levels", default="0,1,2,3")
@@ -283,12 +284,11 @@ def main(argv=None) -> int:
         parser.error("--task and --out are required (unless --table)")
 
     import policies
-    from slam_gym.envs import TASK_ENV_VARIANTS
+    from slam_gym.envs.spec import resolve_env
     from slam_gym.evaluation import benchmark
 
-    if args.task not in TASK_ENV_VARIANTS:
-        parser.error(f"--task must be one of {sorted(TASK_ENV_VARIANTS)}")
-    _, kwargs = TASK_ENV_VARIANTS[args.task]
+    env = resolve_env(args.task, {"w_compute": args.price, "compute_clip_s": args.compute_clip_s},
+                      clutter_levels=[int(v) for v in args.clutter_levels.split(",")])
     names = [n.strip() for n in args.policies.split(",") if n.strip()]
     specs: dict = {n: policies.make(n) for n in names}
     best = args.best_rule or "fixed-10s-optimise"
@@ -312,11 +312,8 @@ def main(argv=None) -> int:
         rows = read_results(out)
     else:
         rows = benchmark(
-            specs, scenario=kwargs["scenario"], n_particles=kwargs.get("n_particles", 500),
-            clutter_levels=[int(v) for v in args.clutter_levels.split(",")], seeds=args.seeds,
-            seed_start=args.seed_start, draws=args.draws, w_compute=args.price,
-            compute_clip_s=args.compute_clip_s, baselines=[], out=out, workers=1,
-            executor="serial", figures=False, progress=True,
+            specs, env=env, seeds=args.seeds, seed_start=args.seed_start, draws=args.draws,
+            baselines=[], out=out, workers=1, executor="serial", figures=False, progress=True,
         ).rows
     rows = join_rows(rows, *(read_results(folder) for folder in args.rows))
     if args.common_worlds:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 
 from slam_gym.commands.common import emit
-from slam_gym.commands.envargs import add_env_options
+from slam_gym.commands.envargs import add_env_options, policies_help
 from slam_gym.commands.runs import (
     Given,
     add_run_options,
@@ -41,9 +41,7 @@ def add_parser(subparsers) -> None:
         "summary.json, table.md and plots. --quick is the README's main job.",
     )
     p.add_argument("--policies", default=DEFAULT_POLICIES, action=Given,
-                   help="comma-separated policy names (policies.available(): the project's, "
-                   "installed plug-ins' of entry-point group slam_gym.policies) or "
-                   "package.module:attribute references to a policy class, factory or object")
+                   help=policies_help("comma-separated policy names"))
     p.add_argument("--baselines", default="dead-reckoning",
                    help="systems run on the same worlds beside the policies, comma-separated "
                    "(dead-reckoning; '' for none): dead reckoning meets BB's success "

@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 
 from slam_gym.commands.common import emit, to_jsonable
-from slam_gym.commands.envargs import add_env_options, env_from_args
+from slam_gym.commands.envargs import add_env_options, env_from_args, policies_help
 from slam_gym.commands.runs import (
     add_run_options,
     check_run_options,
@@ -38,8 +38,9 @@ def add_parser(subparsers) -> None:
         "sequence.",
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("a", metavar="A", help="the reference policy: a name (policies.available()), "
-                   "a package.module:attribute reference, or a learned model's .zip")
+    p.add_argument("a", metavar="A", help=policies_help(
+                   "the reference policy: a learned model's .zip, or a name")
+                   .replace("%", "%%"))
     p.add_argument("b", metavar="B", help="the policy compared with A (same forms)")
     p.add_argument("--metric", default=None,
                    choices=["success", "nees_in_band_fraction", "map_error_m", "interface_cpu_s",

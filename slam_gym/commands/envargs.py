@@ -10,7 +10,7 @@ whatever ``--particles`` would default to.
 from __future__ import annotations
 
 SHORTHANDS: dict[str, tuple[str, dict, str]] = {
-    "scenario": ("--scenario", {}, "the worlds' scenario (slam_gym/scenarios.py)"),
+    "scenario": ("--scenario", {"metavar": "NAME"}, "the worlds' scenario (slam_gym/scenarios.py)"),
     "n_particles": ("--particles", {"type": int, "metavar": "P"},
                     "FastSLAM particles of the front-end"),
     "decision_interval": ("--decision-interval", {"type": int, "metavar": "K"},
@@ -71,3 +71,14 @@ def env_from_args(args, *, per_decision: bool = True):
         args.env, parse_env_kwargs(args.env_kwargs), shorthands=env_shorthands(args),
         clutter_levels=None if levels is None else int_list(levels, "clutter_levels"),
         per_decision=per_decision)
+
+
+def policies_help(intro: str) -> str:
+    """``intro`` and every policy name a command accepts (:func:`policies.available`: the
+    project's, installed plug-ins', this process's), with the forms names take."""
+    import policies
+
+    return (f"{intro}: {', '.join(policies.available())}; a threshold rule by its printed "
+            "name, threshold-optimise[FEATURE>=THRESHOLD] (e.g. "
+            "threshold-optimise[global_position_std_m>=2]); or a package.module:attribute "
+            "reference to a policy class, factory or object")

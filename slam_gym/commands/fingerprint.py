@@ -36,8 +36,34 @@ def add_parser(subparsers) -> None:
     p.add_argument("--stamp", action="store_true",
                    help="write the current fingerprint into the model's JSON (only for a model "
                         "trained on this code)")
+    p.add_argument("--env", default=None, metavar="ID",
+                   help="check the model against this env's system (default: the env its "
+                   "config records), e.g. before running it with --env ID elsewhere")
+    p.add_argument("--env-kwargs", nargs="+", default=None, metavar="KEY:VALUE",
+                   help="keyword arguments of --env over the id's own (KEY:VALUE, VALUE as "
+                   "JSON)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     p.set_defaults(run=run)
+
+
+def env_to_check(args, config: dict) -> tuple[str | None, dict | None]:
+    """The env id and options the current fingerprint is computed for: ``--env`` with
+    ``--env-kwargs`` (checked like every command's), else those the model records."""
+    from slam_gym.envs.spec import check_env_id, parse_env_kwargs, resolve_env, system_id
+
+    if args.env is None:
+        if args.env_kwargs:
+            raise ValueError(f"env_kwargs={args.env_kwargs!r} is invalid without --env: they "
+                             "are options of the env --env names")
+        saved = config.get("fingerprint")
+        if isinstance(saved, dict) and "env_options" in saved:
+            return saved.get("env_id"), saved.get("env_options")
+        env_id = config.get("env_id")
+        return (None if env_id is None else system_id(env_id)), config.get("env_options")
+    env_id = system_id(check_env_id(args.env))
+    kwargs = parse_env_kwargs(args.env_kwargs)
+    resolve_env(env_id, kwargs)  # every option checked
+    return env_id, kwargs
 
 
 def env_version_lines(config: dict) -> tuple[list[str], dict]:
@@ -90,6 +116,9 @@ def run(args) -> int:
     if args.stamp:
         from slam_gym.envs import system_env_id
 
+        if args.env is not None:
+            raise ValueError(f"env={args.env!r} is invalid with --stamp: a model is stamped "
+                             "with the env its config records")
         env_id = config.get("env_id")
         current = system_fingerprint(None if env_id is None else system_env_id(env_id),
                                      config.get("env_options"))
@@ -108,10 +137,7 @@ def run(args) -> int:
              [f"{path}: stamped with the current fingerprint {current['digest'][:16]} "
               f"(env options {current['env_options']}; {current['cpu_s']:.2f} s CPU)"])
         return 0
-    if isinstance(saved, dict) and "env_options" in saved:
-        current = system_fingerprint(saved.get("env_id"), saved.get("env_options"))
-    else:
-        current = system_fingerprint(config.get("env_id"), config.get("env_options"))
+    current = system_fingerprint(*env_to_check(args, config))
     differences = compare_fingerprints(saved, current)
     matches = not differences
     if matches:

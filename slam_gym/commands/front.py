@@ -26,16 +26,17 @@ tables still print, and the command exits 3 unless ``--allow-errors`` is given.
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 from slam_gym.commands.common import emit, out_dir
+from slam_gym.commands.envargs import add_env_options
 from slam_gym.commands.runs import (
     add_run_options,
     check_run_options,
     errors_exit_code,
     float_list,
-    int_list,
     name_list,
     run_options,
 )
@@ -62,29 +63,46 @@ def add_parser(subparsers) -> None:
                    f"{REFERENCE}, the reference)")
     p.add_argument("--threshold-rules", default=None,
                    help="chosen.json of `slam-gym threshold-rule` (the best rule per price)")
-    p.add_argument("--clutter-levels", default="0,1,2,3", metavar="L,...",
-                   help="comma-separated clutter levels 0-3, distinct (default 0,1,2,3)")
-    p.add_argument("--particles", type=int, default=500, metavar="P",
-                   help="FastSLAM particles (default 500)")
-    p.add_argument("--n-steps", type=int, default=None, help="cut every path (quick looks)")
+    add_env_options(p, ("scenario", "n_particles", "n_steps"))
     add_run_options(p, default_out="out/front", trials_flag="--seeds")
     p.set_defaults(seed_start=400)
     p.set_defaults(run=run)
 
 
-def _threshold_rules(path: str | None) -> dict[str, dict[str, Any]]:
-    """Price -> the chosen threshold rule's name and options (from ``chosen.json``)."""
+def _threshold_rules(path: str | None, env) -> dict[str, dict[str, Any]]:
+    """Price -> the chosen threshold rule's name and options (from ``chosen.json``), chosen in
+    ``env`` (a :class:`~slam_gym.envs.spec.ResolvedEnv`): a file of another env is refused,
+    since its rule was chosen on other worlds (``ValueError`` naming both)."""
     if path is None:
         return {}
     doc = json.loads(Path(path).read_text())
+    chose_in = chosen_env(doc)
+    mine = {"env_id": env.env_id, "scenario": env.scenario, "n_particles": env.get("n_particles")}
+    differ = {k: (v, mine[k]) for k, v in chose_in.items() if v is not None and v != mine[k]}
+    if differ:
+        raise ValueError(
+            f"threshold_rules={path!r} is invalid: its rules were chosen in another env ("
+            + ", ".join(f"{k} {a!r} there, {b!r} here" for k, (a, b) in differ.items())
+            + f"): run front in that env (--env {chose_in.get('env_id') or '...'}) or choose "
+            "the rules in this one (slam-gym threshold-rule --env ...)")
     return {price: c for price, c in doc["chosen"].items()}
+
+
+def chosen_env(doc: Mapping[str, Any]) -> dict[str, Any]:
+    """What env a ``chosen.json`` was made in: its ``env_id``, scenario and particles (files
+    before issue 55 name only ``scenario`` and ``particles``)."""
+    kwargs = doc.get("env_kwargs") or {}
+    return {"env_id": doc.get("env_id"),
+            "scenario": kwargs.get("scenario", doc.get("scenario")),
+            "n_particles": kwargs.get("n_particles", doc.get("particles"))}
 
 
 def run(args) -> int:
     import policies
     from filters.validation import require
+    from slam_gym.commands.envargs import env_from_args
     from slam_gym.evaluation import benchmark
-    from slam_gym.evaluation.benchmarking import resolve_policies
+    from slam_gym.evaluation.benchmarking import env_of, resolve_policies
     from slam_gym.evaluation.front import compare, goal, plot_front
     from slam_gym.evaluation.summary import group_provenance, provenance_footnote
 
@@ -94,13 +112,11 @@ def run(args) -> int:
     rule_names = name_list(args.rules)
     require(REFERENCE in rule_names, "rules", args.rules, f"a list including {REFERENCE}")
     check_run_options(args)
-    chosen = _threshold_rules(args.threshold_rules)
+    env = env_from_args(args)
+    chosen = _threshold_rules(args.threshold_rules, env)
     rules: dict[str, Any] = {name: policies.make(name) for name in rule_names}
     for c in chosen.values():
-        if c["feature"] is not None and c["rule"] not in rules:
-            rules[c["rule"]] = policies.make("threshold-optimise", feature=c["feature"],
-                                             threshold=float(c["threshold"]))
-        elif c["rule"] not in rules:  # an end of the family: fixed-10s or fixed-10s-optimise
+        if c["rule"] not in rules:  # its printed name is its name (ThresholdOptimise)
             rules[c["rule"]] = policies.make(c["rule"])
     model = str(Path(args.model).expanduser().resolve())
     other = (None if args.compare_model is None
@@ -112,16 +128,20 @@ def run(args) -> int:
             except FileNotFoundError as exc:
                 raise ValueError(f"{field}={path!r} is invalid: {exc}") from exc
     out = out_dir(args)
-    levels = int_list(args.clutter_levels, "clutter_levels")
-    common = dict(clutter_levels=levels, seeds=args.trials,
-                  seed_start=args.seed_start, n_particles=args.particles, n_steps=args.n_steps,
-                  compute_clip_s=args.compute_clip_s, baselines=[], figures=False,
+    common = dict(seeds=args.trials, seed_start=args.seed_start, baselines=[], figures=False,
                   **run_options(args))
-    rule_rows = benchmark(rules, w_compute=args.run_price, out=out / "rules", **common).rows
+
+    def at_price(price: float):
+        """The env at one price of compute (the clip ``--compute-clip-s``)."""
+        return env_of(env.env_id, env.kwargs | {"w_compute": price,
+                                                "compute_clip_s": args.compute_clip_s},
+                      env.levels)
+
+    rule_rows = benchmark(rules, env=at_price(args.run_price), out=out / "rules", **common).rows
     by_rule = {name: [r for r in rule_rows if r["policy"] == name] for name in rules}
 
     def rows_at_every_price(model_path: str, prefix: str) -> dict[float, list]:
-        return {price: benchmark(["learned"], model=model_path, w_compute=price,
+        return {price: benchmark(["learned"], model=model_path, env=at_price(price),
                                  out=out / f"{prefix}-{price:g}", **common).rows
                 for price in prices}
 
@@ -137,6 +157,7 @@ def run(args) -> int:
     stale = provenance.get("model_matches_code") is False
     compared_stale = compared_provenance.get("model_matches_code") is False
     doc: dict[str, Any] = {"model": model, "compared_model": other, "prices": prices,
+                           "env_id": env.env_id, "env_kwargs": env.kwargs,
                            "seeds": args.trials,
                            "seed_start": args.seed_start, "compute_clip_s": args.compute_clip_s,
                            **provenance, "by_price": {}}

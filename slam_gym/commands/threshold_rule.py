@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from slam_gym.commands.common import emit, out_dir
+from slam_gym.commands.envargs import add_env_options
 from slam_gym.commands.runs import (
     add_run_options,
     check_run_options,
@@ -65,14 +66,7 @@ def add_parser(subparsers) -> None:
                    help="the reward's per-decision clip of compute (s)")
     p.add_argument("--seeds", default=",".join(str(s) for s in DEFAULT_EVAL_SEEDS),
                    help="worlds per level (default: the training-time evaluation worlds)")
-    p.add_argument("--clutter-levels", default="0,1,2,3", metavar="L,...",
-                   help="comma-separated clutter levels 0-3, distinct (default 0,1,2,3)")
-    p.add_argument("--particles", type=int, default=500, metavar="P",
-                   help="FastSLAM particles (default 500)")
-    p.add_argument("--scenario", default="brooks-bailey",
-                   help="the scenario whose training-time worlds choose the rule (issue 48's "
-                        "tasks: brooks-bailey-zones, long-mission)")
-    p.add_argument("--n-steps", type=int, default=None, help="cut every path (quick looks)")
+    add_env_options(p, ("scenario", "n_particles", "n_steps"))
     add_run_options(p, default_out="out/threshold-rule", trials_flag=None)
     p.set_defaults(run=run)
 
@@ -162,8 +156,10 @@ def markdown(table: Sequence[Mapping[str, Any]], prices: Sequence[float]) -> str
 
 def run(args) -> int:
     from filters.validation import require
+    from slam_gym.commands.envargs import env_from_args
     from slam_gym.envs.wrappers import TRAINING_WORLD_SEED_OFFSET
     from slam_gym.evaluation import benchmark
+    from slam_gym.evaluation.benchmarking import env_of
 
     prices = float_list(args.prices, "prices")
     require(bool(prices) and all(p >= 0 for p in prices), "prices", args.prices,
@@ -172,19 +168,21 @@ def run(args) -> int:
     require(bool(seeds) and all(0 <= s < TRAINING_WORLD_SEED_OFFSET for s in seeds), "seeds",
             args.seeds, f"seeds in [0, {TRAINING_WORLD_SEED_OFFSET})")
     check_run_options(args)
+    env = env_from_args(args)
+    env = env_of(env.env_id, env.kwargs | {"w_compute": args.run_price,
+                                           "compute_clip_s": args.compute_clip_s}, env.levels)
     out = out_dir(args)
     rules = candidates()
-    levels = int_list(args.clutter_levels, "clutter_levels")
-    result = benchmark(rules, clutter_levels=levels, seeds=seeds,
-                       scenario=args.scenario, n_particles=args.particles, n_steps=args.n_steps,
-                       w_compute=args.run_price, compute_clip_s=args.compute_clip_s,
-                       baselines=[], figures=False, out=out, **run_options(args))
+    levels = list(env.levels)
+    result = benchmark(rules, env=env, seeds=seeds, baselines=[], figures=False, out=out,
+                       **run_options(args))
     table = score(result.rows, prices)
     failed = not_scored(result.rows)
     table.sort(key=lambda r: list(rules).index(r["rule"]))
     chosen = choose(table, prices, rules)
     (Path(out) / "candidates.md").write_text(markdown(table, prices))
-    doc = {"scenario": args.scenario, "particles": args.particles,
+    doc = {"env_id": env.env_id, "env_kwargs": env.kwargs, "scenario": env.scenario,
+           "particles": env.get("n_particles"),
            "prices": prices, "run_price": args.run_price, "compute_clip_s": args.compute_clip_s,
            "seeds": seeds, "clutter_levels": levels, "chosen": chosen,
            "candidates": table, "not_scored": failed}

@@ -143,7 +143,7 @@ def paired_arrays(rows_a: list[dict], rows_b: list[dict], metric: str, worlds: l
     ta, tb = world_table(rows_a, metric), world_table(rows_b, metric)
     a = np.array([ta.get(w, np.nan) for w in worlds])
     b = np.array([tb.get(w, np.nan) for w in worlds])
-    strata = np.array([w[0] for w in worlds], dtype=int)
+    strata = np.array([-1 if w[0] is None else w[0] for w in worlds], dtype=int)  # -1: none
     return a, b, strata
 
 
