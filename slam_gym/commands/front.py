@@ -102,7 +102,7 @@ def run(args) -> int:
     from filters.validation import require
     from slam_gym.commands.envargs import env_from_args
     from slam_gym.evaluation import benchmark
-    from slam_gym.evaluation.benchmarking import env_of, resolve_policies
+    from slam_gym.evaluation.benchmarking import resolve_policies
     from slam_gym.evaluation.front import compare, goal, plot_front
     from slam_gym.evaluation.summary import group_provenance, provenance_footnote
 
@@ -133,9 +133,7 @@ def run(args) -> int:
 
     def at_price(price: float):
         """The env at one price of compute (the clip ``--compute-clip-s``)."""
-        return env_of(env.env_id, env.kwargs | {"w_compute": price,
-                                                "compute_clip_s": args.compute_clip_s},
-                      env.levels)
+        return env.replace(w_compute=price, compute_clip_s=args.compute_clip_s)
 
     rule_rows = benchmark(rules, env=at_price(args.run_price), out=out / "rules", **common).rows
     by_rule = {name: [r for r in rule_rows if r["policy"] == name] for name in rules}

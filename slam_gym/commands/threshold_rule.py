@@ -159,7 +159,6 @@ def run(args) -> int:
     from slam_gym.commands.envargs import env_from_args
     from slam_gym.envs.wrappers import TRAINING_WORLD_SEED_OFFSET
     from slam_gym.evaluation import benchmark
-    from slam_gym.evaluation.benchmarking import env_of
 
     prices = float_list(args.prices, "prices")
     require(bool(prices) and all(p >= 0 for p in prices), "prices", args.prices,
@@ -169,8 +168,7 @@ def run(args) -> int:
             args.seeds, f"seeds in [0, {TRAINING_WORLD_SEED_OFFSET})")
     check_run_options(args)
     env = env_from_args(args)
-    env = env_of(env.env_id, env.kwargs | {"w_compute": args.run_price,
-                                           "compute_clip_s": args.compute_clip_s}, env.levels)
+    env = env.replace(w_compute=args.run_price, compute_clip_s=args.compute_clip_s)
     out = out_dir(args)
     rules = candidates()
     levels = list(env.levels)

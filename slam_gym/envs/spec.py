@@ -150,6 +150,22 @@ class ResolvedEnv:
         make_kwargs.setdefault("max_episode_steps", limit)
         return gym.make(self.env_id, **kwargs, **make_kwargs)
 
+    def replace(self, *, levels: Iterable[int] | None = None, **changes: Any) -> ResolvedEnv:
+        """This env with some options changed (``changes``, checked by the env's class) and/or
+        other ``levels``, in silence: the options were resolved, and any override said, once."""
+        from slam_gym.scenarios import CLUTTER_LEVELS
+
+        kwargs = self.kwargs | changes
+        resolved = env_class(self.env_id).resolved_kwargs(**kwargs) if changes else kwargs
+        if levels is None:
+            levels = self.levels
+        else:
+            levels = tuple(int(v) for v in levels)
+            require(bool(levels) and len(set(levels)) == len(levels)
+                    and all(v in CLUTTER_LEVELS for v in levels) and "scenario" in resolved,
+                    "clutter_levels", list(levels), "distinct levels 0-3 of a simulated env")
+        return ResolvedEnv.of(self.env_id, resolved, levels)
+
     def describe(self) -> str:
         """One line: the id and the options that differ from the id's own."""
         own = env_class(self.env_id).resolved_kwargs(**registered_kwargs(self.env_id))

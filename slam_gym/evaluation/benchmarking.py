@@ -230,10 +230,7 @@ def env_of(env: Any = None, env_kwargs: Mapping[str, Any] | None = None,
     if isinstance(env, ResolvedEnv):
         require(not env_kwargs, "env_kwargs", env_kwargs,
                 "left out when env is already resolved (resolve them together)")
-        if clutter_levels is None:
-            return env
-        return resolve_env(env.env_id, env.kwargs, clutter_levels=clutter_levels,
-                           per_decision=True)
+        return env if clutter_levels is None else env.replace(levels=clutter_levels)
     return resolve_env(env, env_kwargs, clutter_levels=clutter_levels, per_decision=True)
 
 

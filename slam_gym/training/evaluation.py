@@ -94,7 +94,7 @@ def evaluation_env(env_id: Any = None, env_kwargs: Mapping[str, Any] | None = No
 
     if isinstance(env_id, ResolvedEnv):
         require(not env_kwargs, "env_kwargs", env_kwargs, "left out with a resolved env")
-        env_id, env_kwargs = env_id.env_id, env_id.kwargs
+        return env_id.replace(features=None, levels=clutter_levels)
     kwargs = {k: v for k, v in (env_kwargs or {}).items() if k != "features"}
     return resolve_env(None if env_id is None else system_id(env_id), kwargs,
                        clutter_levels=clutter_levels)

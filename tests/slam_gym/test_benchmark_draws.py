@@ -9,8 +9,9 @@ from slam_gym.envs.hybrid_slam import HybridSLAMEnv
 from slam_gym.evaluation import benchmark
 from slam_gym.evaluation.summary import draw_discordance, markdown_table, summarise
 
-SMALL = dict(clutter_levels=[2], seeds=[3], n_particles=20, n_steps=150, w_compute=10.0,
-             compute_clip_s=0.2, baselines=[], figures=False, executor="serial")
+ENV_KWARGS = {"n_particles": 20, "n_steps": 150, "w_compute": 10.0, "compute_clip_s": 0.2}
+SMALL = dict(clutter_levels=[2], seeds=[3], env_kwargs=ENV_KWARGS, baselines=[], figures=False,
+             executor="serial")
 
 
 def _play(env, reset_seed, world_seed):
@@ -26,7 +27,7 @@ def test_ordered_draws_reproduce_the_rows_filter_noise_recorded(tmp_path):
     """With -v0's ordered streams, draw 0 is the benchmark's run and draw k > 0 the generator
     ``reset(seed=<derived from world and k>)`` gave filter_noise.py (its recorded rows in
     docs/training_runs/train39/filter_noise*/ stay reproducible)."""
-    result = benchmark(["fixed-10s-optimise"], draws=2, random_streams="ordered",
+    result = benchmark(["fixed-10s-optimise"], draws=2, env="SlamGym/HybridSLAM-v0",
                        out=tmp_path / "b", **SMALL)
     rows = {r["draw"]: r for r in result.rows}
     assert sorted(rows) == [0, 1]
@@ -71,10 +72,20 @@ def test_discordance_counts_worlds_whose_outcome_changes_with_the_draw():
     assert draw_discordance(rows[:5]) == (0, 0)  # one draw a world: nothing to compare
 
 
-def test_draws_are_validated_before_any_run(tmp_path):
+def test_draws_are_validated_before_any_run(tmp_path, caplog):
     with pytest.raises(ValueError, match="^draws="):
         benchmark(["fixed-10s"], draws=0, out=tmp_path / "x", **SMALL)
     with pytest.raises(ValueError, match="^random_streams="):
-        benchmark(["fixed-10s"], env="SlamGym/HybridSLAM-v0", random_streams="synchronised",
-                  out=tmp_path / "y", **SMALL)
-    assert not (tmp_path / "x").exists()
+        benchmark(["fixed-10s"], env_kwargs=ENV_KWARGS | {"random_streams": "both"},
+                  out=tmp_path / "y", **{k: v for k, v in SMALL.items() if k != "env_kwargs"})
+    assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+    # the streams of a -v0 id overridden: run, and said in one line (never in silence)
+    with caplog.at_level("WARNING", logger="slam_gym.envs.spec"):
+        rows = benchmark(["fixed-10s"], env="SlamGym/HybridSLAM-v0",
+                         env_kwargs=ENV_KWARGS | {"random_streams": "synchronised"},
+                         out=tmp_path / "z", **{k: v for k, v in SMALL.items()
+                                                if k != "env_kwargs"}).rows
+    assert rows[0]["env_kwargs"]["random_streams"] == "synchronised"
+    assert [r.getMessage() for r in caplog.records] == [
+        "SlamGym/HybridSLAM-v0: random_streams='synchronised' overrides the id's "
+        "random_streams='ordered'"]

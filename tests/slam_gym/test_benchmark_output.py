@@ -130,7 +130,8 @@ def test_figures_leave_out_a_failed_policy_and_say_so(user_dir, tmp_path):
 
     # level 0: fixed-10s survives both worlds there, so every figure has something to draw
     result = benchmark({"raiser": failing_rules.Raiser, "fixed-10s": policies.make("fixed-10s")},
-                       clutter_levels=[0], seeds=2, n_particles=20, n_steps=150, baselines=[],
+                       clutter_levels=[0], seeds=2, env_kwargs={"n_particles": 20, "n_steps": 150},
+                       baselines=[],
                        executor="serial", out=tmp_path / "out")
     assert set(result.figures) == {"success", "pareto", "pareto_interface", "uncertainty",
                                    "nees", "decisions", "map"}

@@ -92,7 +92,7 @@ def test_the_benchmark_workers_optimise_with_one_blas_thread(tmp_path):
             with open("main.pid", "w") as f:
                 f.write(str(os.getpid()))
             benchmark({"fixed-optimise": fixed_optimise}, clutter_levels=[2], seeds=[0, 1],
-                      n_particles=100, n_steps=600, baselines=[], workers=2,
+                      env_kwargs={"n_particles": 100, "n_steps": 600}, baselines=[], workers=2,
                       figures=False, out="out")
     """, tmp_path)
     # the solves ran in the workers, not in the process that called benchmark

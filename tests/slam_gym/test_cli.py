@@ -118,7 +118,7 @@ def test_benchmark_reports_accuracy_against_compute_with_a_pareto_figure(tmp_pat
     assert groups["dead-reckoning"]["map_completeness"] == 0.0  # succeeds, maps nothing
     assert "map_error_m_succeeded" not in groups["dead-reckoning"]
     rows = read_results(tmp_path / "results.jsonl")
-    assert {r["options"].get("back_end") for r in rows if r.get("policy")} == {"relative"}
+    assert {r["env_kwargs"]["back_end"] for r in rows if r.get("policy")} == {"relative"}
     assert doc["figures"]["pareto"].endswith("pareto.png")
     assert (tmp_path / "pareto.png").stat().st_size > 10_000
     assert (tmp_path / "pareto_interface.png").stat().st_size > 10_000
@@ -190,8 +190,8 @@ def test_speed_times_a_task_episode_by_thirds_and_records_it():
     assert sub == sorted(sub) and sub[-1] >= 1  # fused every 10 s
     figures = record_figures({"tasks": [t]})
     assert figures["task_hybridslam_longmission_v1_decisions_per_s"]["higher_is_better"]
-    with pytest.raises(ValueError, match="env_id"):
-        measure_task("SlamGym/HybridSLAM-v1")
+    with pytest.raises(ValueError, match="did you mean"):
+        measure_task("SlamGym/HybridSLAM-LongMision-v1")
 
 
 def test_speed_full_path_figures_leave_failed_episodes_out():

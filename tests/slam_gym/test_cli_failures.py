@@ -95,7 +95,8 @@ def test_a_policy_objects_options_are_in_its_key(tmp_path):
 
     from slam_gym.evaluation import benchmark
 
-    tiny = {"clutter_levels": [2], "n_particles": 10, "n_steps": 150, "baselines": [],
+    tiny = {"clutter_levels": [2], "env_kwargs": {"n_particles": 10, "n_steps": 150},
+            "baselines": [],
             "figures": False, "executor": "serial", "seeds": 1, "out": tmp_path}
     first = benchmark({"rule": DistanceRule(3.0)}, **tiny)
     assert benchmark({"rule": DistanceRule(3.0)}, **tiny).rows == first.rows  # resumed
@@ -160,7 +161,7 @@ def test_retry_errors_reruns_error_rows_of_unchanged_code_and_allow_errors_exits
 @pytest.mark.parametrize("option, field", [
     (["--particles", "-3"], "--particles -3 is invalid: must be an integer in [1,"),
     (["--n-steps", "0"], "--n-steps 0 is invalid"),
-    (["--clutter-levels", "0,5"], "--clutter-levels 0,5 is invalid (clutter_level=5)"),
+    (["--clutter-levels", "0,5"], "--clutter-levels 0,5 is invalid: must be levels among"),
     (["--clutter-levels", "2,2"], "--clutter-levels 2,2 is invalid: must be distinct levels"),
     (["--clutter-levels", "two"], "--clutter-levels two is invalid: must be comma-separated "
      "integers"),
@@ -214,15 +215,18 @@ def test_sizes_are_bounded_before_any_job_is_built(tmp_path, capsys):
 def test_quick_keeps_explicit_seeds_and_particles():
     from slam_gym.cli import build_parser
     from slam_gym.commands.benchmark import QUICK, apply_quick
+    from slam_gym.commands.envargs import env_from_args
 
     args = build_parser().parse_args(["benchmark", "--quick", "--seeds", "1", "--particles",
                                       "100"])
     apply_quick(args)
-    assert (args.trials, args.particles) == (1, 100)
-    assert args.policies == QUICK["policies"] and args.clutter_levels == QUICK["clutter_levels"]
+    assert (args.trials, args.env_n_particles) == (1, 100)
+    assert args.policies == QUICK["policies"] and args.clutter_levels is None
     args = build_parser().parse_args(["benchmark", "--quick"])
     apply_quick(args)
-    assert (args.trials, args.particles) == (QUICK["seeds"], QUICK["particles"])
+    env = env_from_args(args)  # BB's four levels at BB's 500 particles: the env's own
+    assert (args.trials, env.get("n_particles"), env.levels) == (QUICK["seeds"], 500,
+                                                                 (0, 1, 2, 3))
 
 
 def test_a_module_with_a_syntax_error_is_named(user_dir, tmp_path, capsys):

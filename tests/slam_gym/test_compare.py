@@ -12,6 +12,10 @@ TINY = ["--particles", "15", "--n-steps", "120", "--clutter-levels", "1,2",
         "--executor", "serial", "--quiet"]
 
 
+SMALL = {"n_particles": 15, "n_steps": 120}
+"""A world of 12 s at 15 particles: small comparisons."""
+
+
 def run_cli(capsys, *argv):
     code = main(["compare", *argv])
     captured = capsys.readouterr()
@@ -20,8 +24,8 @@ def run_cli(capsys, *argv):
 
 def test_a_policy_against_itself_is_not_worse_and_runs_once(tmp_path):
     result = compare("fixed-10s", "fixed-10s", metric="success", margin=40, draws=2,
-                     max_worlds=40, batch_seeds=2, clutter_levels=[1, 2], n_particles=15,
-                     n_steps=120, executor="serial", out=tmp_path / "c")
+                     max_worlds=40, batch_seeds=2, clutter_levels=[1, 2], env_kwargs=SMALL,
+                     executor="serial", out=tmp_path / "c")
     assert result.decision == "not worse"
     assert result.worlds < 40  # decided before the last batch
     for name, m in result.metrics.items():  # the same runs on both sides: no difference
@@ -128,8 +132,8 @@ def test_a_policy_object_that_cannot_reach_a_worker_is_refused_before_any_run(tm
             return np.zeros(2, dtype=np.int64)
 
     with pytest.raises(ValueError, match="policy 'local-rule' is invalid for executor='process'"):
-        compare("fixed-10s", LocalRule(), seeds=2, clutter_levels=[1], n_particles=15,
-                n_steps=120, executor="process", out=tmp_path / "c")
+        compare("fixed-10s", LocalRule(), seeds=2, clutter_levels=[1], env_kwargs=SMALL,
+                executor="process", out=tmp_path / "c")
     assert not (tmp_path / "c").exists()  # refused before the output folder was made
 
 
@@ -153,7 +157,7 @@ def test_a_batch_that_adds_no_world_is_no_new_look(tmp_path):
     failed runs counted, instead of stopping on an error."""
     result = compare("fixed-10s", BreaksFromSeed8(), metric="success", margin=1,
                      draws=1, max_worlds=32, batch_seeds=8, design="group-sequential",
-                     clutter_levels=[1, 2], n_particles=15, n_steps=120, executor="serial",
+                     clutter_levels=[1, 2], env_kwargs=SMALL, executor="serial",
                      out=tmp_path / "c")
     assert result.decision == "undecided"
     assert [look["worlds"] for look in result.looks] == [16, 32]

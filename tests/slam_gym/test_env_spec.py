@@ -297,3 +297,28 @@ def test_a_closed_pipe_ends_quietly(tmp_path):
     assert b"Traceback" not in done.stderr and b"BrokenPipeError" not in done.stderr
     assert done.returncode == 141
     assert (tmp_path / "compare.json").is_file()  # the work was done and kept
+
+
+def test_train_on_a_task_evaluates_on_its_worlds_and_its_model_names_the_task(tmp_path, capsys):
+    """``slam-gym train --env SlamGym/HybridSLAM-Zones-v1`` at a tiny size: the training, its
+    evaluations and the model's record are the task's, and the model matches the code."""
+    task = "SlamGym/HybridSLAM-Zones-v1"
+    out = tmp_path / "train"
+    assert main(["train", "--env", task, "--timesteps", "64", "--n-envs", "1", "--particles",
+                 "5", "--n-steps", "120", "--hp", "n_steps=32", "--hp", "batch_size=32",
+                 "--hp", "n_epochs=1", "--seeds", "0", "--eval-every", "1000", "--eval-seeds",
+                 "3", "--eval-workers", "1", "--clutter-levels", "1", "--baseline", "none",
+                 "--out", str(out), "--json"]) == 0
+    capsys.readouterr()
+    config = json.loads((out / "model.json").read_text())
+    assert config["env_id"] == task
+    assert config["fingerprint"]["env_id"] == task
+    assert config["fingerprint"]["env_options"]["scenario"] == "brooks-bailey-zones"
+    evaluated = [r for p in (out / "seed-0" / "evals").glob("*/results.jsonl")
+                 for r in read_results(p.parent)]
+    assert evaluated and {r["scenario"] for r in evaluated} == {"brooks-bailey-zones"}
+    assert {r["env_id"] for r in evaluated} == {task}
+    assert {r["clutter_level"] for r in evaluated} == {1}
+    assert main(["fingerprint", str(out / "model.zip"), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["matches"] and doc["fingerprint"]["env_id"] == task

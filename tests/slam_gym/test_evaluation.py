@@ -583,12 +583,14 @@ def test_map_error_of_successful_runs_leaves_failed_runs_out():
 
 def test_decision_timeline_records_what_the_system_did():
     import policies
+    from slam_gym.envs.spec import resolve_env
     from slam_gym.evaluation.timeline import decision_timeline, true_loop_closure_s
 
     # with BB's compass (Fig. 3) the run survives the cut path
     tl, episode, env = decision_timeline(policies.make("fixed-10s-optimise"),
-                                         "brooks-bailey-compass", 0, 3, n_particles=100,
-                                         n_steps=400)
+                                         resolve_env("SlamGym/HybridSLAM-Compass-v1",
+                                                     {"n_particles": 100, "n_steps": 400}),
+                                         0, 3)
     assert not tl["failed"]
     t = tl["t_s"]
     assert np.all(np.diff(t) > 0) and t[-1] == pytest.approx(tl["end_s"])
@@ -619,15 +621,20 @@ def test_policy_runs_take_the_rewards_price_of_compute():
     from slam_gym.evaluation.core import run_job
     from slam_gym.evaluation.jobs import Job
 
+    from slam_gym.envs.spec import resolve_env
+
     base = {"n_particles": 20, "n_steps": 120}
-    default = run_job(Job("policy", "fixed-10s-optimise", "brooks-bailey", 1, 3, base))
-    pricier = run_job(Job("policy", "fixed-10s-optimise", "brooks-bailey", 1, 3,
-                          base | {"w_compute": 50.0, "compute_clip_s": 0.5}))
+    default = run_job(Job.in_env("policy", "fixed-10s-optimise", resolve_env(None, base), 1, 3))
+    pricier = run_job(Job.in_env("policy", "fixed-10s-optimise", resolve_env(
+        None, base | {"w_compute": 50.0, "compute_clip_s": 0.5}), 1, 3))
     assert pricier["return"] < default["return"]
     for key in ("success", "n_fusions", "n_optimisations", "map_error_m", "anees"):
         assert pricier[key] == default[key]
     with pytest.raises(ValueError, match="w_compute"):
-        run_job(Job("policy", "fixed-10s", "brooks-bailey", 1, 3, base | {"w_compute": -1.0}))
+        resolve_env(None, base | {"w_compute": -1.0})
+    with pytest.raises(ValueError, match="an env's options are keyword arguments"):
+        run_job(Job.in_env("policy", "fixed-10s", resolve_env(None, base), 1, 3,
+                           {"w_compute": 2.0}))
 
 
 def test_play_decisions_goes_on_to_the_next_world_at_each_episodes_end():

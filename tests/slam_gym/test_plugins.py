@@ -22,8 +22,8 @@ from slam_gym.evaluation import benchmark, read_results
 from slam_gym.evaluation.core import run_policy_object
 
 ROOT = Path(__file__).resolve().parents[2]
-TINY = {"clutter_levels": [2], "n_particles": 10, "n_steps": 150, "baselines": [],
-        "figures": False}
+TINY = {"clutter_levels": [2], "env_kwargs": {"n_particles": 10, "n_steps": 150},
+        "baselines": [], "figures": False}
 """A tiny benchmark: 15 s of BB's path at clutter level 2 with 10 particles (seed 0 runs all
 14 decisions, seed 1 fails at its 4th)."""
 
@@ -113,12 +113,16 @@ def test_default_registry_names_references_and_objects():
 
 
 def test_an_action_of_the_wrong_dtype_names_the_policy_and_the_value():
+    from slam_gym.envs.spec import resolve_env
+
+    global TINY_ENV
+    TINY_ENV = resolve_env(None, {"n_particles": 10, "n_steps": 30})
     with pytest.raises(ValueError,
                        match=r"policy 'float-rule' returned action=array\(\[1., 0.\]\)"):
-        run_policy_object(FloatRule(), "brooks-bailey", 1, 0, n_particles=10, n_steps=30)
+        run_policy_object(FloatRule(), TINY_ENV, 1, 0)
     with pytest.raises(ValueError, match="policy 'mine' returned action=.*shape \\(3,\\)"):
         run_policy_object(type("Three", (DistanceRule,), {"act": lambda s, o, i: [1, 0, 0]})(),
-                          "brooks-bailey", 1, 0, n_particles=10, n_steps=30, policy_name="mine")
+                          TINY_ENV, 1, 0, policy_name="mine")
 
 
 def test_the_command_and_the_api_give_the_same_rows(tmp_path, capsys):

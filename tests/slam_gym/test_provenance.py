@@ -244,8 +244,10 @@ def test_benchmark_rows_carry_whether_the_model_matches_the_code(model_zip, stal
     from slam_gym.evaluation.core import learned_options, run_job
 
     def row(policy, **options):
-        return run_job(Job("policy", policy, "brooks-bailey", 2, 3,
-                           {"n_particles": 5, "n_steps": 40, **options}))
+        from slam_gym.envs.spec import resolve_env
+
+        env = resolve_env(None, {"n_particles": 5, "n_steps": 40})
+        return run_job(Job.in_env("policy", policy, env, 2, 3, options))
 
     matching = row("learned", **learned_options(str(model_zip)))
     assert matching["model_matches_code"] is True and matching["model_differences"] == []

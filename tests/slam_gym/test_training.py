@@ -9,8 +9,8 @@ import pytest
 from untrained import untrained_model
 
 from slam_gym.cli import main
-from slam_gym.envs import ENV_VARIANTS
 from slam_gym.envs.hybrid_slam import FEATURE_NAMES
+from slam_gym.envs.spec import registered_ids
 from slam_gym.training.evaluation import evaluate_policy
 from slam_gym.training.hyperparams import (
     ALGOS,
@@ -24,17 +24,23 @@ from slam_gym.training.run import (
     read_eval_log,
     registered_kwargs,
     train_run,
+    training_env,
 )
 
-TRAINABLE = [i for i, k in ENV_VARIANTS.items() if "clutter_level" not in k and "scenario" not in k]
+SIMULATED = [i for i in registered_ids() if "MRCLAM" not in i]
 
 
 @pytest.mark.parametrize("algo", ALGOS)
-@pytest.mark.parametrize("env_id", ["SlamGym/HybridSLAM-v1", "SlamGym/HybridSLAM-Light-v1"])
-def test_packaged_hyperparams_load_and_name_the_papers_particles(algo, env_id):
+@pytest.mark.parametrize(("env_id", "want"), [
+    ("SlamGym/HybridSLAM-v1", 500), ("SlamGym/HybridSLAM-Light-v1", 100),
+    ("SlamGym/HybridSLAM-Zones-v1", 500), ("SlamGym/HybridSLAM-ZonesStarved-v1", 150)])
+def test_packaged_hyperparams_leave_the_env_to_its_id(algo, env_id, want):
+    """The packaged entries set no option of the env (issue 55: the id says it), so a run
+    trains with the id's particles, a task's included."""
     params = load_hyperparams(algo, env_id)
-    want = 500 if env_id == "SlamGym/HybridSLAM-v1" else 100
-    assert params["env_kwargs"]["n_particles"] == want
+    assert params["env_kwargs"] == {}
+    setup = TrainingSetup(algo, env_id, 0, params)
+    assert setup.evaluation_env().get("n_particles") == want
     assert params["n_timesteps"] >= 1 and params["n_envs"] >= 1 and params["normalize"] is True
 
 
@@ -44,7 +50,7 @@ def test_overrides_parse_as_yaml_and_merge_env_kwargs():
     params = load_hyperparams("ppo", "SlamGym/HybridSLAM-v1", overrides=over)
     assert params["learning_rate"] == pytest.approx(1e-3)
     assert params["policy_kwargs"] == {"net_arch": [8, 8]}
-    assert params["env_kwargs"] == {"n_particles": 500, "n_steps": 50}
+    assert params["env_kwargs"] == {"n_steps": 50}
 
 
 @pytest.mark.parametrize("params, field", [
@@ -52,7 +58,7 @@ def test_overrides_parse_as_yaml_and_merge_env_kwargs():
     ({"n_timesteps": 0, "n_envs": 1}, "n_timesteps"),
     ({"n_timesteps": 10, "n_envs": 1.5}, "n_envs"),
     ({"n_timesteps": 10, "n_envs": 1, "normalize": "yes"}, "normalize"),
-    ({"n_timesteps": 10, "n_envs": 1, "env_kwargs": {"w_map": 2.0}}, "w_map"),
+    ({"n_timesteps": 10, "n_envs": 1, "env_kwargs": ["w_map", 2.0]}, "env_kwargs"),
     ({"n_timesteps": 10, "n_envs": 1, "buffer_size": 10}, "buffer_size"),  # a DQN key for PPO
 ])
 def test_bad_hyperparams_raise_naming_the_field(params, field):
@@ -72,11 +78,15 @@ def test_bad_files_ids_and_override_syntax_raise(tmp_path):
         load_hyperparams("sac", "SlamGym/HybridSLAM-v1")
 
 
-def test_only_ids_that_leave_the_clutter_level_free_train():
-    for env_id in TRAINABLE:
+def test_every_simulated_id_trains_at_its_own_clutter_levels():
+    for env_id in SIMULATED:
         registered_kwargs(env_id)
-    with pytest.raises(ValueError, match="env_id"):
-        registered_kwargs("SlamGym/HybridSLAM-Clutter2-v1")
+    assert training_env("SlamGym/HybridSLAM-Clutter2-v1").levels == (2,)
+    assert training_env("SlamGym/HybridSLAM-Zones-v1").levels == (0, 1, 2, 3)
+    with pytest.raises(ValueError, match="env_id='SlamGym/MRCLAM-v1' is invalid for training"):
+        registered_kwargs("SlamGym/MRCLAM-v1")
+    with pytest.raises(ValueError, match="did you mean"):
+        registered_kwargs("SlamGym/HybridSLAM-Zone-v1")
     with pytest.raises(ValueError, match="eval_seeds"):
         TrainingSetup("ppo", "SlamGym/HybridSLAM-v1", 0, {}, eval_seeds=(1_000_000,))
 
@@ -265,9 +275,15 @@ def test_training_entries_may_set_the_rewards_price_of_compute():
     params = validate_hyperparams("ppo", {"n_timesteps": 8, "n_envs": 1, "env_kwargs": {
         "n_particles": 5, "w_compute": 20.0, "compute_clip_s": 0.2}})
     assert params["env_kwargs"]["w_compute"] == 20.0
+    # every option of the env is the env's to check, before a run is set up
+    bad = validate_hyperparams("ppo", {"n_timesteps": 8, "n_envs": 1,
+                                       "env_kwargs": {"w_nees": -2.0}})
     with pytest.raises(ValueError, match="w_nees"):
-        validate_hyperparams("ppo", {"n_timesteps": 8, "n_envs": 1,
-                                     "env_kwargs": {"w_nees": 2.0}})
+        TrainingSetup("ppo", "SlamGym/HybridSLAM-v1", 0, bad)
+    unknown = validate_hyperparams("ppo", {"n_timesteps": 8, "n_envs": 1,
+                                           "env_kwargs": {"w_mapp": 2.0}})
+    with pytest.raises(ValueError, match="w_mapp"):
+        TrainingSetup("ppo", "SlamGym/HybridSLAM-v1", 0, unknown)
 
 
 def test_a_price_conditioned_run_observes_the_price_and_its_model_reads_it_by_name(tmp_path):
@@ -313,6 +329,7 @@ def test_an_interval_learner_starts_at_the_rule_and_its_model_plays_the_rule(tmp
     update and anchored to it; the saved model, loaded as policy ``learned`` in the per-decision
     env, makes fixed-10s-optimise's decisions there (the anchor's weight was still high)."""
     import policies
+    from slam_gym.envs.spec import resolve_env
     from slam_gym.evaluation.core import run_policy_object
     from slam_gym.training.run import anchor_weight
 
@@ -336,9 +353,8 @@ def test_an_interval_learner_starts_at_the_rule_and_its_model_plays_the_rule(tmp
     actions = {}
     for name, policy in (("rule", policies.make("fixed-10s-optimise")), ("learned", learned)):
         actions[name] = []
-        run_policy_object(policy, "brooks-bailey", 1, 1,
-                          on_step=lambda a, i, out=actions[name]: out.append(a.tolist()),
-                          **options)
+        run_policy_object(policy, resolve_env("SlamGym/HybridSLAM-v1", options), 1, 1,
+                          on_step=lambda a, i, out=actions[name]: out.append(a.tolist()))
     assert actions["learned"] == actions["rule"] and sum(a[0] for a in actions["rule"]) >= 4
 
 

@@ -10,7 +10,7 @@ from stable_baselines3.common.logger import configure
 
 from policies.learned import LearnedPolicy
 from slam_gym.training.callbacks import BenchmarkEvalCallback
-from slam_gym.training.evaluation import EVAL_METRICS, evaluate_policy, evaluation_options
+from slam_gym.training.evaluation import EVAL_METRICS, evaluate_policy, evaluation_env
 
 ENV_KWARGS = {"n_particles": 10, "n_steps": 150}
 """15 s of BB's path with 10 particles: 14 decisions, a tiny episode."""
@@ -51,12 +51,19 @@ def test_callback_logs_the_benchmark_metrics_of_the_model_being_trained(tmp_path
             np.testing.assert_equal(record[key], callback.evaluations[-1][key], err_msg=key)
 
 
-def test_evaluation_refuses_env_options_it_cannot_forward():
-    assert evaluation_options("SlamGym/HybridSLAM-Light-v1", {"clutter_level": 2}) == {
-        "n_particles": 100}
-    with pytest.raises(ValueError, match="env_kwargs.*w_nees"):
-        evaluation_options(None, {"w_nees": 2.0})
-    with pytest.raises(ValueError, match="env_id"):
-        evaluation_options("SlamGym/Nope-v1")
+def test_evaluation_takes_the_training_envs_options_and_checks_them():
+    """The evaluation's env is the training env's id with its options (all of them: issue 55),
+    every feature observed, at the id's clutter levels unless told."""
+    env = evaluation_env("SlamGym/HybridSLAM-Light-v1", {"features": ["ess_ratio"],
+                                                         "w_nees": 2.0})
+    assert env.get("n_particles") == 100 and env.get("w_nees") == 2.0
+    assert env.get("features") is None and env.levels == (0, 1, 2, 3)
+    assert evaluation_env("SlamGym/HybridSLAM-Zones-v1").scenario == "brooks-bailey-zones"
+    assert evaluation_env("SlamGym/HybridSLAM-Interval-v1").env_id == "SlamGym/HybridSLAM-v1"
+    assert evaluation_env(env, clutter_levels=(2,)).levels == (2,)
+    with pytest.raises(ValueError, match="w_nees"):
+        evaluation_env(None, {"w_nees": -2.0})
+    with pytest.raises(ValueError, match="did you mean"):
+        evaluation_env("SlamGym/Nope-v1")
     with pytest.raises(ValueError, match="eval_freq"):
         BenchmarkEvalCallback(eval_freq=0)

@@ -74,7 +74,10 @@ def test_learned_policy_applies_the_mask_at_every_decision(tmp_path, determinist
 
 def test_a_tiny_maskable_ppo_training_saves_a_model_learned_policy_runs(tmp_path, capsys):
     import policies
+    from slam_gym.envs.spec import resolve_env
     from slam_gym.evaluation.core import run_policy_object
+
+    tiny = resolve_env(None, {"n_particles": 10, "n_steps": 120})
 
     config = train_tiny(tmp_path, "maskable-ppo")
     assert json.loads(capsys.readouterr().out)["summary"]["chosen_seed"] == 0
@@ -85,7 +88,7 @@ def test_a_tiny_maskable_ppo_training_saves_a_model_learned_policy_runs(tmp_path
     policy = policies.make("learned", path=str(tmp_path / "model.zip"))
     assert policy.algo == "maskable-ppo"
     seen = []
-    episode, _ = run_policy_object(policy, "brooks-bailey", 1, 5, n_particles=10, n_steps=120,
-                            on_step=lambda action, info: seen.append(tuple(action)))
+    episode, _ = run_policy_object(policy, tiny, 1, 5,
+                                   on_step=lambda action, info: seen.append(tuple(action)))
     assert seen and all(a in {(0, 0), (0, 1), (1, 0), (1, 1)} for a in seen)
     assert episode.done or episode.failure.failed  # ran to the episode's end

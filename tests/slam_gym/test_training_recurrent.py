@@ -110,7 +110,10 @@ def test_learned_policy_carries_the_memory_and_reset_clears_it(tmp_path, determi
 
 def test_a_tiny_recurrent_ppo_training_saves_a_model_learned_policy_runs(tmp_path, capsys):
     import policies
+    from slam_gym.envs.spec import resolve_env
     from slam_gym.evaluation.core import run_policy_object
+
+    tiny = resolve_env(None, {"n_particles": 10, "n_steps": 120})
 
     config = train_tiny(tmp_path, "recurrent-ppo",
                         "--hp", "policy_kwargs={net_arch: [8], lstm_hidden_size: 8}")
@@ -124,7 +127,7 @@ def test_a_tiny_recurrent_ppo_training_saves_a_model_learned_policy_runs(tmp_pat
     runs = []
     for _ in range(2):  # the same policy object twice: reset() between episodes clears memory
         seen = []
-        run_policy_object(policy, "brooks-bailey", 1, 5, n_particles=10, n_steps=120,
+        run_policy_object(policy, tiny, 1, 5,
                           on_step=lambda action, info, seen=seen: seen.append(tuple(action)))
         runs.append(seen)
     assert runs[0] and runs[0] == runs[1]
