@@ -618,10 +618,9 @@ def test_decision_timeline_records_what_the_system_did():
 def test_policy_runs_take_the_rewards_price_of_compute():
     """A policy trained under another price of compute is evaluated under it: the options reach
     the env's reward and change nothing else of the run."""
+    from slam_gym.envs.spec import resolve_env
     from slam_gym.evaluation.core import run_job
     from slam_gym.evaluation.jobs import Job
-
-    from slam_gym.envs.spec import resolve_env
 
     base = {"n_particles": 20, "n_steps": 120}
     default = run_job(Job.in_env("policy", "fixed-10s-optimise", resolve_env(None, base), 1, 3))
