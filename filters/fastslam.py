@@ -246,9 +246,9 @@ def _checked_motion(u, dt):
     u = np.asarray(u, dtype=float)
     require(u.shape == (2,) and math.isfinite(u[0]) and math.isfinite(u[1]), "u", u,
             "a finite (v, omega)")
-    dt = float(dt)
-    check_range("dt", dt, 0.0, 1e6)
-    return u, dt
+    if not (type(dt) is float and 0.0 <= dt <= 1e6):  # a stream's dt passes in one test
+        check_range("dt", dt, 0.0, 1e6)
+    return u, float(dt)
 
 
 def _checked_heading(theta, std_rad):
@@ -608,8 +608,10 @@ class FastSLAM2:
     def _checked_scan(self, z, associations):
         """``z`` as a valid (K, 2) array and the common ids of the known ``associations``
         (empty for DAS); ``ValueError`` naming the argument otherwise."""
-        z = np.asarray(z, dtype=float).reshape(-1, 2) if np.size(z) else np.zeros((0, 2))
-        problem = _scan_problem(z)
+        if not (type(z) is np.ndarray and z.dtype == np.float64 and z.ndim == 2
+                and z.shape[1] == 2):  # a stream's scan is one already
+            z = np.asarray(z, dtype=float).reshape(-1, 2) if np.size(z) else np.zeros((0, 2))
+        problem = _scan_problem(z) if len(z) else 0
         require(problem != _NOT_FINITE, "z", z, "finite range-bearing pairs (K, 2)")
         require(problem != _NEGATIVE_RANGE, "z", z, "ranges >= 0")
         if associations is None:
@@ -650,9 +652,10 @@ class FastSLAM2:
         theta, var = _checked_heading(*heading) if heading is not None else (np.nan, np.nan)
         pending_draw = self._pending and dt > 0.0
         pending = self._pending or dt > 0.0  # the proposal is pending after the prediction
-        if scanned:
-            self._grow(int(self._state.count.max()) + len(z))
-        draws = self._iteration_draws(len(z) if scanned and associations is None else 0,
+        K = len(z)
+        if K:  # a scan of K observations may create K features in a particle
+            self._grow(int(self._state.count.max()) + K)
+        draws = self._iteration_draws(K if scanned and associations is None else 0,
                                       pending_draw, heading is not None and not pending, scanned)
         step = IterationInput(float(u[0]), float(u[1]), dt,
                               self._motion_noise(u, dt) if dt > 0.0 else _ZERO_Q, theta, var,
@@ -660,7 +663,7 @@ class FastSLAM2:
         truth = _NO_TRUTH if truth_pose is None else np.asarray(truth_pose, dtype=float)
         flags = (self._pending, self.ids.next_id, (self._steps + 1) % self.cull_interval_steps == 0,
                  self.lineage_correction, self.small_sample_correction)
-        out = new_outputs(len(z), self.n_particles)
+        out = new_outputs(K, self.n_particles)
         weights = np.empty(self.n_particles)
         result = call_iteration(self._state, self._spare_state(), step, draws, self._model,
                                 own_frame() if frame is None else frame, truth, flags, out,
