@@ -550,6 +550,12 @@ def scan_update(state, z, known_cids, draws, model, out):
     new_existence = np.empty(K)
     scratch = np.empty((4, 3))
     full_view = fov_rad >= _TWO_PI  # no bearing test: a feature in range is visible
+    # the miss terms log(1 - seen) and seen / (1 - seen) of the last particle, per slot: after a
+    # resampling neighbouring particles are copies of one ancestor, whose features (and so their
+    # terms) are equal, and an equal argument gives the equal value without its log
+    last_seen = np.full(n_hi, -1.0)
+    last_log_miss = np.empty(n_hi)
+    last_ratio = np.empty(n_hi)
     for p in range(P):
         pose = poses[p]
         Pc = prop_cov[p]
@@ -575,8 +581,12 @@ def scan_update(state, z, known_cids, draws, model, out):
             else:
                 p_vis[j] = _visibility(dx, dy, pose[2], cxx, cxy, cyy, max_range_m, fov_rad)
             seen = alpha * ex[p, j] * p_vis[j]
-            logw[p] += math.log(1.0 - seen)
-            ratio[j] = seen / (1.0 - seen)
+            if seen != last_seen[j]:
+                last_seen[j] = seen
+                last_log_miss[j] = math.log(1.0 - seen)
+                last_ratio[j] = seen / (1.0 - seen)
+            logw[p] += last_log_miss[j]
+            ratio[j] = last_ratio[j]
             expected_visible += ex[p, j] * p_vis[j]
         n_vis = max(expected_visible, K / (alpha + beta))
         clutter_density = beta * n_vis / field  # L_clutter (BB 5.1)
