@@ -429,6 +429,7 @@ class FastSLAM2:
         sums = np.zeros(2) if self._state is None else self._state.clutter_sums
         self._state = new_state(P, self._capacity, pose0)._replace(clutter_sums=sums)
         self._pending = False
+        self._count_bound = None  # an upper bound of the feature counts (run_iteration)
         self._steps = 0
         self._age_s = 0.0
         self._distance_m = 0.0
@@ -565,6 +566,7 @@ class FastSLAM2:
         z, known_cids = self._checked_scan(z, associations)
         K, P = len(z), self.n_particles
         self._grow(int(self._state.count.max()) + K)
+        self._count_bound = None  # (run_iteration's bound: read the counts again)
         state = self._state
         if not self._pending:
             state.prop_cov[:] = 0.0
@@ -654,7 +656,13 @@ class FastSLAM2:
         pending = self._pending or dt > 0.0  # the proposal is pending after the prediction
         K = len(z)
         if K:  # a scan of K observations may create K features in a particle
-            self._grow(int(self._state.count.max()) + K)
+            # an upper bound of the particles' feature counts (they rise only by a scan's
+            # observations): the counts are read only when the bound would not fit
+            bound = self.__dict__.get("_count_bound")
+            if bound is None or bound + K > self._capacity:
+                bound = int(self._state.count.max())
+                self._grow(bound + K)
+            self._count_bound = bound + K
         draws = self._iteration_draws(K if scanned and associations is None else 0,
                                       pending_draw, heading is not None and not pending, scanned)
         step = IterationInput(float(u[0]), float(u[1]), dt,
