@@ -152,7 +152,7 @@ from numba import njit
 
 from filters.conversion import (
     common_features,
-    feature_means,
+    feature_means_xy,
     feature_moments,
     moment_match,
     pose_moments,
@@ -814,7 +814,7 @@ class FastSLAM2:
         if len(common) == 0:
             empty = LandmarkEstimate.empty()
             return empty.ids, empty.means, empty.existence
-        means = feature_means(self.weights, self.means, common.slots)
+        means = feature_means_xy(self._weights(), self._state.mx, self._state.my, common.slots)
         return common.ids.copy(), means, common.existence.copy()
 
     def to_gaussian(self) -> GaussianMap:
