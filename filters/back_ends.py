@@ -277,6 +277,14 @@ class GlobalMap:
             existence=self.existence.copy(),
         )
 
+    def landmark_means(self):
+        """``(ids, means, existence)`` of :meth:`landmarks` without the covariances (the same
+        numbers): what map scoring needs, at every decision."""
+        if self.n_features == 0:
+            empty = LandmarkEstimate.empty()
+            return empty.ids, empty.means, empty.existence
+        return self.ids.copy(), self.x[self.feature_cols()], self.existence.copy()
+
     def augment(self, local: GaussianMap):
         """BB section 4: ``x+ = [x-; g(v-, x_L)]`` and ``P+`` (module docstring)."""
         M = local.n_features

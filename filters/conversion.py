@@ -510,11 +510,47 @@ def feature_moments(weights, means, covs, slots):
 def feature_means(weights, means, slots):
     """The means of :func:`feature_moments` alone (the same numbers, bit for bit), without
     gathering or summing any covariance: for callers that need no uncertainty (map scoring)."""
+    means = np.asarray(means, float)
+    return feature_means_xy(weights, means[..., 0], means[..., 1], slots)
+
+
+def feature_means_xy(weights, mx, my, slots):
+    """:func:`feature_means` of the feature means given as their x and y (P, C) (a particle
+    filter's own arrays, without stacking them): BB (6) for each common feature, ``m_n =
+    sum_p w_pn mu_pn`` with ``w_pn`` each holder's share of the feature (:func:`_feature_weights`,
+    its mass ``w @ has`` as :func:`feature_moments` forms it) and the sum over the particles in
+    their order, one product and one addition rounded at a time: the numbers of
+    :func:`feature_moments`' ``einsum``, to the bit (tests/filters/test_conversion.py)."""
     w = _normalised(weights)
     slots = np.asarray(slots, dtype=np.int64)
-    has, safe = _gather_index(slots)
-    mu = np.where(has[..., None], _take_slots(np.asarray(means, float), safe), 0.0)
-    return np.einsum("pn,pnk->nk", _feature_weights(w, has), mu)
+    has = slots >= 0
+    mass = w @ has
+    require(
+        bool(np.all(mass > 0.0)),
+        "slots",
+        "a feature held by no weighted particle",
+        "every common feature held by a particle of positive weight",
+    )
+    return _feature_means_sums(w, np.asarray(mx, float), np.asarray(my, float), slots, mass)
+
+
+@njit(cache=True)
+def _feature_means_sums(w, mx, my, slots, mass):
+    """The sums of :func:`feature_means_xy`, compiled: for each feature, over the particles in
+    order, ``(w_p / mass_n) * mu_pn`` (zero for a particle without it), as ``einsum`` adds them."""
+    P, N = slots.shape
+    out = np.zeros((N, 2))
+    for p in range(P):
+        for n in range(N):
+            slot = slots[p, n]
+            if slot >= 0:
+                share = w[p] / mass[n]
+                out[n, 0] += share * mx[p, slot]
+                out[n, 1] += share * my[p, slot]
+            else:
+                out[n, 0] += 0.0
+                out[n, 1] += 0.0
+    return out
 
 
 def lineage_covariance(weighted_deviations, weights, lineages):

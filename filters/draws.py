@@ -79,6 +79,7 @@ class SynchronisedDraws:
         self._generator = np.random.Generator(self._bits)
         self._counter = np.zeros(4, dtype=np.uint64)
         self._state = self._bits.state
+        self._state["state"]["counter"] = self._counter
 
     @staticmethod
     def _philox_key(key: tuple[int, ...]) -> np.ndarray:
@@ -86,15 +87,17 @@ class SynchronisedDraws:
 
     def generator(self, role: str) -> np.random.Generator:
         index = _ROLE_INDEX.get(role)
-        require(index is not None, "role", role, f"one of {ROLES}")
-        require(self.iteration >= 0, "iteration", self.iteration, "an integer >= 0")
+        iteration = self.iteration
+        if index is None or not iteration >= 0:  # one test on the hot path, named if it fails
+            require(index is not None, "role", role, f"one of {ROLES}")
+            require(False, "iteration", iteration, "an integer >= 0")
         counter = self._counter
-        counter[:] = (0, 0, index, self.iteration)
+        counter[2] = index
+        counter[3] = iteration  # words 0 and 1 stay zero
         state = self._state
-        state["state"]["counter"] = counter
         state["buffer_pos"] = 4  # the buffer is empty: the next number comes from the counter
         state["has_uint32"] = 0
-        self._bits.state = state
+        self._bits.state = state  # the dict holds the counter array: one assignment positions
         return self._generator
 
     def position(self, role: str) -> tuple[int, ...]:
@@ -111,6 +114,7 @@ class SynchronisedDraws:
         self._bits = np.random.Philox(key=self._philox_key(self.key))
         self._generator = np.random.Generator(self._bits)
         self._state = self._bits.state
+        self._state["state"]["counter"] = self._counter
 
 
 def as_draws(rng) -> OrderedDraws | SynchronisedDraws:

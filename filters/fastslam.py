@@ -152,7 +152,7 @@ from numba import njit
 
 from filters.conversion import (
     common_features,
-    feature_means,
+    feature_means_xy,
     feature_moments,
     moment_match,
     pose_moments,
@@ -246,9 +246,9 @@ def _checked_motion(u, dt):
     u = np.asarray(u, dtype=float)
     require(u.shape == (2,) and math.isfinite(u[0]) and math.isfinite(u[1]), "u", u,
             "a finite (v, omega)")
-    dt = float(dt)
-    check_range("dt", dt, 0.0, 1e6)
-    return u, dt
+    if not (type(dt) is float and 0.0 <= dt <= 1e6):  # a stream's dt passes in one test
+        check_range("dt", dt, 0.0, 1e6)
+    return u, float(dt)
 
 
 def _checked_heading(theta, std_rad):
@@ -429,6 +429,7 @@ class FastSLAM2:
         sums = np.zeros(2) if self._state is None else self._state.clutter_sums
         self._state = new_state(P, self._capacity, pose0)._replace(clutter_sums=sums)
         self._pending = False
+        self._count_bound = None  # an upper bound of the feature counts (run_iteration)
         self._steps = 0
         self._age_s = 0.0
         self._distance_m = 0.0
@@ -565,6 +566,7 @@ class FastSLAM2:
         z, known_cids = self._checked_scan(z, associations)
         K, P = len(z), self.n_particles
         self._grow(int(self._state.count.max()) + K)
+        self._count_bound = None  # (run_iteration's bound: read the counts again)
         state = self._state
         if not self._pending:
             state.prop_cov[:] = 0.0
@@ -608,8 +610,10 @@ class FastSLAM2:
     def _checked_scan(self, z, associations):
         """``z`` as a valid (K, 2) array and the common ids of the known ``associations``
         (empty for DAS); ``ValueError`` naming the argument otherwise."""
-        z = np.asarray(z, dtype=float).reshape(-1, 2) if np.size(z) else np.zeros((0, 2))
-        problem = _scan_problem(z)
+        if not (type(z) is np.ndarray and z.dtype == np.float64 and z.ndim == 2
+                and z.shape[1] == 2):  # a stream's scan is one already
+            z = np.asarray(z, dtype=float).reshape(-1, 2) if np.size(z) else np.zeros((0, 2))
+        problem = _scan_problem(z) if len(z) else 0
         require(problem != _NOT_FINITE, "z", z, "finite range-bearing pairs (K, 2)")
         require(problem != _NEGATIVE_RANGE, "z", z, "ranges >= 0")
         if associations is None:
@@ -650,9 +654,16 @@ class FastSLAM2:
         theta, var = _checked_heading(*heading) if heading is not None else (np.nan, np.nan)
         pending_draw = self._pending and dt > 0.0
         pending = self._pending or dt > 0.0  # the proposal is pending after the prediction
-        if scanned:
-            self._grow(int(self._state.count.max()) + len(z))
-        draws = self._iteration_draws(len(z) if scanned and associations is None else 0,
+        K = len(z)
+        if K:  # a scan of K observations may create K features in a particle
+            # an upper bound of the particles' feature counts (they rise only by a scan's
+            # observations): the counts are read only when the bound would not fit
+            bound = self.__dict__.get("_count_bound")
+            if bound is None or bound + K > self._capacity:
+                bound = int(self._state.count.max())
+                self._grow(bound + K)
+            self._count_bound = bound + K
+        draws = self._iteration_draws(K if scanned and associations is None else 0,
                                       pending_draw, heading is not None and not pending, scanned)
         step = IterationInput(float(u[0]), float(u[1]), dt,
                               self._motion_noise(u, dt) if dt > 0.0 else _ZERO_Q, theta, var,
@@ -660,7 +671,7 @@ class FastSLAM2:
         truth = _NO_TRUTH if truth_pose is None else np.asarray(truth_pose, dtype=float)
         flags = (self._pending, self.ids.next_id, (self._steps + 1) % self.cull_interval_steps == 0,
                  self.lineage_correction, self.small_sample_correction)
-        out = new_outputs(len(z), self.n_particles)
+        out = new_outputs(K, self.n_particles)
         weights = np.empty(self.n_particles)
         result = call_iteration(self._state, self._spare_state(), step, draws, self._model,
                                 own_frame() if frame is None else frame, truth, flags, out,
@@ -803,7 +814,7 @@ class FastSLAM2:
         if len(common) == 0:
             empty = LandmarkEstimate.empty()
             return empty.ids, empty.means, empty.existence
-        means = feature_means(self.weights, self.means, common.slots)
+        means = feature_means_xy(self._weights(), self._state.mx, self._state.my, common.slots)
         return common.ids.copy(), means, common.existence.copy()
 
     def to_gaussian(self) -> GaussianMap:

@@ -63,6 +63,9 @@ from filters.global_frame import compose_with_covariance, nearest_global_innovat
 
 _TWO_PI = 2.0 * math.pi
 _SQRT_HALF = math.sqrt(0.5)
+_CERTAIN_MARGIN = 8.5
+"""Range margins, in radial standard deviations, beyond which :func:`_visibility` is 1:
+``Phi(8.5) = 1 - 1e-17``, 1 in double precision."""
 
 
 class ParticleState(NamedTuple):
@@ -402,11 +405,30 @@ def _visibility(dx, dy, heading, cxx, cxy, cyy, max_range_m, fov_rad):
     radial = (dx * dx * cxx + 2.0 * dx * dy * cxy + dy * dy * cyy) / q
     sigma = math.sqrt(max(radial, 0.0)) + 1e-9
     margin = (max_range_m - r) / sigma
-    if margin > 8.5:  # Phi(8.5) = 1 - 1e-17: 1 in double precision
+    if margin > _CERTAIN_MARGIN:
         return 1.0
     if margin < -40.0:  # Phi underflows
         return 0.0
     return 0.5 * math.erfc(-margin * _SQRT_HALF)
+
+
+@njit(cache=True, inline="always")
+def _certainly_in_range(dx, dy, cxx, cxy, cyy, std_bound, max_range_m):
+    """Whether :func:`_visibility` of a feature at ``(dx, dy)`` with the position covariance
+    ``[[cxx, cxy], [cxy, cyy]]`` is 1 for certain (its range margin beyond
+    :data:`_CERTAIN_MARGIN` standard deviations), decided without its square roots and
+    divisions: for a positive semi-definite covariance the radial variance is at most the
+    largest eigenvalue, at most the trace, and ``std_bound`` bounds the trace's square root (the
+    caller's ``sqrt(feature trace) + sqrt(proposal trace)``, since ``sqrt(a + b) <= sqrt(a) +
+    sqrt(b)``). The bound is widened by a relative 1e-9 and the range shortened by as much, far
+    beyond the rounding of :func:`_visibility`'s own arithmetic, so a feature passed here is one
+    it would give 1.0, and the scan's numbers are unchanged to the bit. Anything else (a
+    covariance not semi-definite, NaN, a feature near the edge) returns False: the caller then
+    asks :func:`_visibility`."""
+    if not (cxx >= 0.0 and cyy >= 0.0 and cxy * cxy <= cxx * cyy):
+        return False
+    reach = max_range_m - _CERTAIN_MARGIN * (std_bound * (1.0 + 1e-9) + 2e-9)
+    return reach > 0.0 and dx * dx + dy * dy < reach * reach * (1.0 - 1e-9)
 
 
 @njit(cache=True, inline="always")
@@ -527,12 +549,20 @@ def scan_update(state, z, known_cids, draws, model, out):
     gate_areas = np.empty(K)
     new_existence = np.empty(K)
     scratch = np.empty((4, 3))
+    full_view = fov_rad >= _TWO_PI  # no bearing test: a feature in range is visible
+    # the miss terms log(1 - seen) and seen / (1 - seen) of the last particle, per slot: after a
+    # resampling neighbouring particles are copies of one ancestor, whose features (and so their
+    # terms) are equal, and an equal argument gives the equal value without its log
+    last_seen = np.full(n_hi, -1.0)
+    last_log_miss = np.empty(n_hi)
+    last_ratio = np.empty(n_hi)
     for p in range(P):
         pose = poses[p]
         Pc = prop_cov[p]
         n = count[p]
         # --- visibility and the missed-detection product prod_j (1 - alpha e_j p_vis,j)
         expected_visible = 0.0
+        proposal_std = math.sqrt(max(Pc[0, 0] + Pc[1, 1], 0.0))
         for j in range(n):
             claimed[j] = False
             if not active[p, j]:
@@ -540,12 +570,23 @@ def scan_update(state, z, known_cids, draws, model, out):
                 ratio[j] = 0.0
                 continue
             feature_std[j] = math.sqrt(sxx[p, j] + syy[p, j])
-            p_vis[j] = _visibility(mx[p, j] - pose[0], my[p, j] - pose[1], pose[2],
-                                   sxx[p, j] + Pc[0, 0], sxy[p, j] + Pc[0, 1],
-                                   syy[p, j] + Pc[1, 1], max_range_m, fov_rad)
+            dx = mx[p, j] - pose[0]
+            dy = my[p, j] - pose[1]
+            cxx = sxx[p, j] + Pc[0, 0]
+            cxy = sxy[p, j] + Pc[0, 1]
+            cyy = syy[p, j] + Pc[1, 1]
+            if full_view and _certainly_in_range(dx, dy, cxx, cxy, cyy,
+                                                 feature_std[j] + proposal_std, max_range_m):
+                p_vis[j] = 1.0
+            else:
+                p_vis[j] = _visibility(dx, dy, pose[2], cxx, cxy, cyy, max_range_m, fov_rad)
             seen = alpha * ex[p, j] * p_vis[j]
-            logw[p] += math.log(1.0 - seen)
-            ratio[j] = seen / (1.0 - seen)
+            if seen != last_seen[j]:
+                last_seen[j] = seen
+                last_log_miss[j] = math.log(1.0 - seen)
+                last_ratio[j] = seen / (1.0 - seen)
+            logw[p] += last_log_miss[j]
+            ratio[j] = last_ratio[j]
             expected_visible += ex[p, j] * p_vis[j]
         n_vis = max(expected_visible, K / (alpha + beta))
         clutter_density = beta * n_vis / field  # L_clutter (BB 5.1)

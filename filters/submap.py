@@ -159,6 +159,7 @@ class SubmapSLAM:
         self._fusions_since_optimise = 0
         self._closures_since_optimise = 0
         self._composed = None  # the composed pose of the current state (_compose_with_origin)
+        self._frames = None  # the back-end's frames of the compiled iteration (_frame)
         self.last_optimum = None  # the OptimiseResult applied last (filters.submap_optimise)
         self.start_interval()
 
@@ -223,13 +224,31 @@ class SubmapSLAM:
 
     def _frame(self, z) -> GlobalFrame:
         """The local map's origin and, when a scan ``z`` may observe global features, the global
-        map the innovation ratio tests it against (:meth:`observation_innovation_ratio`)."""
+        map the innovation ratio tests it against (:meth:`observation_innovation_ratio`).
+
+        Both frames are formed once per state of the back-end (:meth:`_back_end_frames`): the
+        back-end changes only when the system fuses or optimises, which forget them."""
+        g = self.back_end
+        frames = getattr(self, "_frames", None)  # (a pickle of an older system has none)
+        if frames is None or frames[0] is not g.x or frames[1] is not g.P:
+            frames = self._frames = self._back_end_frames()
+        if z is None or len(z) == 0 or g.n_features == 0:
+            return frames[2]
+        return frames[3]
+
+    def _back_end_frames(self):
+        """``(x, P, origin frame, frame with the global map)`` of the back-end's state: the
+        frame of a scan that cannot observe a global feature (the origin alone) and of one that
+        can (:meth:`_frame`)."""
         g = self.back_end
         v, P_v = g.origin()
-        if z is None or len(z) == 0 or g.n_features == 0:
-            return own_frame()._replace(origin=v, origin_cov=P_v)
-        return GlobalFrame(v, P_v, np.asarray(g.x, dtype=float), np.asarray(g.P, dtype=float),
-                           read_only(g.feature_cols()), self.closure_radius_m)
+        alone = own_frame()._replace(origin=v, origin_cov=P_v)
+        with_map = alone
+        if g.n_features:
+            with_map = GlobalFrame(v, P_v, np.asarray(g.x, dtype=float),
+                                   np.asarray(g.P, dtype=float), read_only(g.feature_cols()),
+                                   self.closure_radius_m)
+        return g.x, g.P, alone, with_map
 
     def _compose_with_origin(self):
         """``(v- (+) x_v^L, its covariance, J_a)``; computed once per state (every method that
@@ -271,16 +290,16 @@ class SubmapSLAM:
         if not hasattr(self.front_end, "landmark_means"):
             lm = self.landmarks()
             return lm.ids, lm.means, lm.existence
-        glob = self.back_end.landmarks()
+        g_ids, g_means, g_existence = self.back_end.landmark_means()
         ids, means, existence = self.front_end.landmark_means()
         keep = existence > CONFIRMED_PROBABILITY
         if not keep.any():
-            return glob.ids, glob.means, glob.existence
-        v, _ = self.back_end.origin()
+            return g_ids, g_means, g_existence
+        v = self.back_end.x[:3]
         return (
-            np.concatenate([glob.ids, ids[keep]]),
-            np.vstack([glob.means, transform_point(v, means[keep])]),
-            np.concatenate([glob.existence, existence[keep]]),
+            np.concatenate([g_ids, ids[keep]]),
+            np.vstack([g_means, transform_point(v, means[keep])]),
+            np.concatenate([g_existence, existence[keep]]),
         )
 
     # ------------------------------------------------------------------ fusion / optimisation
@@ -302,6 +321,7 @@ class SubmapSLAM:
         )
         self.front_end.restart()
         self._composed = None
+        self._frames = None
         self.n_fusions += 1
         self._fusions_since_optimise += 1
         self.interval_loop_closures.extend(report.loop_closures)
@@ -327,6 +347,7 @@ class SubmapSLAM:
         """Book-keeping after an optimisation (for the optimiser's implementation)."""
         self.n_optimisations += 1
         self._composed = None
+        self._frames = None
         self._t_last_optimise = self._t
         self._fusions_since_optimise = 0
         self._closures_since_optimise = 0
@@ -356,9 +377,19 @@ class SubmapSLAM:
         g = self.back_end
         if g.n_features == 0:
             return 0
-        pose, _, _ = self._compose_with_origin()
-        zhat = observe(pose, g.x[g.feature_cols()])
-        return int(np.count_nonzero(self.front_end.sensor.in_view(zhat)))
+        pose = self._composed_mean()
+        sensor = self.front_end.sensor
+        features = g.x[g.feature_cols()]
+        if sensor.fov_rad >= 2.0 * np.pi:  # in view is in range: the bearings are not needed
+            ranges = np.hypot(features[:, 0] - pose[0], features[:, 1] - pose[1])
+            return int(np.count_nonzero(ranges <= sensor.max_range_m))
+        return int(np.count_nonzero(sensor.in_view(observe(pose, features))))
+
+    def _composed_mean(self) -> np.ndarray:
+        """The composed pose's mean of :meth:`_compose_with_origin` (not a copy: read it only)."""
+        if self._composed is None:
+            self._compose_with_origin()
+        return self._composed[0]
 
     def interface_features(self) -> dict[str, float]:
         """All interface features of docs/ARCHITECTURE.md (names in INTERFACE_FEATURE_NAMES)."""

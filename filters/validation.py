@@ -44,10 +44,11 @@ def check_range(
             and (v > low if low_open else v >= low)
             and (v < high if high_open else v <= high)
         )
-    lo = "(" if (low_open or math.isinf(low)) else "["
-    hi = ")" if (high_open or math.isinf(high)) else "]"
-    suffix = f" ({why})" if why else ""
-    require(ok, field, value, f"a number in {lo}{low}, {high}{hi}{suffix}")
+    if not ok:  # the message is formed only when it is raised (filters check every step)
+        lo = "(" if (low_open or math.isinf(low)) else "["
+        hi = ")" if (high_open or math.isinf(high)) else "]"
+        suffix = f" ({why})" if why else ""
+        require(ok, field, value, f"a number in {lo}{low}, {high}{hi}{suffix}")
     return float(value)
 
 

@@ -11,6 +11,7 @@ Gymnasium env all drive systems through it, so the env adds no behaviour of its 
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -106,21 +107,26 @@ class Episode:
         if step.compass_rad is not None and self.stream.compass_std_rad is not None:
             heading = (step.compass_rad, self.stream.compass_std_rad)
         z = step.z if step.scanned else None  # a step without a scan is no evidence
-        truth_ids = step.truth.landmark_ids
+        truth = step.truth
+        truth_ids = truth.landmark_ids
         iterate = None if self.known_association else getattr(system, "iterate", None)
         start = time.perf_counter()
         if iterate is not None:
             mean, cov, value, error = iterate(step.odometry, step.dt_s, z, heading=heading,
-                                              truth_pose=step.truth.pose)
+                                              truth_pose=truth.pose)
         else:
             options = {"known_ids": truth_ids} if self.known_association and z is not None else {}
             mean, cov, value, error = stepwise_iteration(system, step.odometry, step.dt_s, z,
-                                                         heading, step.truth.pose, **options)
+                                                         heading, truth.pose, **options)
         self.compute_time_s += time.perf_counter() - start
-        associations = np.asarray(system.last_associations)
-        if len(associations) == len(truth_ids) and len(truth_ids):
-            self.feature_truth.record(associations, truth_ids)
-        self.detected_landmarks.update(truth_ids[truth_ids >= 0].tolist())
+        if len(truth_ids):
+            # the truth's association votes and the detected landmarks, over a few observations:
+            # Python ints, not numpy scalars
+            truth_list = truth_ids.tolist()
+            associations = system.last_associations
+            if len(associations) == len(truth_list):
+                self.feature_truth.record_lists(np.asarray(associations).tolist(), truth_list)
+            self.detected_landmarks.update([t for t in truth_list if t >= 0])
         self.iteration += 1
         self.t_s = step.t_s
         self.last_step = step
@@ -130,7 +136,8 @@ class Episode:
         """The iteration's pose metrics (``value`` its NEES, ``error`` its position error, from
         the system's iteration) into the run's sums, the failure test and the trace."""
         true_pose = step.truth.pose
-        if not np.isfinite(true_pose).all():
+        x, y, heading = np.asarray(true_pose, dtype=float).tolist()
+        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(heading)):
             return
         self.last_nees = value
         self.failure.update(value, self.iteration)
@@ -143,7 +150,7 @@ class Episode:
             self.trace.t_s.append(step.t_s)
             self.trace.nees.append(value)
             self.trace.position_error_m.append(error)
-            self.trace.cov_trace.append(float(np.trace(cov)))
+            self.trace.cov_trace.append(float(cov[0, 0] + cov[1, 1] + cov[2, 2]))  # np.trace's
             self.trace.est_poses.append(np.array(mean))
             self.trace.true_poses.append(np.array(true_pose))
 

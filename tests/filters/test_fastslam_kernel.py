@@ -158,3 +158,38 @@ def test_update_iteration_equals_the_numpy_reference_on_captured_scans(known):
         w = np.exp(expected.logw - expected.logw.max())
         np.testing.assert_allclose(f.weights, w / w.sum(), rtol=1e-12, atol=1e-300)
     assert n_resampled > 5 and n_culled > 0  # both paths were exercised
+
+
+def test_certainly_in_range_only_where_the_visibility_is_one():
+    """The scan's shortcut for features certainly in range (no square roots) claims a feature
+    only where :func:`_visibility` gives exactly 1.0, so the scan's numbers do not depend on it;
+    it claims most features well inside the range, and none of a covariance that is not positive
+    semi-definite (whose radial variance the trace does not bound)."""
+    from filters.fastslam_kernel import _certainly_in_range, _visibility
+
+    rng = np.random.default_rng(7)
+    max_range = 30.0
+    claimed = inside = 0
+    for _ in range(20000):
+        # features from the pose out to beyond the range, many near the visibility's edge
+        r = max_range * rng.uniform(0.0, 1.3)
+        bearing = rng.uniform(-np.pi, np.pi)
+        dx, dy = r * np.cos(bearing), r * np.sin(bearing)
+        feature = rng.uniform(0.0, 1.5, 2) ** 2
+        proposal = rng.uniform(0.0, 1.0, 2) ** 2
+        rho = rng.uniform(-1.0, 1.0)
+        fxy = rho * np.sqrt(feature[0] * feature[1])
+        pxy = rng.uniform(-1.0, 1.0) * np.sqrt(proposal[0] * proposal[1])
+        cxx, cyy, cxy = feature[0] + proposal[0], feature[1] + proposal[1], fxy + pxy
+        bound = np.sqrt(feature.sum()) + np.sqrt(proposal.sum())
+        certain = _certainly_in_range(dx, dy, cxx, cxy, cyy, bound, max_range)
+        if certain:
+            claimed += 1
+            assert _visibility(dx, dy, 0.0, cxx, cxy, cyy, max_range, 2 * np.pi) == 1.0
+        if r + 9.0 * bound < max_range:
+            inside += 1
+            assert certain  # well inside the range, the shortcut takes it
+        # a covariance that is not semi-definite is never claimed
+        assert not _certainly_in_range(dx, dy, cxx, 2.0 * np.sqrt(cxx * cyy) + 1.0, cyy, bound,
+                                       max_range)
+    assert inside > 1000 and claimed >= inside

@@ -74,3 +74,37 @@ def test_compiled_nees_equals_the_cholesky_solve_and_is_inf_when_not_positive_de
     assert nees(np.zeros(3), np.ones(3), np.diag([1.0, 1.0, np.nan])) == math.inf
     with pytest.raises(ValueError, match="cov"):
         nees(np.zeros(3), np.ones(3), np.eye(2))
+
+
+def test_map_score_equals_the_feature_by_feature_reference():
+    """score_map's matched errors (one array expression) against the distance of each feature to
+    its landmark by np.linalg.norm, and FeatureTruth's kept answers against the votes counted
+    afresh after records and merges. The distances agree to 1e-12 relative (the same products and
+    sum; the tolerance allows a BLAS that fuses np.linalg.norm's dot product)."""
+    from collections import Counter
+
+    from slam_gym.metrics import FeatureTruth, score_map
+
+    rng = np.random.default_rng(3)
+    landmarks = rng.uniform(-50.0, 50.0, (30, 2))
+    truth = FeatureTruth()
+    for step in range(300):
+        ids = rng.integers(-1, 25, rng.integers(0, 4))
+        truth.record(ids, rng.integers(-1, 32, len(ids)))
+        if step % 40 == 39:  # a fusion renames a few features
+            old = rng.choice(25, 3, replace=False)
+            truth.merge({int(o): int(100 + step + i) for i, o in enumerate(old)})
+        feature_ids = np.array(sorted(truth.votes)[:20], dtype=np.int64)
+        means = landmarks[rng.integers(0, 30, len(feature_ids))] + rng.normal(0, 2, (len(
+            feature_ids), 2))
+        score = score_map(feature_ids, means, truth, landmarks, {1, 2, 3, 40})
+        expected_errors = []
+        for fid, mean in zip(feature_ids, means, strict=True):
+            counts = Counter(truth.votes[int(fid)])
+            lm = counts.most_common(1)[0][0] if counts else -1
+            assert truth.landmark_of(fid) == lm
+            if 0 <= lm < len(landmarks):
+                expected_errors.append(np.linalg.norm(mean - landmarks[lm]))
+        assert score.n_spurious == len(feature_ids) - len(expected_errors)
+        if expected_errors:
+            np.testing.assert_allclose(score.map_error_m, np.mean(expected_errors), rtol=1e-12)
