@@ -9,7 +9,8 @@ resumable: a rerun with the same ``--out`` skips the worlds already in it)::
         --out out/agreement57-zones
 
 Each world (``seed:level``) is played by ``--follow`` (default ``lookahead``, the fast planner:
-the states it meets); at each of its planning points (a decision where the base rule fuses)
+the states it meets); at each of its planning points (a decision where the base rule fuses; with
+``--every K`` the first and every K-th after it, for CPU: the others are the fast planner's own)
 the fast planner (``lookahead``) and the full one (``lookahead-full``) plan from the same state,
 each on its own copies, and the script records both choices, both planners' CPU
 (``process_time``) and simulated decisions, and the full planner's rollouts decision by
@@ -83,9 +84,11 @@ def plan_both(env, base_action, fast, full) -> dict:
     return out
 
 
-def capture_world(task: str, seed: int, level: int, follow: str, states_path: Path) -> dict:
-    """Play world ``seed`` at ``level`` with ``follow``; plan both planners at its planning
-    points; append one line per point to ``states_path``; return the world's summary."""
+def capture_world(task: str, seed: int, level: int, follow: str, states_path: Path,
+                  every: int = 1) -> dict:
+    """Play world ``seed`` at ``level`` with ``follow``; plan both planners at every
+    ``every``-th of its planning points (the first, then every ``every``); append one line per
+    point to ``states_path``; return the world's summary."""
     import gymnasium as gym
 
     import policies
@@ -103,22 +106,26 @@ def capture_world(task: str, seed: int, level: int, follow: str, states_path: Pa
         follower.reset()
         if callable(getattr(follower, "bind_env", None)):
             follower.bind_env(env)
-    n_points, done = 0, False
+    n_points, n_captured, done = 0, 0, False
     with states_path.open("a") as f:
         while not done:
             rule_action = rule.act(obs, info)
             action = rule_action
-            if rule_action[0]:
+            if rule_action[0] and n_points % every == 0:
                 row = plan_both(env, rule_action, fast, full)
                 f.write(json.dumps({"seed": seed, "level": level, **row}) + "\n")
                 f.flush()
-                n_points += 1
+                n_captured += 1
                 action = make_action(int(row["fast"][0]), int(row["fast"][1]))
+            elif rule_action[0] and follower is None:
+                action = fast.act(obs, info)
+            n_points += int(bool(rule_action[0]))
             if follower is not None:
                 action = follower.act(obs, info)
             obs, _, terminated, truncated, info = env.step(action)
             done = terminated or truncated
     return {"seed": seed, "level": level, "follow": follow, "points": n_points,
+            "captured": n_captured,
             "success": not bool(info["failed"]), "return": float(env.episode_return)}
 
 
@@ -176,13 +183,20 @@ def report(states: list[dict]) -> dict:
                                   / sum(s["full_cpu_s"] for s in states)),
         "simulated_ratio_pooled": float(sum(s["fast_simulated"] for s in states)
                                         / sum(s["full_simulated"] for s in states)),
-        # the full planner against itself on other futures: how far its own choice is a draw
-        "full_futures_12_vs_34": agreement(
-            states, [choose({a: f[2:4] for a, f in s["rewards"].items()}, s["base"])
-                     for s in states])["pooled"]
-            if all(len(f) == 4 for s in states for f in s["rewards"].values()) else None,
         "emulated": {},
     }
+    if all(len(f) == 4 for s in states for f in s["rewards"].values()):
+        # how far a choice is a draw: a planner like the fast one (one future, 14 decisions) on
+        # each of the full planner's futures (the first is the fast planner's own: the same
+        # choices as it made), and the full planner's two halves of its futures against each
+        # other (two futures each, 20 decisions)
+        doc["one_future_on_future_k"] = [
+            agreement(states, [choose({a: [sum(f[k][:14])] for a, f in s["rewards"].items()},
+                                      s["base"]) for s in states])["pooled"]
+            for k in range(4)]
+        halves = [[choose({a: [sum(r) for r in f[h:h + 2]] for a, f in s["rewards"].items()},
+                          s["base"]) for s in states] for h in (0, 2)]
+        doc["halves_agree"] = float(np.mean([a == b for a, b in zip(*halves, strict=True)]))
     full_cost = sum(emulate(s, 4, 10**6)[1] for s in states)
     for m in (1, 2, 4):
         for h in (5, 10, 12, 14, 16, 20):
@@ -212,6 +226,8 @@ def main(argv=None) -> int:
     parser.add_argument("--worlds", default="", help="seed:level,... (comma-separated)")
     parser.add_argument("--follow", default=FAST, help="the policy whose episode is played")
     parser.add_argument("--out", required=True)
+    parser.add_argument("--every", type=int, default=1,
+                        help="capture every EVERY-th planning point of a world (CPU)")
     parser.add_argument("--report", action="store_true", help="only report the rows in --out")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
@@ -228,11 +244,12 @@ def main(argv=None) -> int:
             kept = [s for s in _read(states_path) if (s["seed"], s["level"]) != (seed, level)]
             states_path.write_text("".join(json.dumps(s) + "\n" for s in kept))
             start = time.monotonic()
-            summary = capture_world(args.task, seed, level, args.follow, states_path)
+            summary = capture_world(args.task, seed, level, args.follow, states_path,
+                                    args.every)
             with worlds_path.open("a") as f:
                 f.write(json.dumps({"task": args.task, **summary}) + "\n")
-            logger.info("world %d level %d: %d planning points, %.0f s", seed, level,
-                        summary["points"], time.monotonic() - start)
+            logger.info("world %d level %d: %d planning points, %d captured, %.0f s", seed,
+                        level, summary["points"], summary["captured"], time.monotonic() - start)
     finished = {(w["seed"], w["level"]) for w in _read(worlds_path)}
     states = [s for s in _read(states_path) if (s["seed"], s["level"]) in finished]
     if not states:
