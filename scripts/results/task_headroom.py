@@ -150,8 +150,8 @@ def summarise(rows: Sequence[Mapping], best: str, price: float) -> dict:
     out["normalised_headroom_by_arm"] = {}
     for arm in PLANNERS:
         look = out["policies"].get(arm)
-        if not (bound and look):
-            continue
+        if not (bound and look) or best in (arm, BOUND):
+            continue  # no headroom against itself (e.g. --best-rule lookahead-full)
         point, interval = {}, {}
         for metric in METRICS:
             b, lk = bound[f"{metric}_diff"], look[f"{metric}_diff"]
