@@ -154,3 +154,30 @@ def test_headroom_table_has_a_bound_and_a_lookahead_row_per_task(tmp_path, capsy
     assert capsys.readouterr().out == table
     with pytest.raises(SystemExit):
         headroom.main(["--report-only"])  # neither --table nor --task/--out
+
+
+def test_renamed_rows_are_reported_under_their_new_name_with_a_headroom_interval():
+    """Issue 48's rows of the full planner (``lookahead``) read as ``lookahead-full`` beside the
+    fast planner's own ``lookahead`` rows; each planner's normalised headroom has an interval
+    around its point estimate, and none is given against itself."""
+    rows, old = [], []
+    for s in range(40):
+        rows.append(_row("lookahead", s % 4, s, s % 10 != 0, ret=-60.0))
+        old.append(_row("fixed-10s-optimise", s % 4, s, s % 5 != 0, ret=-100.0))
+        old.append(_row("lookahead-privileged", s % 4, s, True, ret=-50.0 - (s % 7)))
+        old.append(_row("lookahead", s % 4, s, s % 10 != 0 and s % 3 != 0, ret=-80.0))
+    renamed = headroom.rename_policies(old, {"lookahead": "lookahead-full"})
+    assert {r["policy"] for r in renamed} == {"fixed-10s-optimise", "lookahead-privileged",
+                                              "lookahead-full"}
+    joined = headroom.join_rows(rows, renamed)
+    assert len(joined) == 160  # a renamed run never collides with the new name's own run
+    doc = headroom.summarise(joined, "fixed-10s-optimise", 10.0)
+    arms = doc["normalised_headroom_by_arm"]
+    assert set(arms) == {"lookahead", "lookahead-full"}
+    for arm in arms.values():
+        lo, hi = arm["interval"]["success"]
+        assert lo <= arm["point"]["success"] <= hi and lo < hi
+    assert arms["lookahead"]["point"]["success"] > arms["lookahead-full"]["point"]["success"]
+    assert doc["normalised_headroom"] == arms["lookahead"]["point"]
+    against_full = headroom.summarise(joined, "lookahead-full", 10.0)
+    assert set(against_full["normalised_headroom_by_arm"]) == {"lookahead"}

@@ -8,7 +8,9 @@ declared run::
         --out out/ceiling39
 
 Runs ``fixed-10s-optimise``, ``lookahead`` and ``lookahead-privileged`` (default options:
-:mod:`slam_gym.lookahead`) through :func:`slam_gym.evaluation.benchmark` at the price
+:mod:`slam_gym.lookahead`; issue 39's rows were made with the full planner, which is
+``lookahead-full`` since issue 57: pass ``--policies`` with it to repeat them) through
+:func:`slam_gym.evaluation.benchmark` at the price
 ``--price`` with ``--compute-clip-s`` (the reward the learned policies are trained for), on
 seeds ``--seed-start`` ... at clutter levels ``--clutter-levels``, 500 particles; resumable (a
 rerun with the same ``--out`` keeps the finished runs). Writes ``OUT/ceiling.json`` and

@@ -28,7 +28,11 @@ on the better side of the measure. Writes ``OUT/headroom.json`` and ``OUT/headro
 
 ``--report-only`` recomputes them from the rows without running anything. ``--rows DIR``
 (repeatable) adds the rows of other runs' folders, e.g. the halves of the declared worlds run
-in separate processes (a run whose key is already in is kept once). ``--common-worlds``
+in separate processes (a run whose key is already in is kept once); ``--rename-rows OLD=NEW``
+reports their policy ``OLD`` as ``NEW`` (issue 48's ``lookahead`` rows are the full planner's,
+``lookahead-full`` since issue 57, when the default ``lookahead`` became the fast planner).
+The normalised headroom is given for ``lookahead`` and ``lookahead-full`` when present, each
+with a 95 % interval (:func:`headroom_interval`). ``--common-worlds``
 restricts every policy to the worlds that all of them finished: a partial table, every mean
 and difference over the same worlds.
 """
@@ -51,6 +55,9 @@ logger = logging.getLogger("task_headroom")
 
 RULES = ("fixed-10s", "fixed-10s-optimise", "esdf-innovation")
 BOUND = "lookahead-privileged"
+PLANNERS = ("lookahead", "lookahead-full")
+"""The planners whose normalised headroom is reported: the default (fast, since issue 57) and
+the full planner of issue 39 (what issue 48's rows call ``lookahead``: ``--rename-rows``)."""
 METRICS = ("success", "nees_in_band_fraction", "anees", "map_error_m", "interface_cpu_s",
            "return")
 """The paired measures of the table (``return`` at ``--price``)."""
@@ -139,14 +146,51 @@ def summarise(rows: Sequence[Mapping], best: str, price: float) -> dict:
             vals = [float(r[extra]) for r in group if r.get(extra) is not None]
             entry[extra] = float(np.mean(vals)) if vals else None
         out["policies"][name] = entry
-    bound, look = out["policies"].get(BOUND), out["policies"].get("lookahead")
+    bound = out["policies"].get(BOUND)
     out["normalised_headroom"] = {}
-    if bound and look:
+    out["normalised_headroom_by_arm"] = {}
+    for arm in PLANNERS:
+        look = out["policies"].get(arm)
+        if not (bound and look) or best in (arm, BOUND):
+            continue  # no headroom against itself (e.g. --best-rule lookahead-full)
+        point, interval = {}, {}
         for metric in METRICS:
             b, lk = bound[f"{metric}_diff"], look[f"{metric}_diff"]
             room = b[1] > 0.0 if BETTER_IF_HIGHER[metric] else b[2] < 0.0
-            out["normalised_headroom"][metric] = (lk[0] / b[0]) if room and b[0] else None
+            point[metric] = (lk[0] / b[0]) if room and b[0] else None
+            interval[metric] = (headroom_interval(
+                by_policy[arm], by_policy[BOUND], reference, metric, price)
+                if point[metric] is not None else None)
+        out["normalised_headroom_by_arm"][arm] = {"point": point, "interval": interval}
+        if arm == "lookahead":
+            out["normalised_headroom"] = point
     return out
+
+
+def headroom_interval(arm: Sequence[Mapping], bound: Sequence[Mapping],
+                      reference: Sequence[Mapping], metric: str, price: float,
+                      n_resamples: int = 10_000) -> tuple[float, float] | None:
+    """95 % percentile interval of the normalised headroom ``mean(arm - best) / mean(bound -
+    best)``: the worlds both arms have are resampled together within their clutter level (the
+    stratified cluster bootstrap of the paired differences, for their ratio; seed 0)."""
+    a = per_world_differences(arm, reference, metric, price)
+    b = per_world_differences(bound, reference, metric, price)
+    worlds = sorted(set(a) & set(b))
+    if len(worlds) < 2:
+        return None
+    da, db = np.array([a[w] for w in worlds]), np.array([b[w] for w in worlds])
+    levels = np.array([w[0] for w in worlds])
+    rng = np.random.default_rng(0)
+    index = np.concatenate([
+        rng.choice(np.flatnonzero(levels == level), size=(n_resamples,
+                   int(np.count_nonzero(levels == level))))
+        for level in np.unique(levels)], axis=1)
+    num, den = da[index].mean(axis=1), db[index].mean(axis=1)
+    ratios = num[den != 0.0] / den[den != 0.0]
+    if not len(ratios):
+        return None
+    lo, hi = np.percentile(ratios, [2.5, 97.5])
+    return float(lo), float(hi)
 
 
 def diff_cell(entry: Mapping, metric: str, scale: float = 1.0, digits: int = 2) -> str:
@@ -181,13 +225,20 @@ def markdown(doc: Mapping) -> str:
             cell(e, "return", 1, 0), diff_cell(e, "return", 1, 0),
             "-" if e.get("planning_cpu_s") is None else f"{e['planning_cpu_s']:.0f}",
         ]) + " |")
-    if doc.get("normalised_headroom"):
+    by_arm = doc.get("normalised_headroom_by_arm") or (
+        {"lookahead": {"point": doc["normalised_headroom"], "interval": {}}}
+        if doc.get("normalised_headroom") else {})
+    for arm, h in by_arm.items():
         lines.append("")
-        lines.append("Normalised headroom (lookahead - best) / (bound - best), where the bound's "
-                     "interval excludes 0 on the better side: " + ", ".join(
-                         f"{m} {v:.2f}" for m, v in doc["normalised_headroom"].items()
-                         if v is not None) or "none")
+        lines.append(f"Normalised headroom ({arm} - best) / (bound - best), where the bound's "
+                     "interval excludes 0 on the better side: " + (", ".join(
+                         f"{m} {v:.2f}" + _interval_text((h.get("interval") or {}).get(m))
+                         for m, v in h["point"].items() if v is not None) or "none"))
     return "\n".join(lines) + "\n"
+
+
+def _interval_text(interval) -> str:
+    return "" if not interval else f" [{interval[0]:.2f}, {interval[1]:.2f}]"
 
 
 def common_worlds(rows: Sequence[Mapping]) -> list[Mapping]:
@@ -216,6 +267,19 @@ def join_rows(*groups: Sequence[Mapping]) -> list[dict]:
     return out
 
 
+def rename_policies(rows: Sequence[Mapping], renames: Mapping[str, str]) -> list[dict]:
+    """``rows`` with the policy names in ``renames`` replaced (their keys too, so that a row
+    renamed is never taken for a run of the new name's policy)."""
+    out = []
+    for r in rows:
+        r = dict(r)
+        if r.get("policy") in renames:
+            r["key"] = f"renamed:{r['policy']}:{row_key(r)}"
+            r["policy"] = renames[r["policy"]]
+        out.append(r)
+    return out
+
+
 def headroom_table(docs: Sequence[Mapping]) -> str:
     """The headroom table of README and RESULTS (issue 48 item 4): per task (one ``headroom.json``
     each) the best rule's success, then the bound's and the lookahead's paired differences with
@@ -227,18 +291,21 @@ def headroom_table(docs: Sequence[Mapping]) -> str:
              "|---|---|---:|---|---:|---:|---:|---:|---:|---:|---|---:|"]
     for doc in docs:
         best = doc["policies"][doc["best_rule"]]
-        for arm in (BOUND, "lookahead"):
+        arms = (BOUND, "lookahead", *(["lookahead-full"]
+                                      if "lookahead-full" in doc["policies"] else []))
+        for arm in arms:
             entry = doc["policies"].get(arm)
             first = arm == BOUND
             task = [f"`{doc['task']}`", f"`{doc.get('best_rule_label', doc['best_rule'])}`",
                     f"{best['success'] * 100:.0f} %"] if first else ["", "", ""]
-            label = "bound" if first else "lookahead"
+            label = "bound" if first else arm
             if entry is None:
                 lines.append("| " + " | ".join([*task, label, "not run", *["-"] * 6, "0"]) + " |")
                 continue
+            point = (doc.get("normalised_headroom_by_arm", {}).get(arm, {}).get("point")
+                     or (doc["normalised_headroom"] if arm == "lookahead" else {}))
             headroom = "-" if first else ", ".join(
-                f"{names.get(m, m)} {v:.2f}" for m, v in doc["normalised_headroom"].items()
-                if v is not None) or "-"
+                f"{names.get(m, m)} {v:.2f}" for m, v in point.items() if v is not None) or "-"
             lines.append("| " + " | ".join([
                 *task, label, diff_cell(entry, "success", 100, 0),
                 diff_cell(entry, "nees_in_band_fraction", 100, 0), diff_cell(entry, "anees", 1, 1),
@@ -264,6 +331,9 @@ def main(argv=None) -> int:
     parser.add_argument("--report-only", action="store_true")
     parser.add_argument("--rows", action="append", default=[], metavar="DIR",
                         help="also report the rows of DIR/results.jsonl (repeatable)")
+    parser.add_argument("--rename-rows", action="append", default=[], metavar="OLD=NEW",
+                        help="report the --rows folders' policy OLD as NEW (repeatable), e.g. "
+                             "lookahead=lookahead-full for issue 48's rows of the full planner")
     parser.add_argument("--common-worlds", action="store_true",
                         help="report every policy on the worlds all policies finished")
     parser.add_argument("--out")
@@ -315,7 +385,11 @@ def main(argv=None) -> int:
             specs, env=env, seeds=args.seeds, seed_start=args.seed_start, draws=args.draws,
             baselines=[], out=out, workers=1, executor="serial", figures=False, progress=True,
         ).rows
-    rows = join_rows(rows, *(read_results(folder) for folder in args.rows))
+    renames = dict(r.split("=", 1) for r in args.rename_rows if "=" in r)
+    if len(renames) != len(args.rename_rows):
+        parser.error("--rename-rows takes OLD=NEW")
+    rows = join_rows(rows, *(rename_policies(read_results(folder), renames)
+                             for folder in args.rows))
     if args.common_worlds:
         rows = common_worlds(rows)
     if not rows:

@@ -10,7 +10,7 @@ import pytest
 import policies
 from slam_gym.envs.hybrid_slam import HybridSLAMEnv
 from slam_gym.evaluation.core import run_policy_object
-from slam_gym.lookahead import LookaheadPolicy
+from slam_gym.lookahead import FullLookahead, LookaheadPolicy, PrivilegedLookahead
 from slam_gym.scenarios import get_scenario
 from slam_gym.stream import ArraySteps, Stream
 from slam_gym.world import RedrawnFuture, simulate
@@ -240,7 +240,89 @@ def test_lookahead_options_are_validated_and_the_env_is_required():
         policy.act(obs, info)
 
 
-def test_lookahead_is_a_registered_policy_name():
-    assert {"lookahead", "lookahead-privileged"} <= set(policies.available())
+def test_lookahead_names_round_trip_through_policies_make():
+    """Every lookahead name a table prints builds that planner again, with its documented
+    options: the fast default, the full planner of issue 39 and the bound over its horizon."""
+    assert {"lookahead", "lookahead-full", "lookahead-privileged"} <= set(policies.available())
+    expected = {
+        "lookahead": (LookaheadPolicy, dict(horizon_decisions=14, n_futures=1, prune=True,
+                                            privileged=False)),
+        "lookahead-full": (FullLookahead, dict(horizon_decisions=20, n_futures=4, prune=False,
+                                               privileged=False)),
+        "lookahead-privileged": (PrivilegedLookahead, dict(horizon_decisions=20, n_futures=1,
+                                                           prune=False, privileged=True)),
+    }
+    for name, (cls, options) in expected.items():
+        policy = policies.make(name)
+        assert type(policy) is cls and policy.name == name
+        assert {k: policy.options[k] for k in options} == options
+        assert policies.make(policy.name).options == policy.options
     policy = policies.make("lookahead-privileged", horizon_decisions=5)
     assert policy.privileged and policy.n_futures == 1 and policy.horizon_decisions == 5
+    assert policies.make("lookahead-full", n_futures=2).n_futures == 2
+    with pytest.raises(ValueError, match="prune"):
+        LookaheadPolicy(prune="yes")
+
+
+def _planning_state(n_particles: int = 40):
+    """An env at a decision where the rule fuses (a planning point), and the rule's action."""
+    env, obs, info = _env_after(9, n_particles=n_particles)
+    rule = policies.make(RULE)
+    while not rule.act(obs, info)[0]:
+        obs, _, _, _, info = env.step(np.array([0, 0]))
+    return env, rule.act(obs, info)
+
+
+class _Counting(LookaheadPolicy):
+    """Records the futures and the length of every rollout the planner plays."""
+
+    def _rollouts(self, env, first_action, seeds, base_returns):
+        before = self.simulated_decisions
+        out = super()._rollouts(env, first_action, seeds, base_returns)
+        self.played.append((first_action, tuple(seeds), self.simulated_decisions - before))
+        return out
+
+
+def test_the_planner_plays_the_futures_and_horizon_it_claims():
+    env, base_action = _planning_state()
+    for n_futures, horizon in ((1, 3), (3, 2)):
+        policy = _Counting(horizon_decisions=horizon, n_futures=n_futures, prune=False)
+        policy.played = []
+        policy.bind_env(env)
+        returns = policy.action_returns(base_action)
+        assert set(returns) == {(1, 1), (1, 0), (0, 0)}
+        assert all(len(r) == n_futures for r in returns.values())
+        # every alternative on the same futures (common random numbers), each to the horizon
+        assert [a for a, _, _ in policy.played] == [(1, 1), (1, 0), (0, 0)]
+        assert len({seeds for _, seeds, _ in policy.played}) == 1
+        assert all(len(seeds) == n_futures for _, seeds, _ in policy.played)
+        assert [n for _, _, n in policy.played] == [n_futures * horizon] * 3
+    # the fast planner's one future is the full planner's first (seeds do not depend on M)
+    one = LookaheadPolicy(n_futures=1)._future_seeds(env)
+    four = FullLookahead()._future_seeds(env)
+    assert len(one) == 1 and len(four) == 4 and one[0] == four[0]
+
+
+def test_pruning_stops_hopeless_rollouts_without_changing_the_choice():
+    """Stopped rollouts save decisions, and the choice is the unpruned planner's on the same
+    futures, whatever the gate; the base action's returns are the same exact returns."""
+    env, base_action = _planning_state()
+    base = tuple(int(v) for v in base_action)
+    saved = 0
+    for min_gain in (0.0, 10.0, 1e9):
+        plain = LookaheadPolicy(horizon_decisions=6, n_futures=2, min_gain=min_gain,
+                                z_gain=0.0, prune=False)
+        pruned = LookaheadPolicy(horizon_decisions=6, n_futures=2, min_gain=min_gain,
+                                 z_gain=0.0, prune=True)
+        plain.bind_env(env)
+        pruned.bind_env(env)
+        full, cut = plain.action_returns(base_action), pruned.action_returns(base_action)
+        np.testing.assert_array_equal(cut[base], full[base])
+        assert pruned.choose(cut, base) == plain.choose(full, base)
+        for alternative in full:  # a stopped alternative holds an upper bound of its return
+            assert np.all(cut[alternative] >= full[alternative])
+        assert pruned.simulated_decisions <= plain.simulated_decisions
+        saved += plain.simulated_decisions - pruned.simulated_decisions
+    # with a gate no gain passes, every alternative stops after its first decision
+    assert pruned.simulated_decisions == 2 * 6 + 2 * 2 * 1
+    assert saved > 0
