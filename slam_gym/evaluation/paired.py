@@ -180,13 +180,15 @@ DECISIONS = ("better", "not worse", "worse", "undecided")
 
 BOOTSTRAP_METHODS = ("percentile", "BCa", "basic")
 
-MIN_WORLDS = 16
-"""No sequential decision before this many worlds (:func:`sequential_decisions`)."""
+MIN_SEEDS = 16
+"""No sequential decision before this many independent units (seeds;
+:func:`sequential_decisions`)."""
 
 
 @dataclass(frozen=True, eq=False)
 class WorldDifferences:
-    """Per-world oriented differences of one metric (positive = B better) and their strata."""
+    """Per-world oriented differences of one metric (positive = B better), their strata and
+    their clusters (:mod:`slam_gym.evaluation.pairing`: the seed)."""
 
     differences: np.ndarray
     """``(n,)`` finite ``d_w``."""
@@ -194,9 +196,16 @@ class WorldDifferences:
     """``(n,)`` int stratum (clutter level) of each world."""
     n_left_out: int
     """Worlds dropped because either arm had no (finite) value."""
+    clusters: np.ndarray | None = None
+    """``(n,)`` int cluster (seed) of each world; None: every world its own cluster."""
 
     def __len__(self) -> int:
         return int(self.differences.shape[0])
+
+    @property
+    def cluster_ids(self) -> np.ndarray:
+        """The clusters, every world its own where none were given."""
+        return np.arange(len(self)) if self.clusters is None else self.clusters
 
 
 @dataclass(frozen=True)
@@ -212,6 +221,11 @@ class Interval:
     level: float
     """Two-sided confidence (``1 - alpha`` for a confidence sequence)."""
     method: str
+    n_clusters: int | None = None
+    """The independent units (seeds) behind it; None: every world its own."""
+    anytime_valid: bool = False
+    """True for an interval that holds at a data-dependent stopping time (a confidence
+    sequence, or a group-sequential design's repeated interval over its looks)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -226,7 +240,9 @@ class SequentialOutcome:
     lo: Any
     hi: Any
     looks: tuple[int, ...]
-    """The numbers of worlds at which the sequence was looked at."""
+    """The numbers of units (seeds) at which the sequence was looked at."""
+    method: str = "asymptotic-cs"
+    """The interval of the looks (:data:`SEQUENTIAL_DESIGNS`' ``method`` names)."""
 
 
 @dataclass(frozen=True)
@@ -253,42 +269,93 @@ def metric_direction(metric: str) -> int:
     return -1 if metric in LOWER_IS_BETTER else 0
 
 
-def world_means(values: Any) -> np.ndarray:
-    """Per-world mean over draws of an ``(n_worlds, K)`` array; NaN draws are left out, a world
-    with no finite draw is NaN (left out later by :func:`world_differences`)."""
-    v = np.asarray(values, dtype=float)
-    require(v.ndim == 2 and v.shape[0] >= 1 and v.shape[1] >= 1, "values", f"shape {v.shape}",
-            "a 2-D array (n_worlds >= 1, draws >= 1)")
-    ok = np.isfinite(v)
-    count = ok.sum(axis=1)
-    total = np.where(ok, v, 0.0).sum(axis=1)
-    return np.divide(total, count, out=np.full(v.shape[0], np.nan), where=count > 0)
-
-
-def world_differences(a: Any, b: Any, strata: Any = None, *,
-                      lower_is_better: bool = False) -> WorldDifferences:
+def world_differences(a: Any, b: Any, strata: Any = None, *, clusters: Any = None,
+                      lower_is_better: bool = False, n_left_out: int = 0) -> WorldDifferences:
     """Oriented per-world differences from per-world aggregates ``a`` and ``b`` (``(n,)`` each).
 
     ``d_w = b_w - a_w`` (``a_w - b_w`` if ``lower_is_better``); a world where either value is not
-    finite is left out and counted in ``n_left_out``. ``strata`` (``(n,)`` ints, default all 0)
-    follow their worlds."""
+    finite is left out and counted in ``n_left_out`` (added to the given ``n_left_out``: worlds
+    dropped before). ``strata`` and ``clusters`` (``(n,)`` ints; default all 0, and every world
+    its own cluster) follow their worlds."""
     a_ = np.asarray(a, dtype=float)
     b_ = np.asarray(b, dtype=float)
-    require(a_.ndim == 1 and a_.size >= 1, "a", f"shape {a_.shape}", "a non-empty 1-D array")
+    require(a_.ndim == 1, "a", f"shape {a_.shape}", "a 1-D array")
+    require(a_.size >= 1 or n_left_out > 0, "a", f"shape {a_.shape}", "a non-empty 1-D array")
     require(b_.shape == a_.shape, "b", f"shape {b_.shape}", f"the shape of a, {a_.shape}")
-    if strata is None:
-        s = np.zeros(a_.shape, dtype=int)
-    else:
-        s = np.asarray(strata)
-        require(s.shape == a_.shape, "strata", f"shape {s.shape}", f"the shape of a, {a_.shape}")
-        require(s.size == 0 or np.issubdtype(s.dtype, np.integer), "strata", f"dtype {s.dtype}",
-                "integers (clutter levels)")
+    labels = []
+    for name, given in (("strata", strata), ("clusters", clusters)):
+        if given is None:
+            labels.append(None)
+            continue
+        v = np.asarray(given)
+        require(v.shape == a_.shape, name, f"shape {v.shape}", f"the shape of a, {a_.shape}")
+        require(v.size == 0 or np.issubdtype(v.dtype, np.integer), name, f"dtype {v.dtype}",
+                "integers")
+        labels.append(v.astype(int))
+    s = np.zeros(a_.shape, dtype=int) if labels[0] is None else labels[0]
     keep = np.isfinite(a_) & np.isfinite(b_)
     d = (a_ - b_) if lower_is_better else (b_ - a_)
-    d, s = d[keep], s[keep].astype(int)
-    d.flags.writeable = False
-    s.flags.writeable = False
-    return WorldDifferences(differences=d, strata=s, n_left_out=int((~keep).sum()))
+    d, s = d[keep], s[keep]
+    c = None if labels[1] is None else labels[1][keep]
+    for array in (d, s, c):
+        if array is not None:
+            array.flags.writeable = False
+    return WorldDifferences(differences=d, strata=s, clusters=c,
+                            n_left_out=int(n_left_out) + int((~keep).sum()))
+
+
+def cluster_index(clusters: Any, n: int) -> tuple[np.ndarray, int]:
+    """``(n,)`` cluster labels (None: every world its own) as indices 0..G-1, and G."""
+    if clusters is None:
+        return np.arange(n), n
+    c = np.asarray(clusters)
+    require(c.shape == (n,), "clusters", f"shape {c.shape}", f"one label per world, ({n},)")
+    require(np.issubdtype(c.dtype, np.integer), "clusters", f"dtype {c.dtype}", "integers")
+    labels, index = np.unique(c, return_inverse=True)
+    return index.reshape(-1), int(labels.size)
+
+
+def cluster_means(differences: Any, clusters: Any = None) -> np.ndarray:
+    """Per-cluster means ``(..., G)`` of per-world differences ``(..., n)`` (clusters in sorted
+    label order): the independent units a sequential look or a plan counts."""
+    d = np.asarray(differences, dtype=float)
+    index, g = cluster_index(clusters, d.shape[-1])
+    onehot = np.zeros((d.shape[-1], g))
+    onehot[np.arange(d.shape[-1]), index] = 1.0
+    return (d @ onehot) / onehot.sum(axis=0)
+
+
+def intraclass_correlation(differences: Any, clusters: Any = None) -> float | None:
+    """The one-way ANOVA estimate of the intraclass correlation of the per-world differences
+    within clusters (seeds), for unequal cluster sizes (Donner 1986): ``(MSB - MSW) / (MSB +
+    (m0 - 1) MSW)``, ``m0 = (N - sum m_g^2 / N) / (G - 1)``. None where undefined (fewer than 2
+    clusters, no cluster with 2 worlds, or no variance); negative values are returned as they
+    are (the clusters vary less than chance), :func:`effective_worlds` reads them as 0."""
+    d = np.asarray(differences, dtype=float).ravel()
+    index, g = cluster_index(clusters, d.size)
+    n = d.size
+    if g < 2 or g >= n:
+        return None
+    m = np.bincount(index, minlength=g).astype(float)
+    means = np.bincount(index, weights=d, minlength=g) / m
+    msb = float(np.sum(m * (means - d.mean()) ** 2) / (g - 1))
+    msw = float(np.sum((d - means[index]) ** 2) / (n - g))
+    m0 = (n - float(np.sum(m * m)) / n) / (g - 1)
+    denom = msb + (m0 - 1.0) * msw
+    if not denom > 0.0:
+        return None
+    return (msb - msw) / denom
+
+
+def effective_worlds(n_worlds: int, clusters: Any = None, icc: float | None = None) -> float:
+    """Kish's effective number of independent worlds, ``N / (1 + (m0 - 1) max(icc, 0))``, ``m0``
+    the ANOVA's average cluster size (:func:`intraclass_correlation`); ``N`` with no ICC."""
+    if icc is None or n_worlds < 2:
+        return float(n_worlds)
+    index, g = cluster_index(clusters, n_worlds)
+    m = np.bincount(index, minlength=g).astype(float)
+    m0 = (n_worlds - float(np.sum(m * m)) / n_worlds) / max(g - 1, 1)
+    return float(n_worlds / (1.0 + (m0 - 1.0) * max(icc, 0.0)))
 
 
 def _differences(differences: Any, *, min_worlds: int = 2, rate: bool = False,
@@ -315,7 +382,7 @@ def _alpha(alpha: float) -> float:
 
 
 def _merge_small_strata(strata: np.ndarray) -> np.ndarray:
-    """Relabel so that every stratum has >= 2 worlds: a stratum with one world joins the next
+    """Relabel so that every stratum has >= 2 clusters: a stratum with one joins the next
     clutter level present (the previous one for the highest)."""
     s = strata.copy()
     while True:
@@ -328,33 +395,41 @@ def _merge_small_strata(strata: np.ndarray) -> np.ndarray:
         s[s == levels[i]] = levels[j]
 
 
-def _adjusted_values(d: np.ndarray, strata: np.ndarray) -> np.ndarray:
-    """Davison & Hinkley's adjusted values: within each stratum ``mean_s + sqrt(n_s/(n_s - 1)) *
-    (d - mean_s)``, whose resampled stratum mean has the unbiased variance ``s_s^2 / n_s``."""
-    out = d.copy()
-    for level in np.unique(strata):
-        k = strata == level
-        n_s = int(k.sum())
-        mean = d[k].mean()
-        out[k] = mean + math.sqrt(n_s / (n_s - 1.0)) * (d[k] - mean)
-    return out
+MIXED_STRATUM = -(2**31)
+"""The stratum of a cluster whose worlds span several clutter levels (a seed run at every
+level): such clusters are resampled together, the levels nested in them."""
 
 
-def stratified_bootstrap_interval(differences: Any, strata: Any = None, *,
-                                  rng: np.random.Generator | int, confidence: float = 0.95,
-                                  n_resamples: int = 9999, method: str = "percentile",
-                                  small_sample_correction: bool = True) -> Interval:
+def cluster_strata(strata: np.ndarray, index: np.ndarray, g: int) -> np.ndarray:
+    """``(G,)`` the stratum of each cluster: its worlds' clutter level where they share one,
+    else :data:`MIXED_STRATUM`."""
+    lo = np.full(g, np.iinfo(np.int64).max)
+    hi = np.full(g, np.iinfo(np.int64).min)
+    np.minimum.at(lo, index, strata)
+    np.maximum.at(hi, index, strata)
+    return np.where(lo == hi, lo, MIXED_STRATUM)
+
+
+def cluster_bootstrap_interval(differences: Any, strata: Any = None, clusters: Any = None, *,
+                               rng: np.random.Generator | int, confidence: float = 0.95,
+                               n_resamples: int = 9999, method: str = "percentile",
+                               small_sample_correction: bool = True) -> Interval:
     """Stratified cluster bootstrap interval of the mean per-world difference (fixed sample).
 
-    ``differences`` ``(n,)`` finite per-world differences (draws already averaged: worlds are
-    the resampled clusters), ``strata`` ``(n,)`` their clutter levels (default one stratum; a
-    stratum with one world joins the next level). Estimate ``sum_s (n_s/n) mean_s``, each stratum
-    resampled on its own by ``scipy.stats.bootstrap`` (``method`` ``"percentile"``, ``"BCa"`` or
-    ``"basic"``). ``small_sample_correction``: resample the adjusted values of
-    :func:`_adjusted_values` and ask for the expanded level ``2 Phi(t_{(1+c)/2, n-S}) - 1`` (S
-    strata), so the interval has the width of a Student-t interval on normal data. Differences
-    constant within every stratum give the estimate as the interval (no resampling variance; use
-    :func:`matched_rate_interval` for 0/1 metrics)."""
+    ``differences`` ``(n,)`` finite per-world differences (draws already averaged), ``strata``
+    their clutter levels (default one), ``clusters`` their seeds (default every world its own).
+    Estimate: the mean of all ``d_w`` (``sum_g T_g / sum_g m_g``, ``T_g`` a cluster's total over
+    its ``m_g`` worlds). Resampled: whole clusters, by ``scipy.stats.bootstrap`` (the clusters'
+    indices as its samples), within each cluster stratum (a cluster's clutter level, or one
+    stratum for clusters that span levels; a stratum of one cluster joins the next level), the
+    estimate over a stratum the ratio of its resampled totals and sizes, weighted by the
+    stratum's share of worlds. ``small_sample_correction``: the clusters' totals are first
+    moved to ``r_s m_g + sqrt(G_s / (G_s - 1)) (T_g - r_s m_g)`` (Davison & Hinkley's adjusted
+    values for a ratio, ``r_s`` the stratum's ratio: the resampled variance is then the
+    cluster-robust CR1 one) and the level asked is ``2 Phi(t_{(1+c)/2, G - S}) - 1`` (Hesterberg
+    2015; G clusters, S strata: the width of a t-interval with the cluster count's degrees of
+    freedom, Cameron & Miller 2015). Differences constant within every stratum give the
+    estimate as the interval."""
     d = _differences(differences, one_d=True)
     conf = _confidence(confidence)
     check_int_range("n_resamples", n_resamples, 99)
@@ -365,29 +440,43 @@ def stratified_bootstrap_interval(differences: Any, strata: Any = None, *,
     require(s.shape == d.shape, "strata", f"shape {s.shape}",
             f"the shape of differences, {d.shape}")
     require(np.issubdtype(s.dtype, np.integer), "strata", f"dtype {s.dtype}", "integers")
-    s = _merge_small_strata(s.astype(int))
-    levels = np.unique(s)
-    weights = np.array([np.count_nonzero(s == level) for level in levels], dtype=float) / d.size
-
-    def statistic(*groups: np.ndarray, axis: int = -1) -> np.ndarray:
-        return sum(w * np.mean(g, axis=axis) for w, g in zip(weights, groups, strict=True))
-
-    estimate = float(statistic(*(d[s == level] for level in levels)))
-    name = f"stratified-bootstrap-{method}"
-    if all(np.ptp(d[s == level]) == 0 for level in levels):
-        return Interval(estimate, estimate, estimate, int(d.size), conf, name)
+    index, g = cluster_index(clusters, d.size)
+    require(g >= 2, "clusters", f"{g} cluster", "at least 2 clusters (seeds)")
+    totals = np.bincount(index, weights=d, minlength=g)
+    sizes = np.bincount(index, minlength=g).astype(float)
+    cs = _merge_small_strata(cluster_strata(s.astype(np.int64), index, g))
+    levels = np.unique(cs)
+    members = [np.flatnonzero(cs == level) for level in levels]
+    weights = np.array([sizes[k].sum() for k in members]) / d.size
+    estimate = float(totals.sum() / sizes.sum())
+    name = f"cluster-bootstrap-{method}"
+    ratios = [totals[k].sum() / sizes[k].sum() for k in members]
+    scale_ = max(1.0, float(np.abs(d).max()))
+    if all(np.abs(totals[k] - r * sizes[k]).max() <= 1e-12 * scale_ * sizes[k].max()
+           for k, r in zip(members, ratios, strict=True)):  # no cluster varies: nothing to resample
+        return Interval(estimate, estimate, estimate, int(d.size), conf, name, g)
     level_asked = conf
     if small_sample_correction:
-        d = _adjusted_values(d, s)
-        q = stats.t.ppf(0.5 + conf / 2.0, d.size - levels.size)
+        for k, r in zip(members, ratios, strict=True):
+            totals[k] = r * sizes[k] + math.sqrt(k.size / (k.size - 1.0)) * (totals[k]
+                                                                            - r * sizes[k])
+        q = stats.t.ppf(0.5 + conf / 2.0, g - levels.size)
         level_asked = float(2.0 * stats.norm.cdf(q) - 1.0)
         name += "-corrected"
-    samples = tuple(d[s == level] for level in levels)
+
+    def statistic(*groups: np.ndarray, axis: int = -1) -> np.ndarray:
+        out = 0.0
+        for w, group in zip(weights, groups, strict=True):
+            k = group.astype(np.int64)
+            out = out + w * totals[k].sum(axis=axis) / sizes[k].sum(axis=axis)
+        return out
+
+    samples = tuple(k.astype(float) for k in members)
     res = stats.bootstrap(samples, statistic, n_resamples=n_resamples, vectorized=True,
                           paired=False, confidence_level=level_asked, method=method,
                           rng=np.random.default_rng(rng))
     lo, hi = float(res.confidence_interval.low), float(res.confidence_interval.high)
-    return Interval(estimate, lo, hi, int(d.size), conf, name)
+    return Interval(estimate, lo, hi, int(d.size), conf, name, g)
 
 
 def _augmented_moments(d: np.ndarray, pseudo_weight: float
@@ -409,22 +498,45 @@ def _out(x: np.ndarray) -> Any:
     return float(x) if np.ndim(x) == 0 else x
 
 
-def matched_rate_interval(differences: Any, *, confidence: float = 0.95,
-                          pseudo_weight: float = 1.0) -> Interval:
+def matched_rate_interval(differences: Any, *, clusters: Any = None, confidence: float = 0.95,
+                          pseudo_weight: float = 1.0,
+                          small_sample_correction: bool = True) -> Interval:
     """Adjusted Wald interval for the difference of matched success rates, cluster version.
 
     ``differences`` ``(..., n)``: per-world differences of success rates over K draws
-    (``b_rate - a_rate``, in [-1, 1]); leading axes are independent comparisons. Two pseudo-worlds
-    of weight ``pseudo_weight`` (1: Bonett & Price 2012; 1/2: Agresti & Min 2005) at +1 and -1,
-    total weight ``n + 2``; ``mean' +- z sqrt(var'/(n+2))`` clipped to [-1, 1]. Valid with few or
-    no discordant worlds."""
+    (``b_rate - a_rate``, in [-1, 1]); leading axes are independent comparisons. ``clusters``
+    ``(n,)`` the worlds' seeds (default every world its own). Two pseudo-worlds of weight
+    ``pseudo_weight`` (1: Bonett & Price 2012; 1/2: Agresti & Min 2005) at +1 and -1, each its
+    own cluster, total weight ``W = n + 2``; ``mean' = sum d / W``; the cluster-robust (Liang &
+    Zeger 1986) variance ``(sum_g (T_g - mean' m_g)^2 + 2 w + 2 mean'^2) / W^2`` (``T_g`` a
+    cluster's total over its ``m_g`` worlds, the last two terms the pseudo-worlds'); ``mean' +-
+    q sqrt(var')`` clipped to [-1, 1]. ``small_sample_correction`` (default): the CR1 factor
+    ``G / (G - 1)`` on the variance and ``q = t_{(1+c)/2, G-1}`` (Cameron & Miller 2015), G the
+    clusters; without it ``q = z`` and, every world its own cluster, this is the published
+    interval exactly. Valid with few or no discordant worlds."""
     d = _differences(differences, min_worlds=1, rate=True)
     conf = _confidence(confidence)
-    mean, var, weight = _augmented_moments(d, _pseudo_weight(pseudo_weight))
-    half = stats.norm.ppf(0.5 + conf / 2.0) * np.sqrt(var / weight)
+    w = _pseudo_weight(pseudo_weight)
+    index, g = cluster_index(clusters, d.shape[-1])
+    weight = d.shape[-1] + 2.0
+    mean = d.sum(axis=-1) / weight
+    onehot = np.zeros((d.shape[-1], g))
+    onehot[np.arange(d.shape[-1]), index] = 1.0
+    totals, sizes = d @ onehot, onehot.sum(axis=0)
+    ss = ((totals - mean[..., None] * sizes) ** 2).sum(axis=-1) + 2.0 * w + 2.0 * mean * mean
+    var = ss / (weight * weight)
+    if small_sample_correction and g >= 2:
+        var = var * g / (g - 1.0)
+        q = stats.t.ppf(0.5 + conf / 2.0, g - 1)
+    else:
+        q = stats.norm.ppf(0.5 + conf / 2.0)
+    half = q * np.sqrt(var)
     lo, hi = np.maximum(mean - half, -1.0), np.minimum(mean + half, 1.0)
-    method = "bonett-price-cluster" if pseudo_weight == 1.0 else "adjusted-wald-cluster"
-    return Interval(_out(mean), _out(lo), _out(hi), int(d.shape[-1]), conf, method)
+    method = "bonett-price-cluster" if w == 1.0 else "adjusted-wald-cluster"
+    if small_sample_correction:
+        method += "-cr1-t"
+    return Interval(_out(mean), _out(lo), _out(hi), int(d.shape[-1]), conf, method,
+                    None if clusters is None else g)
 
 
 def _lambert_x(alpha: float) -> float:
@@ -475,7 +587,8 @@ def confidence_sequence(differences: Any, *, planned_worlds: int, alpha: float =
     lo, hi = mean - half, mean + half
     if rate:
         lo, hi = np.maximum(lo, -1.0), np.minimum(hi, 1.0)
-    return Interval(_out(mean), _out(lo), _out(hi), int(d.shape[-1]), 1.0 - a, "asymptotic-cs")
+    return Interval(_out(mean), _out(lo), _out(hi), int(d.shape[-1]), 1.0 - a, "asymptotic-cs",
+                    anytime_valid=True)
 
 
 SEQUENTIAL_DESIGNS = ("confidence-sequence", "group-sequential")
@@ -571,7 +684,7 @@ def repeated_confidence_interval(differences: Any, *, bound: float, rate: bool =
         lo, hi = np.maximum(lo, -1.0), np.minimum(hi, 1.0)
     level = float("nan")  # simultaneous over the design's looks, not at one look
     return Interval(_out(mean), _out(lo), _out(hi), int(d.shape[-1]), level,
-                    "group-sequential-rci")
+                    "group-sequential-rci", anytime_valid=True)
 
 
 def check_design(design: str, rate: bool) -> None:
@@ -625,36 +738,46 @@ def decide(lo: Any, hi: Any, margin: float) -> Any:
 
 def sequential_decisions(differences: Any, *, margin: float, alpha: float = 0.05,
                          planned_worlds: int | None = None, batch_size: int = 8,
-                         rate: bool = False, min_worlds: int = MIN_WORLDS,
-                         pseudo_weight: float = 1.0,
-                         design: str = "confidence-sequence") -> SequentialOutcome:
-    """Run the sequential non-inferiority decision over worlds in the given order.
+                         rate: bool = False, min_worlds: int = MIN_SEEDS,
+                         pseudo_weight: float = 1.0, design: str = "confidence-sequence",
+                         looks: Any = None) -> SequentialOutcome:
+    """Run the sequential non-inferiority decision over independent units in the given order:
+    the one sequential loop (``slam-gym compare`` runs it after every batch on the seeds so
+    far, the calibration tests on simulated ones).
 
-    ``differences`` ``(..., n)``: per-world oriented differences in run order (leading axes:
-    independent comparisons). Looks after every ``batch_size`` worlds from ``min_worlds`` on (and
-    at ``n``); at each look the interval of ``design`` (:func:`sequential_interval`: the
-    :func:`confidence_sequence`, or the group-sequential design's repeated interval; planned for
-    ``planned_worlds``, default ``n``) and :func:`decide`; the first look that is not
+    ``differences`` ``(..., n)``: per-unit oriented differences in run order (the per-seed means
+    of :func:`cluster_means`; leading axes: independent comparisons). Looks after every
+    ``batch_size`` units from ``min_worlds`` on (and at ``n``), or at the given ``looks`` (the
+    units seen at each look so far, increasing, the last ``n``: ``compare``'s looks, where a
+    batch whose runs all failed adds fewer). At each look the interval of ``design``
+    (:func:`confidence_sequence`, or the group-sequential design's repeated interval; planned
+    for ``planned_worlds`` units, default ``n``) and :func:`decide`; the first look that is not
     ``undecided`` stops. Returns that look's decision and interval, or the last look's
-    (``undecided``). ``min_worlds`` (default :data:`MIN_WORLDS`): no
-    decision before, because the sequence rests on a central limit theorem and its variance
-    estimate from a few skewed worlds is too small too often."""
+    (``undecided``). ``min_worlds`` (default :data:`MIN_SEEDS`): no decision before, because the
+    sequence rests on a central limit theorem and its variance estimate from a few skewed units
+    is too small too often."""
     d = _differences(differences, rate=rate)
     check_design(design, rate)
     n = d.shape[-1]
     batch = check_int_range("batch_size", batch_size, 1)
     first = check_int_range("min_worlds", min_worlds, 2)
     planned = n if planned_worlds is None else planned_worlds
-    looks = [t for t in range(batch, n + 1, batch) if t >= first]
-    if not looks or looks[-1] != n:
-        looks.append(n)
+    if looks is None:
+        looks = [t for t in range(batch, n + 1, batch) if t >= first]
+        if not looks or looks[-1] != n:
+            looks.append(n)
+    else:
+        looks = [int(t) for t in looks]
+        require(bool(looks) and looks[-1] == n and all(np.diff(looks) > 0) and looks[0] >= 2,
+                "looks", looks, f"increasing unit counts >= 2 ending at n = {n}")
+        looks = [t for t in looks if t >= first] or [n]
     shape = d.shape[:-1]
     decision = np.full(shape, DECISIONS[3], dtype=object)
     at = np.full(shape, n)
     est, lo, hi = (np.full(shape, np.nan) for _ in range(3))
     open_ = np.ones(shape, dtype=bool)
     if design == "group-sequential":  # a look's bound depends only on the looks before it
-        require(n <= planned, "planned_worlds", planned_worlds, f">= the worlds ({n})")
+        require(n <= planned, "planned_worlds", planned_worlds, f">= the units ({n})")
         bounds = group_sequential_bounds(np.asarray(looks, dtype=float) / planned, alpha)
     for i, t in enumerate(looks):
         if design == "group-sequential":
@@ -671,10 +794,11 @@ def sequential_decisions(differences: Any, *, margin: float, alpha: float = 0.05
         lo[take] = np.asarray(cs.lo)[take]
         hi[take] = np.asarray(cs.hi)[take]
         open_ &= ~take
+    method = "group-sequential-rci" if design == "group-sequential" else "asymptotic-cs"
     if decision.ndim == 0:
         return SequentialOutcome(str(decision), int(at), float(est), float(lo), float(hi),
-                                 tuple(looks))
-    return SequentialOutcome(decision.astype(str), at, est, lo, hi, tuple(looks))
+                                 tuple(looks), method)
+    return SequentialOutcome(decision.astype(str), at, est, lo, hi, tuple(looks), method)
 
 
 def plan_worlds(pilot_differences: Any, margin: float, *, alpha: float = 0.05,
@@ -724,6 +848,6 @@ def plan_worlds(pilot_differences: Any, margin: float, *, alpha: float = 0.05,
     while hi - lo > 1:  # smallest n with slack >= 0 (slack grows with n beyond the pilot's scale)
         mid = (lo + hi) // 2
         lo, hi = (lo, mid) if slack(mid) >= 0.0 else (mid, hi)
-    n = max(MIN_WORLDS if sequential else 2, hi)
+    n = max(MIN_SEEDS if sequential else 2, hi)
     n = batch * math.ceil(n / batch)
     return WorldPlan(n, sd, delta + m, multiplier, int(d.size), bool(sequential))
