@@ -227,11 +227,27 @@ def headroom_table(docs: Sequence[Mapping]) -> str:
             headroom = "-" if first else ", ".join(
                 f"{names.get(m, m)} {v:.2f}" for m, v in doc["normalised_headroom"].items()
                 if v is not None) or "-"
+            map_worlds = (entry.get("map_error_m_paired") or {}).get("worlds")
             lines.append("| " + " | ".join([
                 *task, label, diff_cell(entry, "success", 100, 0),
                 diff_cell(entry, "nees_in_band_fraction", 100, 0), diff_cell(entry, "anees", 1, 1),
-                diff_cell(entry, "map_error_m"), diff_cell(entry, "interface_cpu_s", 1, 3),
+                diff_cell(entry, "map_error_m") + ("" if map_worlds is None
+                                                   else f" ({map_worlds} worlds)"),
+                diff_cell(entry, "interface_cpu_s", 1, 3),
                 diff_cell(entry, "return", 1, 0), headroom, str(entry["n_worlds"])]) + " |")
+    clustering = []
+    for doc in docs:
+        for arm in (BOUND, "lookahead"):
+            paired = (doc["policies"].get(arm) or {}).get("success_paired")
+            if paired and paired.get("icc") is not None:
+                clustering.append(f"`{doc['task']}` {'bound' if arm == BOUND else arm} "
+                                  f"{paired['icc']:.2f} ({paired['effective_worlds']:.0f} of "
+                                  f"{paired['worlds']} worlds, {paired['seeds']} seeds)")
+    if clustering:
+        lines.append("")
+        lines.append("Success: the intraclass correlation of the paired differences within seeds "
+                     "and the effective number of independent worlds: " + "; ".join(clustering)
+                     + ".")
     return "\n".join(lines) + "\n"
 
 

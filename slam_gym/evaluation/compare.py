@@ -164,9 +164,10 @@ def interval_labels(interval, differences) -> dict:
 
 
 def fixed_interval(differences, metric: str, confidence: float):
-    """The fixed-sample interval of one metric's per-world differences (any orientation): the
-    cluster Bonett-Price interval for success, the cluster bootstrap otherwise; the seeds are
-    the clusters (:mod:`slam_gym.evaluation.pairing`)."""
+    """The fixed-sample interval of one metric's per-world differences (any orientation), the
+    seeds the clusters (:mod:`slam_gym.evaluation.pairing`): the cluster Bonett-Price interval
+    for success (:func:`~slam_gym.evaluation.paired.matched_rate_interval` with the seeds'
+    cluster-robust variance), the cluster bootstrap over seeds otherwise."""
     from slam_gym.evaluation import paired
 
     if metric in paired.RATE_METRICS:
@@ -490,7 +491,7 @@ def plan(rows_a: list[dict], rows_b: list[dict], metric: str, margin: float, *,
     units = paired.cluster_means(d.differences, d.cluster_ids) if len(d) else np.zeros(0)
     require(units.size >= 2, "pilot", f"{units.size} seeds",
             "at least 2 seeds with values of both policies")
-    per_seed = max(1, round(len({w[0] for w in worlds})))
+    per_seed = max(1, len({w[0] for w in worlds}))  # the clutter levels: worlds a seed brings
     batch_seeds = max(1, math.ceil(batch_worlds / per_seed))
     rate = metric in paired.RATE_METRICS
     icc = paired.intraclass_correlation(d.differences, d.cluster_ids)
@@ -503,7 +504,8 @@ def plan(rows_a: list[dict], rows_b: list[dict], metric: str, margin: float, *,
         out["pilot_discordant_worlds"] = int(np.sum(d.differences != 0))
     for sequential in (True, False):
         p = paired.plan_worlds(units, margin / scale, alpha=alpha, power=power,
-                               sequential=sequential, rate=rate, batch_size=batch_seeds)
+                               sequential=sequential, rate=rate, batch_size=batch_seeds,
+                               worlds_per_unit=1 if sequential else per_seed)
         out["sequential" if sequential else "fixed"] = {
             "worlds": p.worlds * per_seed, "seeds": p.worlds, "sd": float(scale * p.sd)}
     return out

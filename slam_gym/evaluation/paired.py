@@ -315,14 +315,22 @@ def cluster_index(clusters: Any, n: int) -> tuple[np.ndarray, int]:
     return index.reshape(-1), int(labels.size)
 
 
+def cluster_sums(values: np.ndarray, index: np.ndarray, g: int) -> np.ndarray:
+    """``(..., G)`` sums over the last axis of ``values`` ``(..., n)`` by cluster ``index``."""
+    order = np.argsort(index, kind="stable")
+    sorted_index = index[order]
+    starts = np.flatnonzero(np.r_[True, sorted_index[1:] != sorted_index[:-1]])
+    out = np.zeros(values.shape[:-1] + (g,))
+    out[..., sorted_index[starts]] = np.add.reduceat(values[..., order], starts, axis=-1)
+    return out
+
+
 def cluster_means(differences: Any, clusters: Any = None) -> np.ndarray:
     """Per-cluster means ``(..., G)`` of per-world differences ``(..., n)`` (clusters in sorted
     label order): the independent units a sequential look or a plan counts."""
     d = np.asarray(differences, dtype=float)
     index, g = cluster_index(clusters, d.shape[-1])
-    onehot = np.zeros((d.shape[-1], g))
-    onehot[np.arange(d.shape[-1]), index] = 1.0
-    return (d @ onehot) / onehot.sum(axis=0)
+    return cluster_sums(d, index, g) / np.bincount(index, minlength=g)
 
 
 def intraclass_correlation(differences: Any, clusters: Any = None) -> float | None:
@@ -520,9 +528,7 @@ def matched_rate_interval(differences: Any, *, clusters: Any = None, confidence:
     index, g = cluster_index(clusters, d.shape[-1])
     weight = d.shape[-1] + 2.0
     mean = d.sum(axis=-1) / weight
-    onehot = np.zeros((d.shape[-1], g))
-    onehot[np.arange(d.shape[-1]), index] = 1.0
-    totals, sizes = d @ onehot, onehot.sum(axis=0)
+    totals, sizes = cluster_sums(d, index, g), np.bincount(index, minlength=g)
     ss = ((totals - mean[..., None] * sizes) ** 2).sum(axis=-1) + 2.0 * w + 2.0 * mean * mean
     var = ss / (weight * weight)
     if small_sample_correction and g >= 2:
@@ -803,7 +809,8 @@ def sequential_decisions(differences: Any, *, margin: float, alpha: float = 0.05
 
 def plan_worlds(pilot_differences: Any, margin: float, *, alpha: float = 0.05,
                 power: float = 0.8, expected_difference: float = 0.0, sequential: bool = True,
-                rate: bool = False, batch_size: int = 1, pseudo_weight: float = 1.0) -> WorldPlan:
+                rate: bool = False, batch_size: int = 1, pseudo_weight: float = 1.0,
+                worlds_per_unit: int = 1) -> WorldPlan:
     """Worlds needed to decide ``not worse`` (``lo > -margin``) with probability ``power`` when the
     true oriented difference is ``expected_difference``.
 
@@ -824,6 +831,7 @@ def plan_worlds(pilot_differences: Any, margin: float, *, alpha: float = 0.05,
     delta = check_range("expected_difference", expected_difference, -math.inf, math.inf)
     batch = check_int_range("batch_size", batch_size, 1)
     w = _pseudo_weight(pseudo_weight)
+    per_unit = check_int_range("worlds_per_unit", worlds_per_unit, 1)
     require(delta + m > 0.0, "expected_difference", expected_difference,
             f"> -margin (= {-m}): at or below -margin, not worse cannot be shown")
     sd = float(d.std(ddof=1))
@@ -834,10 +842,11 @@ def plan_worlds(pilot_differences: Any, margin: float, *, alpha: float = 0.05,
         """E[est] + margin - k half_n - z_power sd(est) at n worlds (>= 0: enough)."""
         if not rate:
             return delta + m - (multiplier + z_power) * sd / math.sqrt(n)
-        total = n + 2.0
-        est = n * delta / total
-        var = max((n * (sd * sd + delta * delta) + 2.0 * w) / total - est * est, 0.0)
-        return est + m - multiplier * math.sqrt(var / total) - z_power * sd * math.sqrt(n) / total
+        total = n * per_unit + 2.0
+        est = n * per_unit * delta / total
+        ss = per_unit**2 * n * (sd * sd + (delta - est) ** 2) + 2.0 * w + 2.0 * est * est
+        return (est + m - multiplier * math.sqrt(ss) / total
+                - z_power * per_unit * sd * math.sqrt(n) / total)
 
     hi = 2
     while slack(hi) < 0.0:

@@ -164,23 +164,26 @@ class PairedWorlds:
                                  lower_is_better=lower_is_better, n_left_out=self.n_left_out)
 
 
-def world_means(levels: Any, seeds: Any, a: Any, b: Any, *, scenarios: Any = None,
-                n_worlds: int | None = None) -> PairedWorlds:
+def world_means(levels: Any, seeds: Any, a: Any, b: Any, *, draws: Any = None,
+                scenarios: Any = None, n_worlds: int | None = None) -> PairedWorlds:
     """Pairs (one per run) to worlds: per (scenario, level, seed) the mean of A and of B over its
-    pairs; the cluster is (scenario, seed). ``n_worlds`` (default the worlds found) counts the
-    worlds that had to be there, for ``n_left_out``."""
+    pairs (its ``draws``: nested in the world, never worlds of their own); the cluster is
+    (scenario, seed), the levels nested in it. ``n_worlds`` (default the worlds found) counts
+    the worlds that had to be there, for ``n_left_out``."""
     lv = np.asarray(levels, dtype=int)
     sd = np.asarray(seeds, dtype=np.int64)
     av, bv = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
     require(lv.shape == sd.shape == av.shape == bv.shape and lv.ndim == 1, "a",
             f"shape {av.shape}", "one value per pair, like levels and seeds")
+    dr = np.zeros(lv.shape, dtype=np.int64) if draws is None else np.asarray(draws, np.int64)
+    require(dr.shape == lv.shape, "draws", f"shape {dr.shape}", "one draw per pair")
     sc = np.zeros(lv.shape, dtype=np.int64) if scenarios is None else np.unique(
         np.asarray(scenarios, dtype=str), return_inverse=True)[1].reshape(lv.shape)
     if lv.size == 0:
         empty = np.zeros(0)
         return PairedWorlds(empty, empty, empty.astype(int), empty.astype(int), empty.astype(int),
                             int(n_worlds or 0))
-    world_keys = np.stack([sc, lv.astype(np.int64), sd], axis=1)
+    world_keys = np.stack([sc, lv.astype(np.int64), sd], axis=1)  # the draw is not in the key
     worlds, world_of, counts = np.unique(world_keys, axis=0, return_inverse=True,
                                          return_counts=True)
     world_of = world_of.reshape(-1)
@@ -199,5 +202,5 @@ def paired_worlds(rows_a: Sequence[Mapping[str, Any]], rows_b: Sequence[Mapping[
                   worlds: Sequence[tuple] | None = None) -> PairedWorlds:
     """:func:`pair_rows` then :func:`world_means`: the one pairing of two policies' rows."""
     runs = pair_rows(rows_a, rows_b, metric, value=value, worlds=worlds)
-    return world_means(runs.levels, runs.seeds, runs.a, runs.b, scenarios=runs.scenarios,
-                       n_worlds=len(runs.worlds))
+    return world_means(runs.levels, runs.seeds, runs.a, runs.b, draws=runs.draws,
+                       scenarios=runs.scenarios, n_worlds=len(runs.worlds))

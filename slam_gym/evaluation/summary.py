@@ -116,10 +116,11 @@ def clustered_wilson_interval(worlds: Sequence[Sequence[bool]], z: float = Z95
     0/1 outcomes within worlds and ``m0`` its average cluster size
     (:func:`slam_gym.evaluation.paired.intraclass_correlation`); with one run a world this is
     :func:`wilson_interval`; with no variation (every run a success, or none) it is Wilson's
-    interval over the worlds (the clustering cannot be measured, so the most it can be). Written here: scipy has
-    Wilson's interval for independent trials only (``binomtest().proportion_ci``), statsmodels
-    (not a dependency) none for clusters. Checked by simulation in
-    tests/slam_gym/test_paired.py (3-10 worlds, 2-5 draws)."""
+    interval over the worlds (the clustering cannot be measured, so the most it can be).
+    Written here: scipy has Wilson's interval for independent trials only
+    (``binomtest().proportion_ci``), statsmodels (not a dependency) none for clusters. Checked
+    by simulation in tests/slam_gym/test_paired.py (5-10 worlds, 2-5 draws: coverage
+    0.95-0.97; 0.92 at 3 worlds of 5 draws)."""
     import numpy as np
 
     from slam_gym.evaluation.paired import effective_worlds, intraclass_correlation
