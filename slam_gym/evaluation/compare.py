@@ -180,10 +180,12 @@ def fixed_interval(differences, metric: str, confidence: float):
 
 
 def sequential_interval(differences, metric: str, *, alpha: float, planned_seeds: int,
-                        design: str = "confidence-sequence", look_seeds: list | None = None):
+                        design: str = "confidence-sequence", look_seeds: list | None = None,
+                        worlds_per_seed: int = 1):
     """The interval of one metric at a sequential look, on the per-seed means (the independent
     units): ``design``'s for the declared success metric, else the confidence sequence (valid
-    at any stop, whatever metric decided it)."""
+    at any stop, whatever metric decided it). Success's pseudo-worlds weigh as one of the
+    ``worlds_per_seed`` worlds of a seed."""
     from slam_gym.evaluation import paired
 
     rate = metric in paired.RATE_METRICS
@@ -193,7 +195,8 @@ def sequential_interval(differences, metric: str, *, alpha: float, planned_seeds
     n = units.shape[-1]
     interval = paired.sequential_interval(
         units, design=design, planned_worlds=max(planned_seeds, n), alpha=alpha, rate=rate,
-        look_worlds=[t for t in (look_seeds or [n]) if t <= n] or [n])
+        look_worlds=[t for t in (look_seeds or [n]) if t <= n] or [n],
+        pseudo_units=1.0 / max(1, worlds_per_seed))
     return interval
 
 
@@ -225,7 +228,8 @@ def metric_report(rows_a, rows_b, metric: str, worlds: list[tuple] | None = None
                                            planned_seeds=sequential["planned_seeds"],
                                            design=sequential.get("design",
                                                                  "confidence-sequence"),
-                                           look_seeds=sequential.get("look_seeds"))
+                                           look_seeds=sequential.get("look_seeds"),
+                                           worlds_per_seed=sequential.get("worlds_per_seed", 1))
         report["ci"] = [float(scale * interval.lo), float(scale * interval.hi)]
         report |= interval_labels(interval, diffs)
         report["level"] = confidence  # a repeated interval's level is over the design's looks
@@ -436,7 +440,8 @@ def look(rows_a: list[dict], rows_b: list[dict], worlds: list[tuple], metric: st
         units = paired.cluster_means(d.differences, d.cluster_ids)
         out = paired.sequential_decisions(
             units, margin=margin / scale, alpha=alpha, planned_worlds=max(planned_seeds, n_seeds),
-            rate=rate, design=design, looks=seen)
+            rate=rate, design=design, looks=seen,
+            pseudo_units=1.0 / max(1, len({w[0] for w in worlds})))
         decision, lo, hi, method = out.decision, out.lo, out.hi, out.method
     entry |= {"decision": decision, "oriented_ci": [scale * lo, scale * hi], "method": method,
               "anytime_valid": planned_seeds is not None}
@@ -454,6 +459,7 @@ def report(rows_a: list[dict], rows_b: list[dict], worlds: list[tuple], metric: 
 
     sequential = None if planned_seeds is None else {
         "planned_seeds": planned_seeds, "look_seeds": look_seeds,
+        "worlds_per_seed": len({w[0] for w in worlds}),
         "design": design if metric in paired.RATE_METRICS else "confidence-sequence"}
     metrics = {}
     for m in METRICS:

@@ -487,15 +487,21 @@ def cluster_bootstrap_interval(differences: Any, strata: Any = None, clusters: A
     return Interval(estimate, lo, hi, int(d.size), conf, name, g)
 
 
-def _augmented_moments(d: np.ndarray, pseudo_weight: float
+def _augmented_moments(d: np.ndarray, pseudo_weight: float, pseudo_units: float = 1.0
                        ) -> tuple[np.ndarray, np.ndarray, float]:
     """Pseudo-worlds of weight ``pseudo_weight`` at +1 and at -1 added (and Agresti-Min's weight 1
-    at 0 when ``pseudo_weight`` is 1/2, so the total is ``n + 2``): mean, plug-in variance and
-    total weight over the last axis."""
-    weight = d.shape[-1] + 2.0
+    at 0 when ``pseudo_weight`` is 1/2, so the total is 2), each of the size ``pseudo_units`` of
+    one unit of ``d`` (1 / its worlds when the units are seeds of several worlds, so that a
+    pseudo-world weighs as a world): mean, plug-in variance and total weight over the last
+    axis."""
+    weight = d.shape[-1] + 2.0 * pseudo_units
     mean = d.sum(axis=-1) / weight
-    var = ((d * d).sum(axis=-1) + 2.0 * pseudo_weight) / weight - mean * mean
+    var = ((d * d).sum(axis=-1) + 2.0 * pseudo_weight * pseudo_units) / weight - mean * mean
     return mean, np.maximum(var, 0.0), weight
+
+
+def _pseudo_units(pseudo_units: float) -> float:
+    return check_range("pseudo_units", pseudo_units, 0.0, 1.0, low_open=True)
 
 
 def _pseudo_weight(pseudo_weight: float) -> float:
@@ -550,12 +556,14 @@ def _lambert_x(alpha: float) -> float:
     return -float(np.real(special.lambertw(-alpha * alpha / math.e, k=-1))) - 1.0
 
 
-def _sequential_moments(d: np.ndarray, rate: bool, pseudo_weight: float):
+def _sequential_moments(d: np.ndarray, rate: bool, pseudo_weight: float,
+                        pseudo_units: float = 1.0):
     """Mean, standard deviation and weight ``t`` of the differences for a sequential interval:
     for success (``rate``) those of the sample with the pseudo-worlds of
     :func:`matched_rate_interval` (``t = n + 2``), else the sample's (``ddof=1``, ``t = n``)."""
     if rate:
-        mean, var, t = _augmented_moments(d, _pseudo_weight(pseudo_weight))
+        mean, var, t = _augmented_moments(d, _pseudo_weight(pseudo_weight),
+                                          _pseudo_units(pseudo_units))
         return mean, np.sqrt(var), t
     return d.mean(axis=-1), d.std(axis=-1, ddof=1), float(d.shape[-1])
 
@@ -576,7 +584,8 @@ def cs_multiplier(alpha: float = 0.05) -> float:
 
 
 def confidence_sequence(differences: Any, *, planned_worlds: int, alpha: float = 0.05,
-                        rate: bool = False, pseudo_weight: float = 1.0) -> Interval:
+                        rate: bool = False, pseudo_weight: float = 1.0,
+                        pseudo_units: float = 1.0) -> Interval:
     """Asymptotic confidence sequence (Waudby-Smith et al. 2021) of the mean difference, at the
     current number of worlds ``n`` (the last axis of ``differences``, ``(..., n)``, n >= 2).
 
@@ -587,7 +596,7 @@ def confidence_sequence(differences: Any, *, planned_worlds: int, alpha: float =
     d = _differences(differences, rate=rate)
     a = _alpha(alpha)
     rho = cs_rho(planned_worlds, a)
-    mean, sd, t = _sequential_moments(d, rate, pseudo_weight)
+    mean, sd, t = _sequential_moments(d, rate, pseudo_weight, pseudo_units)
     x = t * rho * rho
     half = sd * math.sqrt(2.0 * (x + 1.0) / (t * x) * math.log(math.sqrt(x + 1.0) / a))
     lo, hi = mean - half, mean + half
@@ -675,7 +684,8 @@ def group_sequential_bounds(fractions: Any, alpha: float = 0.05,
 
 
 def repeated_confidence_interval(differences: Any, *, bound: float, rate: bool = False,
-                                 pseudo_weight: float = 1.0) -> Interval:
+                                 pseudo_weight: float = 1.0,
+                                 pseudo_units: float = 1.0) -> Interval:
     """Repeated confidence interval (Jennison & Turnbull 1989) of the mean difference at one
     look of a group-sequential design: ``mean +- bound sd / sqrt(t)``, ``bound`` that look's
     :func:`group_sequential_bounds` value; together over the design's looks they cover the
@@ -683,7 +693,7 @@ def repeated_confidence_interval(differences: Any, *, bound: float, rate: bool =
     :func:`matched_rate_interval`, clipped to [-1, 1], as in :func:`confidence_sequence`."""
     d = _differences(differences, rate=rate)
     c = check_range("bound", bound, 0.0, math.inf, low_open=True)
-    mean, sd, t = _sequential_moments(d, rate, pseudo_weight)
+    mean, sd, t = _sequential_moments(d, rate, pseudo_weight, pseudo_units)
     half = c * sd / math.sqrt(t)
     lo, hi = mean - half, mean + half
     if rate:
@@ -704,7 +714,7 @@ def check_design(design: str, rate: bool) -> None:
 
 def sequential_interval(differences: Any, *, design: str, planned_worlds: int,
                         look_worlds: Any = None, alpha: float = 0.05, rate: bool = False,
-                        pseudo_weight: float = 1.0) -> Interval:
+                        pseudo_weight: float = 1.0, pseudo_units: float = 1.0) -> Interval:
     """The interval of the current look (the last axis of ``differences``: the worlds so far)
     under ``design`` (:data:`SEQUENTIAL_DESIGNS`): the :func:`confidence_sequence` tuned to
     ``planned_worlds``, or the :func:`repeated_confidence_interval` with the bound of the
@@ -713,7 +723,8 @@ def sequential_interval(differences: Any, *, design: str, planned_worlds: int,
     check_design(design, rate)
     if design == "confidence-sequence":
         return confidence_sequence(differences, planned_worlds=planned_worlds, alpha=alpha,
-                                   rate=rate, pseudo_weight=pseudo_weight)
+                                   rate=rate, pseudo_weight=pseudo_weight,
+                                   pseudo_units=pseudo_units)
     n = np.shape(differences)[-1]
     looks = [int(v) for v in (look_worlds if look_worlds is not None else [n])]
     require(bool(looks) and looks[-1] == n, "look_worlds", look_worlds,
@@ -723,7 +734,7 @@ def sequential_interval(differences: Any, *, design: str, planned_worlds: int,
             f">= the worlds seen ({looks[-1]})")
     bound = group_sequential_bounds(np.asarray(looks, dtype=float) / planned, alpha)[-1]
     return repeated_confidence_interval(differences, bound=bound, rate=rate,
-                                        pseudo_weight=pseudo_weight)
+                                        pseudo_weight=pseudo_weight, pseudo_units=pseudo_units)
 
 
 def decide(lo: Any, hi: Any, margin: float) -> Any:
@@ -746,7 +757,7 @@ def sequential_decisions(differences: Any, *, margin: float, alpha: float = 0.05
                          planned_worlds: int | None = None, batch_size: int = 8,
                          rate: bool = False, min_worlds: int = MIN_SEEDS,
                          pseudo_weight: float = 1.0, design: str = "confidence-sequence",
-                         looks: Any = None) -> SequentialOutcome:
+                         looks: Any = None, pseudo_units: float = 1.0) -> SequentialOutcome:
     """Run the sequential non-inferiority decision over independent units in the given order:
     the one sequential loop (``slam-gym compare`` runs it after every batch on the seeds so
     far, the calibration tests on simulated ones).
@@ -788,10 +799,12 @@ def sequential_decisions(differences: Any, *, margin: float, alpha: float = 0.05
     for i, t in enumerate(looks):
         if design == "group-sequential":
             cs = repeated_confidence_interval(d[..., :t], bound=bounds[i], rate=rate,
-                                              pseudo_weight=pseudo_weight)
+                                              pseudo_weight=pseudo_weight,
+                                              pseudo_units=pseudo_units)
         else:
             cs = confidence_sequence(d[..., :t], planned_worlds=planned, alpha=alpha,
-                                     rate=rate, pseudo_weight=pseudo_weight)
+                                     rate=rate, pseudo_weight=pseudo_weight,
+                                     pseudo_units=pseudo_units)
         now = np.asarray(decide(cs.lo, cs.hi, margin), dtype=object)
         take = open_ & ((now != DECISIONS[3]) | (t == n))
         decision[take] = now[take]
@@ -842,7 +855,14 @@ def plan_worlds(pilot_differences: Any, margin: float, *, alpha: float = 0.05,
         """E[est] + margin - k half_n - z_power sd(est) at n worlds (>= 0: enough)."""
         if not rate:
             return delta + m - (multiplier + z_power) * sd / math.sqrt(n)
-        total = n * per_unit + 2.0
+        if sequential:  # the moments of sequential_decisions on per-seed means
+            units = 1.0 / per_unit
+            total = n + 2.0 * units
+            est = n * delta / total
+            var = max((n * (sd * sd + delta * delta) + 2.0 * w * units) / total - est * est, 0.0)
+            return (est + m - multiplier * math.sqrt(var / total)
+                    - z_power * sd * math.sqrt(n) / total)
+        total = n * per_unit + 2.0  # the cluster interval on the worlds (matched_rate_interval)
         est = n * per_unit * delta / total
         ss = per_unit**2 * n * (sd * sd + (delta - est) ** 2) + 2.0 * w + 2.0 * est * est
         return (est + m - multiplier * math.sqrt(ss) / total

@@ -493,6 +493,27 @@ def test_sequential_false_positive_rate_success(name, max_worlds, design):
     assert fp <= ALPHA + 2 * mc_se(ALPHA, SEQ_TRIALS)
 
 
+@pytest.mark.parametrize("design", DESIGNS)
+def test_sequential_false_positive_rate_on_seeds(design):
+    """compare's units: per-seed means of success over four levels x 2 draws, a strong seed
+    effect (B loses whole seeds 20 % of the time, wins a quarter of them back on 20 %), true
+    difference exactly -margin, looks every 2 seeds from 16 to 100 (400 worlds), pseudo-worlds
+    the size of a world (``pseudo_units`` 1/4): ``not worse`` at most alpha + 2 MC SE of 4 000
+    comparisons."""
+    rng = np.random.default_rng(77)
+    cat = np.array([(0.9, 0.9), (0.8, 0.3), (0.3, 0.55)])
+    probs = [0.6, 0.2, 0.2]
+    kind = rng.choice(3, p=probs, size=(SEQ_TRIALS, 100))
+    u = rng.random((SEQ_TRIALS, 100, 8))
+    d = ((u < cat[kind, 1][..., None]).astype(float)
+         - (u < cat[kind, 0][..., None]).astype(float)).mean(axis=-1)
+    assert float(np.dot(probs, cat[:, 1] - cat[:, 0])) == pytest.approx(-MARGIN)
+    out = sequential_decisions(d, margin=MARGIN, batch_size=2, rate=True, design=design,
+                               pseudo_units=0.25)
+    fp = float(np.isin(out.decision, ["better", "not worse"]).mean())
+    assert fp <= ALPHA + 2 * mc_se(ALPHA, SEQ_TRIALS)
+
+
 @pytest.mark.parametrize("max_worlds", [96, 200])
 def test_sequential_false_positive_rate_skewed_continuous(max_worlds):
     """Left-skewed differences (skewness 1.75), mean exactly -margin, sd 4 margins: the same

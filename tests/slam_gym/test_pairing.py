@@ -90,7 +90,7 @@ def test_compare_looks_are_sequential_decisions_on_the_seeds():
     d = pairing.paired_worlds(a, b, "success").differences()
     units = paired.cluster_means(d.differences, d.clusters)
     out = paired.sequential_decisions(units, margin=0.05, planned_worlds=40, rate=True,
-                                      looks=seen)
+                                      looks=seen, pseudo_units=0.5)  # two worlds a seed
     stop = next(i for i, e in enumerate(entries) if e["decision"] != "undecided"
                 or i == len(entries) - 1)
     assert entries[stop]["decision"] == out.decision
