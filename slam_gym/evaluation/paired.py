@@ -1,154 +1,145 @@
-"""Paired statistics of ``slam-gym compare A B`` (issue 46, items 3-5): fixed-sample intervals, an
-anytime-valid sequential decision and the number of worlds to plan.
+"""Paired statistics of ``slam-gym compare A B`` (issues 46 and 56): fixed-sample intervals, an
+anytime-valid sequential decision and the number of worlds to plan, the seed the independent unit.
 
 The data (docs/ARCHITECTURE.md, "Paired comparison statistics"): policies A and B run on the same
-worlds, each world in a stratum (its clutter level) and run with K filter draws per policy under
-common random numbers. The unit of pairing is the world: per world the mean over its draws of each
-arm's values (:func:`world_means`: the success rate over draws, the mean map error over the draws
-that have one) and the per-world difference ``d_w`` oriented so that positive = B better
-(:func:`world_differences`: ``b - a`` where higher is better, ``a - b`` where lower is better). A
-world where either arm has no value is left out of that metric and counted (``n_left_out``).
-Draws stay nested in their world (averaged before any resampling or variance), so every interval
-here is a cluster interval with the worlds as clusters: the variance of the per-world means is the
-cluster-robust variance of the mean over all runs (Liang & Zeger 1986, one cluster per world).
+worlds, a world being (clutter level, seed), with K filter draws per world and policy under common
+random numbers. Rows are paired once, by :mod:`slam_gym.evaluation.pairing` (per (level, seed,
+draw); the map error over the draws both policies survived), and averaged per world: ``d_w``
+oriented so that positive = B better (:func:`world_differences`: ``b - a`` where higher is better,
+``a - b`` where lower is better). **The seed is the cluster**, its clutter levels and draws nested
+in it (issue 56): a seed's worlds at the four levels share its waypoints, true path, landmarks and
+zones, so they are not independent, and treating them as such understated the variance where the
+seed decides the outcome (the best rule on ZonesStarved-v1 succeeds at all four levels or none on
+6 of 10 seeds). Chosen over "every level its own seeds" because the committed rows run every seed
+at every level and the seed's shared world then cancels in the pairing. Every interval here is a
+cluster interval over seeds (Liang & Zeger 1986); beside each, ``compare`` reports the one-way
+ANOVA intraclass correlation of ``d_w`` within seeds (:func:`intraclass_correlation`, Donner
+1986) and Kish's effective number of independent worlds ``N / (1 + (m0 - 1) ICC)``
+(:func:`effective_worlds`).
 
 What each function computes
 ---------------------------
-- :func:`stratified_bootstrap_interval` (continuous metrics, fixed sample). Estimate
-  ``sum_s (n_s / n) mean_s(d_w)`` (stratum-size weights: the mean of all ``d_w``). Interval:
-  ``scipy.stats.bootstrap`` with each stratum's differences as its own sample and
-  ``paired=False``, which resamples every stratum on its own (a stratified bootstrap, Davison &
-  Hinkley 1997, ch. 3), percentile method. A stratum with one world joins the next clutter level.
-  With the default ``small_sample_correction`` two published corrections for small samples are
-  applied: each stratum resamples the adjusted values ``mean_s + sqrt(n_s / (n_s - 1)) (d_w -
-  mean_s)`` (Davison & Hinkley 1997, ch. 3, so the resampled variance is the unbiased one; with
-  four clutter levels a stratum of 12 worlds otherwise loses 1/12 of the variance), and the
-  quantiles are taken at Hesterberg's (2015) expanded level ``2 Phi(t_{(1+c)/2, n-S}) - 1`` (the
-  t-interval's width on normal data). Percentile rather than BCa because the tests measured it
-  closer to nominal on clustered, heavy-tailed differences (below).
-- :func:`matched_rate_interval` (0/1 metrics, fixed sample). Adjusted Wald interval of Bonett &
-  Price (2012) for matched proportions: add 1 to each discordant cell of the paired 2x2 table,
-  ``n' = n + 2`` (Agresti & Min 2005 add 1/2 to all four cells: ``pseudo_weight=0.5``). Adding
-  the cells is adding pseudo-worlds to the n per-world differences: weight ``w`` at ``d = +1``,
-  ``w`` at ``d = -1`` (and ``2 - 2w`` at 0), so::
+- :func:`cluster_bootstrap_interval` (continuous metrics, fixed sample). Estimate: the mean of
+  all ``d_w`` (``sum_g T_g / sum_g m_g``, ``T_g`` a seed's total over its ``m_g`` worlds).
+  Interval: ``scipy.stats.bootstrap`` resampling whole seeds (the seeds' indices are its samples,
+  the statistic the ratio of the resampled totals and sizes), stratified when clusters sit in
+  one clutter level each (the design where every level has its own seeds; a seed spanning levels
+  is resampled with them), percentile method. Two published small-sample corrections: the seeds'
+  totals are first moved to ``r m_g + sqrt(G/(G-1)) (T_g - r m_g)`` (Davison & Hinkley 1997,
+  ch. 3, adjusted values, here for a ratio: the resampled variance is the cluster-robust CR1
+  one), and the quantiles are taken at Hesterberg's (2015) expanded level ``2 Phi(t_{(1+c)/2,
+  G-S}) - 1`` (G seeds, S strata; Cameron & Miller 2015 on t with G - 1 degrees of freedom).
+  Percentile rather than BCa because the tests measured it closer to nominal (below).
+- :func:`matched_rate_interval` (success, fixed sample). The adjusted Wald interval of Bonett &
+  Price (2012) for matched proportions (add 1 to each discordant cell, ``n' = n + 2``; Agresti &
+  Min 2005 add 1/2 to all four cells: ``pseudo_weight=0.5``), written as pseudo-worlds at +1 and
+  -1 among the per-world differences, with the cluster-robust variance over seeds::
 
-      mean' = sum(d_w) / n'
-      var'  = (sum(d_w^2) + 2 w) / n' - mean'^2
-      mean' +- z_{(1+c)/2} sqrt(var' / n')          (clipped to [-1, 1])
+      mean' = sum(d_w) / (n + 2)
+      var'  = G / (G - 1) (sum_g (T_g - mean' m_g)^2 + 2 w + 2 mean'^2) / (n + 2)^2
+      mean' +- t_{(1+c)/2, G-1} sqrt(var')          (clipped to [-1, 1])
 
-  For K = 1 (``d_w`` in {-1, 0, 1}) this is the published interval exactly (a test checks both
-  weights against the 2x2 formulas). For K > 1 the same pseudo-worlds join the per-world rate
-  differences (``d_w`` in [-1, 1] in steps of 1/K) and ``var'`` is the variance of the world
-  means, i.e. cluster-robust: this generalisation is ours. No discordant world (identical arms)
-  gives ``0 +- z sqrt(2) / n'``, where the bootstrap gives [0, 0]. Bonett-Price rather than
-  Agresti-Min because, when B only ever loses (one-directional discordance) at a few per cent,
-  Agresti-Min's interval missed the truth too often (measured below).
-- :func:`confidence_sequence` (sequential, any metric). The asymptotic confidence sequence of
-  Waudby-Smith, Arbour, Sinha, Kennedy & Ramdas (2021), "Time-uniform central limit theory and
-  asymptotic confidence sequences" (arXiv:2103.06476), with its two-sided normal-mixture boundary
-  (Robbins 1970)::
+  Every world its own cluster and without the small-sample correction (CR1 factor, t) it is the
+  published interval exactly (a test checks both weights against the 2x2 formulas); the cluster
+  version is ours. Bonett-Price rather than Agresti-Min because, when B only ever loses at a few
+  per cent, Agresti-Min's interval missed the truth too often (measured below).
+- :func:`confidence_sequence` (sequential, any metric, on per-seed means). The asymptotic
+  confidence sequence of Waudby-Smith, Arbour, Sinha, Kennedy & Ramdas (2021), arXiv:2103.06476,
+  with its two-sided normal-mixture boundary (Robbins 1970)::
 
       mean_t +- sd_t sqrt(2 (t rho^2 + 1) / (t^2 rho^2) log(sqrt(t rho^2 + 1) / alpha))
 
-  ``P(exists t: true mean outside) <= alpha`` asymptotically: it may be looked at after every
-  batch and the comparison stopped at any data-dependent time. ``rho`` makes it narrowest at the
-  planned number of worlds ``t*`` (:func:`cs_rho`, exactly: ``t* rho^2 = -W_{-1}(-alpha^2 / e) -
-  1``, W the lower branch of Lambert's function, ``scipy.special.lambertw``); there the
-  half-width is ``c(alpha) sd / sqrt(t*)``, ``c(0.05) = 3.04`` (:func:`cs_multiplier`; a fixed
-  interval has 1.96). ``sd_t`` is the sample standard deviation (``ddof=1``); for success
-  (``rate=True``) mean, variance and ``t = n + 2`` are those of the sample with the pseudo-worlds
-  above, so zero discordance still gives a finite, shrinking width. ``planned_worlds`` must be
-  fixed before the first look; strata are pooled (batches balanced over clutter levels keep the
-  pooled mean on the balanced mix; pooling only adds the between-level variance).
-- :func:`group_sequential_bounds` and :func:`repeated_confidence_interval` (sequential,
-  success only: ``design="group-sequential"``). A group-sequential design planned for
-  ``planned_worlds`` worlds, its looks at information fractions ``n_k / planned_worlds``: each
-  side spends Lan & DeMets' (1983) O'Brien-Fleming-type function at ``alpha / 2``
-  (:func:`obrien_fleming_spending`, gsDesign's symmetric ``sfLDOF``), the bounds ``c_k`` come
-  from Armitage, McPherson & Rowe's (1969) recursion, and a look's interval is the repeated
-  confidence interval ``mean +- c_k sd / sqrt(t)`` (Jennison & Turnbull 1989; the moments with
-  the pseudo-worlds as above). Its last bound is ~2.1-2.2 for looks every 8 worlds up to 200-400
-  (the sequence's 3.04): about half the worlds for a decision that comes late. The price: the
-  plan is a commitment (raising ``planned_worlds`` after seeing rows voids it), and its Wald
-  intervals are tight enough for skew to show, so it is offered for success only
-  (:func:`check_design`).
+  ``P(exists t: true mean outside) <= alpha`` asymptotically, so it may be looked at after every
+  batch and stopped at any data-dependent time. Its units are the seeds (:func:`cluster_means`:
+  the per-seed mean differences, i.i.d. across seeds). ``rho`` makes it narrowest at the planned
+  number of seeds ``t*`` (:func:`cs_rho`: ``t* rho^2 = -W_{-1}(-alpha^2 / e) - 1``, Lambert's W
+  from ``scipy.special``), where its half-width is ``c(alpha) sd / sqrt(t*)``, ``c(0.05) =
+  3.04`` (:func:`cs_multiplier`). For success the moments are those of the units with the
+  pseudo-worlds above, each the size of one world (``pseudo_units = 1 / worlds per seed``), so
+  zero discordance still gives a finite, shrinking width. It pools the clutter levels: each unit
+  already averages its seed's levels, so the levels' differences do not enter its variance.
+- :func:`group_sequential_bounds` and :func:`repeated_confidence_interval` (sequential, success
+  only: ``design="group-sequential"``). A design planned for ``planned_worlds`` units (seeds), its
+  looks at information fractions ``n_k / planned``: each side spends Lan & DeMets' (1983)
+  O'Brien-Fleming-type function at ``alpha / 2`` (:func:`obrien_fleming_spending`, gsDesign's
+  ``sfLDOF``), bounds ``c_k`` by Armitage, McPherson & Rowe's (1969) recursion, and a look's
+  interval the repeated confidence interval ``mean +- c_k sd / sqrt(t)`` (Jennison & Turnbull
+  1989) on the units' moments as above. The plan is a commitment (raising ``planned`` after
+  seeing rows voids it), and its Wald intervals are tight enough for skew to show, so it is
+  offered for success only (:func:`check_design`).
 - :func:`decide`: the decision rule below on any ``[lo, hi]``.
-- :func:`sequential_decisions`: the looks after every batch of worlds (run order), from
-  :data:`MIN_WORLDS` = 16 on, stopping at the first decided look; vectorised over leading axes
-  (the tests run thousands of comparisons at once).
-- :func:`plan_worlds`: worlds needed to decide ``not worse`` with probability ``power`` when the
-  true difference is ``expected_difference``, from a pilot's per-world standard deviation ``s``
-  (for success essentially the discordance). Continuous: ``n = ((k + z_power) s /
+- :func:`sequential_decisions`: **the one sequential loop**. ``compare`` calls it after every
+  batch on the per-seed means so far with its looks (the seed counts after each batch,
+  :func:`slam_gym.evaluation.compare.look`); the calibration tests call it on simulated units.
+  No decision before :data:`MIN_SEEDS` = 16 seeds; vectorised over leading axes.
+- :func:`plan_worlds`: units (seeds) needed to decide ``not worse`` with probability ``power``
+  when the true difference is ``expected_difference``, from a pilot's per-seed means (the
+  clustered model: their SD holds the seed effect). Continuous: ``n = ((k + z_power) s /
   (expected_difference + margin))^2`` with ``k = z_{1-alpha/2}`` (fixed) or ``c(alpha)``
-  (sequential, the sequence tuned to ``t* = n``: the plan's power is that of the last look
-  alone, the earlier looks only add). Success: the same condition with the pseudo-worlds'
-  variance and shrinkage, solved for n (see its docstring).
+  (sequential, tuned to ``t* = n``); success: the same condition with the pseudo-worlds, for
+  seeds of ``worlds_per_unit`` worlds; ``compare --plan`` multiplies by the clutter levels.
 
 The decision rule
 -----------------
 On a two-sided ``1 - alpha`` interval or confidence sequence ``[lo, hi]`` of the oriented mean
 difference (positive = B better) and a margin ``m >= 0``, in this order: ``better`` if
-``lo > 0``; ``not worse`` if ``lo > -m``; ``worse`` if ``hi < -m``; else ``undecided``. Its
-error: when the true difference is ``-m`` (or lower), a ``better``/``not worse`` verdict has
-probability at most ``alpha / 2`` nominally for a fixed interval, and at most ``alpha`` for the
-sequence over all looks together (the tests check this ``alpha``); symmetrically for ``worse``
-when the truth is ``-m`` or higher. Orientation (:func:`metric_direction`): success, NEES in-band
-fraction and return, higher is better; map error and interface CPU, lower is better; ANEES is
-reported as ``b - a`` without a decision, since its better is closeness to the NEES dimension (3
-for a pose), not a direction, and the in-band fraction already asks the consistency question
-with one.
+``lo > 0``; ``not worse`` if ``lo > -m``; ``worse`` if ``hi < -m``; else ``undecided``. It is a
+non-inferiority test, not an equivalence test (that would be two one-sided tests against
+``-m`` and ``+m``). Its error: when the true difference is ``-m`` (or lower), a ``better``/``not
+worse`` verdict has probability at most ``alpha / 2`` nominally for a fixed interval, and at most
+``alpha`` for the sequence over all looks together (the tests check this ``alpha``). Orientation
+(:func:`metric_direction`): success, NEES in-band fraction and return, higher is better; map
+error and interface CPU, lower is better; ANEES is reported as ``b - a`` without a decision.
 
 Written here, and why
 ---------------------
-From libraries: the bootstrap (``scipy.stats.bootstrap``), the quantiles (``scipy.stats.norm``,
-``scipy.stats.t``), Lambert's W (``scipy.special``). Written here, because no installed,
-maintained library has them: the adjusted-Wald matched-pairs interval and its cluster version
-(statsmodels has McNemar's test and intervals for independent proportions, not this one), the
-asymptotic confidence sequence (its authors publish R code and a research package), the small-
-sample corrections around the bootstrap call, the group-sequential bounds (R's gsDesign and
-rpact have them), the decision rule and the plan (statsmodels'
-``normal_sample_size_one_tail`` is the continuous fixed-sample formula only, and statsmodels
-and its pandas would be new dependencies for one line of ``norm.ppf``). Each is checked by
-simulation in ``tests/slam_gym/test_paired.py``.
+From libraries: the bootstrap's resampling and percentile/BCa quantiles
+(``scipy.stats.bootstrap``), the quantiles (``scipy.stats.norm``, ``scipy.stats.t``), Lambert's W
+(``scipy.special``), root finding (``scipy.optimize.brentq``). Written here, because no installed,
+maintained Python library has them: the cluster adjusted-Wald interval (statsmodels, not a
+dependency, has McNemar's test and intervals for independent proportions, not this one), the
+cluster-robust sums, ICC and Kish's effective size (a few lines each; statsmodels' MixedLM
+would be a new dependency for a variance ratio), the small-sample corrections around the
+bootstrap call, the asymptotic confidence sequence (its authors publish R code), the
+group-sequential bounds (R's gsDesign and rpact have them), the decision rule and the plan.
+Each is checked by simulation in ``tests/slam_gym/test_paired.py``; each calibration test names
+the mutation it was checked against (it fails under it).
 
 Measured by those tests (seeded; Monte Carlo standard error 0.7 pp at 95 % over 1 000 trials,
-0.35 pp over 4 000; the full table is in docs/ARCHITECTURE.md, "Paired comparison statistics"):
-- bootstrap, map errors of 3 draws (B 20 % lower, 10 % of runs without a value, differences of
-  skewness ~1 and excess kurtosis ~9): coverage 0.938 at 96 worlds; 0.939 at 48 worlds, where
-  BCa (same corrections) covered 0.925;
-- success interval, 9 scenarios (1 or 3 draws, 40-96 worlds, moderate, rare, one-directional
-  and zero discordance, clustered and independent draws): coverage 0.943-1.000; Agresti-Min's
-  weight 0.921 where B only loses 7 pp on 80 worlds (Bonett-Price 0.976);
-- sequential, true difference exactly -5 pp = -margin, looks every 8 worlds from 16 to 96 or 200:
-  ``not worse`` declared in 0.000-0.026 of 4 000 comparisons for success (3 scenarios) and
-  0.040 / 0.034 for left-skewed continuous differences (skewness 1.75), against alpha = 0.05; a
-  one-sided level-0.05 t-test repeated at the same looks declared it in 0.20-0.55;
-- identical arms (no discordant world) decide ``not worse`` at margin 5 / 10 / 20 pp after
-  88 / 48 / 24 worlds (about 4.3 / margin); success 20 pp worse decides ``worse`` (median 64
-  worlds, 0.917 by 96, 1.000 by 200);
-- group-sequential design: bounds equal to gsDesign's published ones for five looks (to 1e-3);
-  on 200 000 Brownian paths seen at 16, 24, ..., 200 of 200 worlds it crosses with probability
-  0.05 (within 3 MC SE) and by each look at most its spending; false ``not worse`` at the
-  -5 pp null 0.011-0.052 over the three success scenarios (0.052 where B only ever loses, on
-  5 % of worlds: its one-sided nominal is 0.025), against the sequence's 0.000-0.026; with
-  success 11 pp lower (per-world SD ~0.34), margin 5 pp, at most 400 worlds, it answers
-  ``worse`` in 0.887 of 1 000 comparisons against the sequence's 0.671. On left-skewed
-  continuous differences (skewness 1.75) it declared a false ``not worse`` 0.064 at 96 worlds
-  and 0.044 at 200: hence success only;
-- plans: fixed 0.807 power for 0.80 planned; sequential 0.857 / 0.856 (continuous / success).
-Outside what the tests assert (scratch runs of the same generators): heavier-tailed map errors
-(world spread 0.6 instead of 0.3 in log, skewness 2-3.5) covered 0.91 at 48 worlds and 0.93 at
-96; differences of skewness 6 (lognormal sigma 1) pushed the sequence's false ``not worse`` to
-0.12-0.13 (0.06-0.08 with the first look at 48 worlds). Intervals resting on a central limit
-theorem need more worlds than this when a metric has rare huge values.
+0.35 pp over 4 000):
+- cluster bootstrap, map errors of 3 draws on 24 seeds x 4 levels (B 20 % lower, 10 % of runs
+  without a value, skewness ~1, excess kurtosis ~9): coverage 0.931; on 12 seeds x 4 levels 0.950
+  (BCa 0.930); 8 seeds with a strong seed effect 0.952 (0.88 without the small-sample
+  correction); 12 seeds, strong seed effect 0.938 (0.72 with the levels as independent worlds);
+  every level its own 6 seeds, level means 90x apart: 0.953 (1.000 ignoring the strata);
+- success, worlds independent (1 or 3 draws, 40-96 worlds, moderate, rare and one-directional
+  discordance, clustered draws): coverage 0.945-1.000; Agresti-Min's weight 0.921 where B only
+  loses 7 pp on 80 worlds; with a strong seed effect (10 or 20 seeds x 4 levels x 2 draws)
+  0.961 / 0.957, against 0.75 / 0.74 with the levels as independent worlds and 0.60 with the
+  draws as independent worlds;
+- sequential, true difference exactly -5 pp = -margin: ``not worse`` in 0.000-0.026 of 4 000
+  comparisons (sequence) and 0.011-0.052 (group-sequential) on worlds as units; on seeds as
+  units with a strong seed effect 0.015 / 0.037; left-skewed continuous differences 0.040 /
+  0.034; normal units, margin 0, looks every 2 seeds from 16 to 100: two-sided error 0.025
+  (0.050 with the boundary 10 % narrower);
+- identical arms (no discordant seed, 4 levels a seed) decide ``not worse`` at 5 pp after 44
+  seeds (176 worlds);
+- group-sequential bounds equal gsDesign's for five looks (to 1e-3); on 200 000 Brownian paths
+  the crossing probability is alpha within 3 MC SE;
+- plans: fixed 0.81 power for 0.80 planned (271 seeds; 93 if the levels were independent
+  worlds, power 0.31); sequential at least 0.80.
+Outside what the tests assert: differences of skewness 6 (lognormal sigma 1) pushed the
+sequence's false ``not worse`` to 0.12-0.13 on worlds as units; intervals resting on a central
+limit theorem need more seeds than this when a metric has rare huge values.
 
 References: Efron (1987) JASA 82, 171-185; Davison & Hinkley (1997) Bootstrap Methods and their
-Application, CUP; Hesterberg (2015) Am. Stat. 69, 371-386; Agresti & Min (2005) Stat. Med. 24,
-729-740; Bonett & Price (2012) J. Educ. Behav. Stat. 37, 479-488; Liang & Zeger (1986)
-Biometrika 73, 13-22; Lan & DeMets (1983) Biometrika 70, 659-663; Armitage, McPherson & Rowe
-(1969) J. R. Stat. Soc. A 132, 235-244; Jennison & Turnbull (1989) J. R. Stat. Soc. B 51,
-305-361, and (2000) Group Sequential Methods with Applications to Clinical Trials, CRC;
-Robbins (1970) Ann. Math. Statist. 41, 1397-1409; Waudby-Smith, Arbour,
+Application, CUP; Hesterberg (2015) Am. Stat. 69, 371-386; Cameron & Miller (2015) J. Human
+Resources 50, 317-372; Donner (1986) Int. Stat. Rev. 54, 67-82; Kish (1965) Survey Sampling,
+Wiley; Agresti & Min (2005) Stat. Med. 24, 729-740; Bonett & Price (2012) J. Educ. Behav. Stat.
+37, 479-488; Liang & Zeger (1986) Biometrika 73, 13-22; Lan & DeMets (1983) Biometrika 70,
+659-663; Armitage, McPherson & Rowe (1969) J. R. Stat. Soc. A 132, 235-244; Jennison & Turnbull
+(1989) J. R. Stat. Soc. B 51, 305-361, and (2000) Group Sequential Methods with Applications to
+Clinical Trials, CRC; Robbins (1970) Ann. Math. Statist. 41, 1397-1409; Waudby-Smith, Arbour,
 Sinha, Kennedy & Ramdas (2021) arXiv:2103.06476.
 """
 
@@ -836,7 +827,7 @@ def plan_worlds(pilot_differences: Any, margin: float, *, alpha: float = 0.05,
     Rate: ``est = n delta / W`` and ``half_n = sqrt(v / W)`` with the pseudo-worlds' ``W = n + 2``,
     ``v = (n (s^2 + delta^2) + 2 w) / W - est^2``, ``sd(est) = s sqrt(n) / W`` (so a pilot with
     no discordant world still asks for a finite number). Rounded up to a multiple of
-    ``batch_size``, at least 2 (:data:`MIN_WORLDS` for the sequential design)."""
+    ``batch_size``, at least 2 (:data:`MIN_SEEDS` for the sequential design)."""
     d = _differences(pilot_differences, one_d=True, rate=rate, name="pilot_differences")
     m = check_range("margin", margin, 0.0, math.inf)
     a = _alpha(alpha)
