@@ -31,6 +31,7 @@ COMPARISONS = (
     # (rows folder, A, B, design, seed start)
     ("compare-bb-gsd", "fixed-10s-optimise", "fixed-10s", "group-sequential", 30000),
     ("compare-bb-esdf", "fixed-10s-optimise", "esdf-innovation", "group-sequential", 40000),
+    ("compare-bb-learned10", "fixed-10s-optimise", "learned", "group-sequential", 60000),
     ("compare-bb-learned46", "fixed-10s-optimise", "learned", "group-sequential", 70000),
 )
 REPORTED = ("success", "nees_in_band_fraction", "map_error_m", "return")
@@ -96,8 +97,8 @@ def main(argv=None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     out = []
     print("| A | B | answer | worlds (seeds) | success (pp) | NEES in band (pp) | map error (m) "
-          "| return | ICC success | effective worlds |")
-    print("|---|---|---|---:|---:|---:|---:|---:|---:|---:|")
+          "| interface CPU (s) | return | ICC success | effective worlds |")
+    print("|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|")
     for folder, a, b, design, start in COMPARISONS:
         rows = read_results(ROWS / folder)
         r = replay(rows, a, b, design, start)
@@ -109,7 +110,8 @@ def main(argv=None) -> int:
         mp = m["map_error_m"]
         print(f"| `{a}` | `{b}` | {answer} | {r['worlds']} ({r['seeds']}) | "
               f"{cell(m['success'], 1)} | {cell(m['nees_in_band_fraction'], 1)} | "
-              f"{cell(mp, 2)} over {mp['worlds']} | {cell(m['return'], 0)} | "
+              f"{cell(mp, 2)} over {mp['worlds']} | {cell(m['interface_cpu_s'], 3)} | "
+              f"{cell(m['return'], 0)} | "
               f"{m['success']['icc']:.2f} | {m['success']['effective_worlds']:.0f} |")
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=2) + "\n")
