@@ -6,8 +6,9 @@ files". Each group has
 ``n`` (all recorded runs), ``n_ok``, ``n_errors`` (runs whose ``status`` is ``"error"``),
 ``n_success``, ``success_rate`` = successes / ``n_ok`` with its 95 % interval ``success_ci95`` =
 [lo, hi], Wilson's score interval at the runs' effective number
-(:func:`clustered_wilson_interval`: the draws of one world are a cluster, Kish's design effect
-from their intraclass correlation; with one draw a world it is Wilson's interval itself), and
+(:func:`clustered_wilson_interval`, named in ``success_ci95_method``: the draws of one world are
+a cluster, Kish's design effect from their intraclass correlation; with one draw a world it is
+Wilson's interval itself), and
 means over the ok runs of ``anees``, ``nees_in_band_fraction``,
 ``n_fusions``, ``n_optimisations``, ``wall_time_s``, plus mean and median of ``map_error_m`` and
 ``final_pose_error_m``. Where the rows carry them (benchmark rows), also the means with a 95 %
@@ -93,6 +94,10 @@ def wilson_interval(successes: int, n: int, z: float = Z95) -> tuple[float, floa
     lo = 0.0 if successes == 0 else max(0.0, centre - half)
     hi = 1.0 if successes == n else min(1.0, centre + half)
     return lo, hi
+
+
+SUCCESS_CI_METHOD = "wilson-design-effect"
+"""The name of ``success_ci95``'s method in the summary (:func:`clustered_wilson_interval`)."""
 
 
 def world_outcomes(rows: Sequence[Mapping[str, Any]]) -> list[list[bool]]:
@@ -316,6 +321,7 @@ def summarise(
             "n_success": n_success,
             "success_rate": n_success / len(judged) if judged else None,
             "success_ci95": ci,
+            "success_ci95_method": SUCCESS_CI_METHOD if ci is not None else None,
         }
         if several:
             # the noise floor of a success comparison: worlds whose outcome the filter's draws
