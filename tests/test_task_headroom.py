@@ -17,47 +17,60 @@ def _row(policy, level, seed, success, map_error=1.0, draw=0, ret=-100.0):
             "compute_term_s": 1.0, "fusion_cpu_s": 0.1, "optimise_cpu_s": 0.1}
 
 
-def test_success_interval_is_agresti_min_and_valid_for_paired_zero_one_data():
+def test_success_interval_is_compares_and_valid_for_paired_zero_one_data():
     def rate(pairs):
-        return headroom.paired_interval({(0, i): float(a - b) for i, (a, b) in enumerate(pairs)},
-                                        rate=True)
+        best = [_row("rule", i % 4, i // 4, bool(b)) for i, (_, b) in enumerate(pairs)]
+        other = [_row("bound", i % 4, i // 4, bool(a)) for i, (a, _) in enumerate(pairs)]
+        return headroom.paired_difference(other, best, "success", 10.0)
 
     # no discordant world: the difference is 0 and the interval is not degenerate
-    d, lo, hi = rate([(1, 1)] * 30 + [(0, 0)] * 10)
-    assert d == 0 and lo < 0 < hi
-    # 8 worlds won, none lost, of 40: a clear gain; Agresti-Min by the 2x2 formula
-    d, lo, hi = rate([(1, 0)] * 8 + [(1, 1)] * 32)
-    m10, m01, m = 8.5, 0.5, 42.0
-    centre = (m10 - m01) / m
-    se = math.sqrt(((m10 + m01) - (m10 - m01) ** 2 / m) / m**2)
-    assert d == pytest.approx(0.2)
-    assert (lo, hi) == pytest.approx((centre - 1.959964 * se, centre + 1.959964 * se), abs=1e-5)
+    out = rate([(1, 1)] * 30 + [(0, 0)] * 10)
+    assert out["mean"] == 0.0 and out["lo"] < 0 < out["hi"]  # a mean of zeros is exactly 0
+    # 8 worlds won, none lost, of 40 (10 seeds at 4 levels) on 8 seeds: a clear gain
+    spread = [(1, 0) if i % 5 == 0 else (1, 1) for i in range(40)]
+    out = rate(spread)
+    assert out["mean"] == pytest.approx(0.2, abs=1e-12)  # 8 / 40 in floats: within rounding
+    assert out["method"] == "bonett-price-cluster-cr1-t" and out["seeds"] == 10
+    assert out["lo"] > 0
+    # the same 8 worlds on 2 seeds (all four levels of each): the seed decided, not shown
+    out = rate([(1, 0)] * 8 + [(1, 1)] * 32)
+    assert out["lo"] < 0 < out["hi"]
     # one world won of 40: not distinguishable from 0
-    d, lo, hi = rate([(1, 0)] + [(1, 1)] * 39)
-    assert lo < 0 < hi
+    out = rate([(1, 0)] + [(1, 1)] * 39)
+    assert out["lo"] < 0 < out["hi"]
 
 
-def test_continuous_interval_resamples_worlds_within_levels():
-    diffs = {(level, seed): float(level) for level in range(4) for seed in range(10)}
-    mean, lo, hi = headroom.paired_interval(diffs)
-    # stratified: each level keeps its 10 worlds, so a constant per level gives no spread
-    assert mean == pytest.approx(1.5) and lo == pytest.approx(1.5) and hi == pytest.approx(1.5)
+def test_continuous_interval_resamples_seeds_with_their_levels():
+    """A difference that depends on the level only: every resampled seed brings its four levels,
+    so there is no spread; a difference that depends on the seed only is resampled by seed."""
+    best = [_row("rule", level, seed, True, 2.0) for level in range(4) for seed in range(10)]
+    by_level = [_row("bound", level, seed, True, 2.0 - 0.1 * level)
+                for level in range(4) for seed in range(10)]
+    out = headroom.paired_difference(by_level, best, "map_error_m", 10.0)
+    # means of 0.1-multiples over 40 worlds: equal to 1e-12 m whatever the summation order
+    assert out["mean"] == pytest.approx(-0.15, abs=1e-12)
+    assert out["lo"] == pytest.approx(-0.15, abs=1e-12)
+    assert out["hi"] == pytest.approx(-0.15, abs=1e-12)
     rng = np.random.default_rng(1)
-    noisy = {(0, s): float(v) for s, v in enumerate(rng.normal(1.0, 1.0, 40))}
-    mean, lo, hi = headroom.paired_interval(noisy)
-    assert lo < mean < hi and lo > 0
+    effect = rng.normal(-1.0, 1.0, 10)
+    by_seed = [_row("bound", level, seed, True, 2.0 + effect[seed])
+               for level in range(4) for seed in range(10)]
+    out = headroom.paired_difference(by_seed, best, "map_error_m", 10.0)
+    assert out["lo"] < out["mean"] < out["hi"] and out["seeds"] == 10
+    assert out["icc"] == pytest.approx(1.0, abs=1e-9)  # all variance between seeds
+    assert out["effective_worlds"] == pytest.approx(10.0, abs=1e-6)
 
 
 def test_draws_are_averaged_per_world_before_pairing():
     best = [_row("rule", 0, s, True, 2.0, d) for s in range(5) for d in range(3)]
     other = [_row("bound", 0, s, True, 2.0 - 0.1 * d, d) for s in range(5) for d in range(3)]
-    diffs = headroom.per_world_differences(other, best, "map_error_m", 10.0)
-    assert set(diffs) == {(0, s) for s in range(5)}
-    assert all(v == pytest.approx(-0.1) for v in diffs.values())
-    # a map error where either failed is not paired
+    out = headroom.paired_difference(other, best, "map_error_m", 10.0)
+    assert out["worlds"] == 5
+    assert out["mean"] == pytest.approx(-0.1, abs=1e-12)
+    # a map error where either failed is not paired: world 0 keeps draws 1 and 2
     other[0]["success"] = False
-    diffs = headroom.per_world_differences(other, best, "map_error_m", 10.0)
-    assert diffs[(0, 0)] == pytest.approx(-0.15)
+    out = headroom.paired_difference(other, best, "map_error_m", 10.0)
+    assert out["mean"] == pytest.approx((-0.15 + 4 * -0.1) / 5, abs=1e-12)
 
 
 def test_summary_pairs_with_the_best_rule_and_normalises_only_where_the_bound_has_room():
@@ -130,17 +143,20 @@ def test_headroom_table_has_a_bound_and_a_lookahead_row_per_task(tmp_path, capsy
     import json
 
     rows = []
-    for s in range(40):
-        rows.append(_row("best-threshold", s % 4, s, s % 5 != 0, ret=-100.0))
-        rows.append(_row("lookahead-privileged", s % 4, s, True, ret=-50.0))
-        rows.append(_row("lookahead", s % 4, s, s % 10 != 0, ret=-75.0))
+    for s in range(40):  # 10 seeds at four levels
+        rows.append(_row("best-threshold", s % 4, s // 4, s % 5 != 0, ret=-100.0))
+        rows.append(_row("lookahead-privileged", s % 4, s // 4, True, ret=-50.0))
+        rows.append(_row("lookahead", s % 4, s // 4, s % 10 != 0, ret=-75.0))
     with_lookahead = headroom.summarise(rows, "best-threshold", 10.0) | {
         "task": "SlamGym/A-v1", "best_rule_label": "threshold-optimise[x>=1]"}
     without = headroom.summarise([r for r in rows if r["policy"] != "lookahead"],
                                  "best-threshold", 10.0) | {"task": "SlamGym/B-v1"}
     table = headroom.headroom_table([with_lookahead, without])
-    lines = table.strip().splitlines()
+    rows_part, clustering = table.strip().split("\n\n")
+    lines = rows_part.splitlines()
     assert len(lines) == 2 + 4
+    assert "(32 worlds)" in lines[2]  # the map error: the 32 worlds where the best rule survived
+    assert clustering.startswith("Success: the intraclass correlation") and "10 seeds" in clustering
     assert "`threshold-optimise[x>=1]`" in lines[2] and "| 80 % |" in lines[2]
     assert "+20 [" in lines[2] and "success 0.50" in lines[3]
     assert "| lookahead | not run |" in lines[5] and "`best-threshold`" in lines[4]

@@ -45,18 +45,20 @@ def policy_factories() -> dict:
 
 
 def pair_statistics(rows: list[dict], a: str, b: str) -> dict:
-    """Discordance and the paired map-error difference of ``b - a`` over their common worlds."""
-    by = {(r["policy"], r["clutter_level"], r["seed"]): r for r in rows
-          if r.get("status") == "ok"}
-    worlds = sorted({(lv, s) for p, lv, s in by if p == a} & {(lv, s) for p, lv, s in by
-                                                                if p == b})
-    discordant = sum(by[(a, *w)]["success"] != by[(b, *w)]["success"] for w in worlds)
-    diffs = np.array([by[(b, *w)]["map_error_m"] - by[(a, *w)]["map_error_m"] for w in worlds
-                      if by[(a, *w)].get("map_error_m") is not None
-                      and by[(b, *w)].get("map_error_m") is not None])
+    """Discordance and the paired map-error difference of ``b - a`` over their common worlds
+    (the one pairing, :func:`slam_gym.evaluation.pairing.paired_worlds`: the map error over the
+    worlds both survived; before issue 56 this script paired every run with a map error)."""
+    from slam_gym.evaluation.pairing import paired_worlds
+
+    rows_a = [r for r in rows if r.get("policy") == a]
+    rows_b = [r for r in rows if r.get("policy") == b]
+    success = paired_worlds(rows_a, rows_b, "success")
+    discordant = int(np.sum(success.a != success.b))
+    pairs = paired_worlds(rows_a, rows_b, "map_error_m")
+    diffs = pairs.b - pairs.a
     n = len(diffs)
-    return {"a": a, "b": b, "worlds": len(worlds), "discordant": int(discordant),
-            "map_worlds": n,
+    return {"a": a, "b": b, "worlds": len(success), "discordant": discordant,
+            "map_worlds": n, "map_seeds": pairs.n_clusters,
             "map_diff_mean_m": float(diffs.mean()) if n else None,
             "map_diff_sd_m": float(diffs.std(ddof=1)) if n > 1 else None,
             "map_diff_se_m": float(diffs.std(ddof=1) / np.sqrt(n)) if n > 1 else None,
@@ -72,7 +74,7 @@ def version_check(rows_v0: list[dict], rows_v1: list[dict], policy: str = "learn
     """``policy`` on -v1 (B) against -v0 (A), paired by world: per metric the report of
     ``slam-gym compare`` and, for the margins of :data:`VERSION_MARGINS`, the decision."""
     from slam_gym.evaluation import paired
-    from slam_gym.evaluation.compare import UNIT_SCALE, metric_report, oriented, paired_arrays
+    from slam_gym.evaluation.compare import UNIT_SCALE, fixed_interval, metric_report, oriented
 
     a = [r for r in rows_v0 if r.get("policy") == policy]
     b = [r for r in rows_v1 if r.get("policy") == policy]
@@ -82,11 +84,9 @@ def version_check(rows_v0: list[dict], rows_v1: list[dict], policy: str = "learn
     for metric in ("success", "nees_in_band_fraction", "map_error_m", "interface_cpu_s"):
         report = metric_report(a, b, metric, worlds)
         if metric in VERSION_MARGINS and report["worlds"] >= 2:
-            d = oriented(metric, *paired_arrays(a, b, metric, worlds))
+            d = oriented(metric, a, b, worlds)
             scale = UNIT_SCALE.get(metric, 1.0)
-            interval = (paired.matched_rate_interval(d.differences)
-                        if metric in paired.RATE_METRICS else
-                        paired.stratified_bootstrap_interval(d.differences, d.strata, rng=46))
+            interval = fixed_interval(d, metric, 0.95)
             report["margin"] = VERSION_MARGINS[metric]
             report["decision"] = paired.decide(interval.lo, interval.hi,
                                                VERSION_MARGINS[metric] / scale)

@@ -8,16 +8,19 @@ from each checkout on the same worlds, policies, particles and ``draws``; under 
 random numbers both codes draw by the same keys, so the rows of one (policy, clutter level, seed,
 draw) are a pair). Only the runs both codes finished enter. Per policy, the reference is arm A
 and the new code arm B of ``slam-gym compare``'s statistics
-(:func:`slam_gym.evaluation.compare.metric_report`: per world the mean over its draws, the world
-the unit of pairing; success by the cluster Bonett-Price interval, the other metrics by the
-bootstrap over worlds stratified by clutter level), and each metric with a margin gets
+(:func:`slam_gym.evaluation.compare.metric_report`: per world the mean over its draws, the seed
+the cluster; success by the cluster Bonett-Price interval, the other metrics by the cluster
+bootstrap over seeds), and each metric with a margin gets
 :func:`slam_gym.evaluation.paired.decide`'s answer to "is the new code not worse than the
-reference by more than the margin?" on its fixed-sample 95 % interval.
+reference by more than the margin?" on its fixed-sample 95 % interval: a non-inferiority
+answer, not equivalence (that would take the two one-sided tests at both margins).
 
 The default margins are issue 47's: success 3 pp, map error 0.15 m, the fraction of pose NEES
 inside its band 2 pp. With no discordant world at all, the success interval's half-width is
-``1.96 sqrt(2) / (n + 2)``: below 3 pp from 91 worlds on, so fewer worlds cannot show
-equivalence on success however alike the codes are.
+``t_{0.975, G-1} sqrt(2 G / (G - 1)) / (n + 2)`` (G seeds, n worlds; issue 56): with four
+levels a seed, below 3 pp from 25 seeds (100 worlds) on, so fewer cannot show non-inferiority
+at 3 pp on success however alike the codes are (before issue 56, ``1.96 sqrt(2) / (n + 2)``:
+91 worlds).
 
 Supports docs/RESULTS.md, "The filter of issue 47 against its reference, by distributions".
 """

@@ -101,16 +101,19 @@ def decisions_table(runs) -> str:
 def _paired(by, name, reference, levels):
     """Per-world differences of ``name`` against ``reference`` over ``levels``: success (all
     worlds), log ANEES (all worlds) and map error (worlds both survived)."""
-    success, log_anees, map_error = [], [], []
+    from slam_gym.evaluation.pairing import paired_worlds
+
+    success, log_anees, mine, refs = [], [], [], []
     for (n, level, seed), r in by.items():
         ref = by.get((reference, level, seed))
         if n != name or level not in levels or ref is None:
             continue
         success.append(float(r["success"]) - float(ref["success"]))
         log_anees.append(np.log(r["anees"]) - np.log(ref["anees"]))
-        if r["success"] and ref["success"] and None not in (r["map_error_m"], ref["map_error_m"]):
-            map_error.append(r["map_error_m"] - ref["map_error_m"])
-    return success, log_anees, map_error
+        mine.append(r)
+        refs.append(ref)
+    pairs = paired_worlds(refs, mine, "map_error_m")  # the one pairing: worlds both survived
+    return success, log_anees, [float(v) for v in pairs.b - pairs.a]
 
 
 def _interval(values, fmt, scale=1.0):

@@ -16,13 +16,18 @@ threshold-rule`` on the task's training-time worlds), the chosen threshold rule 
 includes its ends ``fixed-10s`` and ``fixed-10s-optimise``; the chosen one by mean return at
 ``--price``), else ``--best-rule``.
 
-Statistics (``slam_gym.evaluation.paired``, the library of ``slam-gym compare``, issue 46):
-every run is paired with the best rule's run on the same world and draw (common random numbers);
-the per-world difference is the mean over the world's draws (draws as a factor nested in their
-world); continuous measures get the stratified cluster bootstrap interval over worlds
-(:func:`~slam_gym.evaluation.paired.stratified_bootstrap_interval`, strata the clutter levels),
-success the matched-rate interval of Agresti & Min (Biometrics 61, 2005; ``pseudo_weight`` 1/2,
-as declared; :func:`~slam_gym.evaluation.paired.matched_rate_interval`). Normalised headroom:
+Statistics: those of ``slam-gym compare`` (issue 56), :func:`paired_difference`. Every run is
+paired with the best rule's run on the same world and draw (common random numbers) by the one
+pairing, :func:`slam_gym.evaluation.pairing.paired_worlds` (the map error over the draws both
+survived); the per-world difference is the mean over the world's draws, and the **seed is the
+cluster** (a seed's worlds at the four clutter levels share its waypoints, path, landmarks and
+zones). Continuous measures get the cluster bootstrap over seeds
+(:func:`~slam_gym.evaluation.paired.cluster_bootstrap_interval`), success the cluster
+Bonett-Price interval (:func:`~slam_gym.evaluation.paired.matched_rate_interval`; issue 48
+declared Agresti-Min's weight over independent worlds, replaced in issue 56 by compare's
+interval, which covers where the seed decides the outcome). Each difference carries its worlds,
+seeds, method, the intraclass correlation within seeds and the effective number of independent
+worlds (``<metric>_paired`` in ``headroom.json``). Normalised headroom:
 ``(lookahead - best) / (bound - best)``, reported only where the bound's interval excludes 0
 on the better side of the measure. Writes ``OUT/headroom.json`` and ``OUT/headroom.md``.
 
@@ -81,44 +86,28 @@ def value(row: Mapping, metric: str, price: float) -> float | None:
     return None if v is None or (isinstance(v, float) and math.isnan(v)) else float(v)
 
 
-def per_world_differences(rows: Sequence[Mapping], reference: Sequence[Mapping], metric: str,
-                          price: float) -> dict[tuple[int, int], float]:
-    """(level, seed) -> the mean over the world's draws of ``rows`` minus ``reference`` (draws
-    where either value is undefined, e.g. a map error after a failure, are left out; a world
-    with none left is left out)."""
-    ref = {(int(r["clutter_level"]), int(r["seed"]), int(r.get("draw", 0))): r
-           for r in reference}
-    diffs: dict[tuple[int, int], list[float]] = defaultdict(list)
-    for r in rows:
-        key = (int(r["clutter_level"]), int(r["seed"]), int(r.get("draw", 0)))
-        if key not in ref:
-            continue
-        if metric == "map_error_m" and not (r["success"] and ref[key]["success"]):
-            continue  # map error where both survived (as slam_gym.evaluation.front.compare)
-        a, b = value(r, metric, price), value(ref[key], metric, price)
-        if a is not None and b is not None:
-            diffs[key[:2]].append(a - b)
-    return {w: float(np.mean(d)) for w, d in diffs.items()}
+def paired_difference(rows: Sequence[Mapping], reference: Sequence[Mapping], metric: str,
+                      price: float) -> dict:
+    """``rows`` minus ``reference`` on ``metric``, paired by the one pairing of ``slam-gym
+    compare`` (:func:`slam_gym.evaluation.pairing.paired_worlds`: per (level, seed, draw), the
+    map error over the draws both survived, the per-world mean over draws, the seed as the
+    cluster) with compare's fixed-sample interval (:func:`slam_gym.evaluation.compare.
+    fixed_interval`) and its labels: ``{"mean", "lo", "hi", "worlds", "seeds", "method",
+    "icc", "effective_worlds"}`` (``mean``, ``lo``, ``hi`` NaN with fewer than 2 seeds)."""
+    from slam_gym.evaluation.compare import fixed_interval, interval_labels
+    from slam_gym.evaluation.pairing import paired_worlds
 
-
-def paired_interval(diffs: Mapping[tuple[int, int], float], *, rate: bool = False
-                   ) -> tuple[float, float, float]:
-    """Mean of the per-world differences (``(level, seed) -> d``) and its 95 % interval: the
-    matched-rate interval (Agresti-Min) for success rates, else the stratified bootstrap."""
-    from slam_gym.evaluation.paired import (
-        matched_rate_interval,
-        stratified_bootstrap_interval,
-    )
-
-    if len(diffs) < 2:
-        return math.nan, math.nan, math.nan
-    worlds = sorted(diffs)
-    d = np.array([diffs[w] for w in worlds])
-    if rate:
-        out = matched_rate_interval(d, pseudo_weight=0.5)
-        return float(np.mean(d)), float(out.lo), float(out.hi)
-    out = stratified_bootstrap_interval(d, np.array([w[0] for w in worlds]), rng=0)
-    return float(out.estimate), float(out.lo), float(out.hi)
+    pw = paired_worlds(reference, rows, metric,
+                       value=lambda row, m: value(row, m, price))
+    d = pw.differences()
+    out = {"mean": math.nan, "lo": math.nan, "hi": math.nan, "worlds": len(pw),
+           "seeds": pw.n_clusters}
+    if pw.n_clusters < 2:
+        return out
+    interval = fixed_interval(d, metric, 0.95)
+    out |= {"mean": float(d.differences.mean()), "lo": float(interval.lo),
+            "hi": float(interval.hi)} | interval_labels(interval, d)
+    return out
 
 
 def summarise(rows: Sequence[Mapping], best: str, price: float) -> dict:
@@ -139,9 +128,9 @@ def summarise(rows: Sequence[Mapping], best: str, price: float) -> dict:
             entry[metric] = float(np.mean(vals)) if vals else None
             if name == best:
                 continue
-            entry[f"{metric}_diff"] = paired_interval(
-                per_world_differences(group, reference, metric, price),
-                rate=metric == "success")
+            paired = paired_difference(group, reference, metric, price)
+            entry[f"{metric}_diff"] = (paired["mean"], paired["lo"], paired["hi"])
+            entry[f"{metric}_paired"] = paired
         for extra in ("planning_cpu_s", "deviations_from_base", "n_fusions", "n_optimisations"):
             vals = [float(r[extra]) for r in group if r.get(extra) is not None]
             entry[extra] = float(np.mean(vals)) if vals else None
@@ -171,21 +160,26 @@ def headroom_interval(arm: Sequence[Mapping], bound: Sequence[Mapping],
                       reference: Sequence[Mapping], metric: str, price: float,
                       n_resamples: int = 10_000) -> tuple[float, float] | None:
     """95 % percentile interval of the normalised headroom ``mean(arm - best) / mean(bound -
-    best)``: the worlds both arms have are resampled together within their clutter level (the
-    stratified cluster bootstrap of the paired differences, for their ratio; seed 0)."""
-    a = per_world_differences(arm, reference, metric, price)
-    b = per_world_differences(bound, reference, metric, price)
+    best)``, both paired by the one pairing (:func:`slam_gym.evaluation.pairing.paired_worlds`)
+    on the worlds both arms have, the seeds (the independent units, issue 56) resampled
+    together with every world of theirs (a cluster bootstrap of the ratio; seed 0)."""
+    from slam_gym.evaluation.pairing import paired_worlds
+
+    def per_world(rows):
+        pw = paired_worlds(reference, rows, metric, value=lambda row, m: value(row, m, price))
+        return {(int(lv), int(c)): float(d) for lv, c, d in
+                zip(pw.strata, pw.clusters, pw.b - pw.a, strict=True)}
+
+    a, b = per_world(arm), per_world(bound)
     worlds = sorted(set(a) & set(b))
-    if len(worlds) < 2:
+    seeds = sorted({w[1] for w in worlds})
+    if len(seeds) < 2:
         return None
-    da, db = np.array([a[w] for w in worlds]), np.array([b[w] for w in worlds])
-    levels = np.array([w[0] for w in worlds])
+    da = np.array([sum(a[w] for w in worlds if w[1] == s) for s in seeds])
+    db = np.array([sum(b[w] for w in worlds if w[1] == s) for s in seeds])
     rng = np.random.default_rng(0)
-    index = np.concatenate([
-        rng.choice(np.flatnonzero(levels == level), size=(n_resamples,
-                   int(np.count_nonzero(levels == level))))
-        for level in np.unique(levels)], axis=1)
-    num, den = da[index].mean(axis=1), db[index].mean(axis=1)
+    index = rng.integers(0, len(seeds), size=(n_resamples, len(seeds)))
+    num, den = da[index].sum(axis=1), db[index].sum(axis=1)
     ratios = num[den != 0.0] / den[den != 0.0]
     if not len(ratios):
         return None
@@ -306,11 +300,27 @@ def headroom_table(docs: Sequence[Mapping]) -> str:
                      or (doc["normalised_headroom"] if arm == "lookahead" else {}))
             headroom = "-" if first else ", ".join(
                 f"{names.get(m, m)} {v:.2f}" for m, v in point.items() if v is not None) or "-"
+            map_worlds = (entry.get("map_error_m_paired") or {}).get("worlds")
             lines.append("| " + " | ".join([
                 *task, label, diff_cell(entry, "success", 100, 0),
                 diff_cell(entry, "nees_in_band_fraction", 100, 0), diff_cell(entry, "anees", 1, 1),
-                diff_cell(entry, "map_error_m"), diff_cell(entry, "interface_cpu_s", 1, 3),
+                diff_cell(entry, "map_error_m") + ("" if map_worlds is None
+                                                   else f" ({map_worlds} worlds)"),
+                diff_cell(entry, "interface_cpu_s", 1, 3),
                 diff_cell(entry, "return", 1, 0), headroom, str(entry["n_worlds"])]) + " |")
+    clustering = []
+    for doc in docs:
+        for arm in (BOUND, "lookahead"):
+            paired = (doc["policies"].get(arm) or {}).get("success_paired")
+            if paired and paired.get("icc") is not None:
+                clustering.append(f"`{doc['task']}` {'bound' if arm == BOUND else arm} "
+                                  f"{paired['icc']:.2f} ({paired['effective_worlds']:.0f} of "
+                                  f"{paired['worlds']} worlds, {paired['seeds']} seeds)")
+    if clustering:
+        lines.append("")
+        lines.append("Success: the intraclass correlation of the paired differences within seeds "
+                     "and the effective number of independent worlds: " + "; ".join(clustering)
+                     + ".")
     return "\n".join(lines) + "\n"
 
 

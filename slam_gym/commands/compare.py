@@ -31,11 +31,13 @@ def add_parser(subparsers) -> None:
         help="a paired, sequential comparison of two policies",
         description="Run policies A and B on the same worlds and filter draws (common random "
         "numbers) and compare them world by world: success, the fraction of pose NEES inside "
-        "its 95 %% band, ANEES, map error, interface CPU and return, each with a paired 95 %% "
-        "interval stratified by clutter level. With --metric and --margin it answers whether B "
-        "is better, not worse (by more than the margin) or worse than A; with --max-worlds it "
-        "runs worlds in batches until that is decided, under an anytime-valid confidence "
-        "sequence.",
+        "its 95 %% band, ANEES, map error (over the draws both survived), interface CPU and "
+        "return, each with a paired interval at level 1 - --alpha, the seed the independent "
+        "unit (its clutter levels and draws nested in it; the report names each interval's "
+        "method, the seeds, the intraclass correlation and the effective worlds). With --metric "
+        "and --margin it answers whether B is better, not worse (by more than the margin) or "
+        "worse than A; with --max-worlds it runs worlds in batches until that is decided, "
+        "under an anytime-valid confidence sequence.",
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("a", metavar="A", help=policies_help(
@@ -71,7 +73,8 @@ def add_parser(subparsers) -> None:
                    help="error rate of the intervals and the decision (default 0.05)")
     p.add_argument("--plan", action="store_true",
                    help="run a pilot (--seeds, default one batch) and print the worlds needed "
-                   "to decide --metric at --margin with 80 %% power, sequential and fixed")
+                   "to decide --metric at --margin with 80 %% power, sequential and fixed "
+                   "(the seed the unit: planned in seeds, each at every clutter level)")
     add_env_options(p)
     add_run_options(p, default_out="out/compare", trials_flag=None)
     p.set_defaults(run=run)
@@ -83,23 +86,44 @@ def _num(value, digits=2, signed=False) -> str:
     return f"{value:+.{digits}f}" if signed else f"{value:.{digits}f}"
 
 
+def _level(level) -> str:
+    return f"{100 * level:g} %"
+
+
 def text_report(result) -> list[str]:
-    """The human summary: one line per metric and the question's answer."""
-    lines = [f"{result.b} against {result.a} in {result.env_id}: {result.worlds} worlds x "
-             f"{result.draws} draws (paired by world; 95 % intervals of B - A)"]
+    """The human summary: one line per metric (its interval's method, seeds, intraclass
+    correlation and effective worlds; whether it holds at a sequential stop) and the answer."""
+    level = getattr(result, "level", 0.95)
+    seeds = getattr(result, "seeds", None)
+    sequential = result.question is not None and result.question["design"] != "fixed"
+    kind = ("intervals valid at the sequential stop" if sequential
+            else "fixed-sample intervals")
+    lines = [f"{result.b} against {result.a} in {result.env_id}: {result.worlds} worlds"
+             + (f" ({seeds} seeds)" if seeds else "") + f" x {result.draws} draws "
+             f"(paired by world, the seed the unit; {_level(level)} {kind} of B - A)"]
     width = max(len(m) for m in result.metrics)
     for name, m in result.metrics.items():
         unit = f" {m['unit']}" if m["unit"] else ""
         ci = "-" if m["ci"] is None else f"[{m['ci'][0]:+.2f}, {m['ci'][1]:+.2f}]"
         left = f", {m['left_out']} worlds left out" if m["left_out"] else ""
+        over = " (draws both survived)" if m.get("paired_over") else ""
+        labels = ""
+        if m.get("method"):
+            icc = "-" if m.get("icc") is None else f"{m['icc']:.2f}"
+            eff = m.get("effective_worlds")
+            labels = (f"; {m['method']}, {m['worlds']} worlds / {m['seeds']} seeds, ICC {icc}"
+                      + ("" if eff is None else f", effective worlds {eff:.0f}")
+                      + (", anytime-valid" if m.get("anytime_valid") else ""))
         lines.append(f"  {name:<{width}}  A {_num(m['a'])}  B {_num(m['b'])}  "
-                     f"B - A {_num(m['difference'], signed=True)}{unit} {ci}{left}")
+                     f"B - A {_num(m['difference'], signed=True)}{unit} {ci}{over}{left}"
+                     f"{labels}")
     q = result.question
     if q is not None:
         ci = q["oriented_ci"]
         better = "higher" if q["higher_is_better"] else "lower"
-        where = ("" if ci is None else f"; interval of the gain ({better} is better) "
-                 f"[{ci[0]:+.2f}, {ci[1]:+.2f}] {q['unit']}")
+        where = ("" if ci is None else f"; {_level(level)} interval of the gain ({better} is "
+                 f"better) [{ci[0]:+.2f}, {ci[1]:+.2f}] {q['unit']}"
+                 + (f", {q['method']}" if q.get("method") else ""))
         design = (f"{q['design']}, stopped at {result.worlds} of at most {q['max_worlds']} "
                   "worlds" if q["design"] != "fixed" else "fixed design")
         lines.append(f"question: is {result.b} not worse than {result.a} by {q['margin']:g} "
@@ -129,8 +153,10 @@ def run(args) -> int:
              text_report(result) + [
                  f"plan for {args.metric} at margin {args.margin or 0:g}: "
                  f"{planned['sequential']['worlds']} worlds sequential (--max-worlds), "
-                 f"{planned['fixed']['worlds']} fixed, for 80 % power if the true difference is "
-                 f"0 (pilot: {planned['pilot_worlds']} worlds, per-world SD "
+                 f"{planned['fixed']['worlds']} fixed ({planned['sequential']['seeds']} and "
+                 f"{planned['fixed']['seeds']} seeds at every clutter level), for 80 % power if "
+                 f"the true difference is 0 (pilot: {planned['pilot_worlds']} worlds on "
+                 f"{planned['pilot_seeds']} seeds, per-seed SD "
                  f"{planned['sequential']['sd']:.3g})"])
         return errors_exit_code(args, result.rows)
     result = compare(args.a, args.b, metric=args.metric, margin=args.margin,

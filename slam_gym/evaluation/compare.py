@@ -6,10 +6,16 @@ draws, paired by world, with a declared question answered by an anytime-valid se
 ...                  draws=2, max_worlds=96, out="out/compare")          # doctest: +SKIP
 >>> result.decision, result.worlds                                       # doctest: +SKIP
 
-Design (issue 46). Worlds are (clutter level, seed); each runs ``draws`` filter draws per
-policy, draw ``k`` the same numbers for both (the env's synchronised streams: common random
-numbers). The unit of pairing is the world: per world and policy the mean over its draws (the
-success rate, the mean map error, ...), per world the difference B - A. Runs go through the
+Design (issue 46; the seed as the unit, issue 56). Worlds are (clutter level, seed); each runs
+``draws`` filter draws per policy, draw ``k`` the same numbers for both (the env's synchronised
+streams: common random numbers). Runs are paired by (level, seed, draw) and averaged per world
+(:mod:`slam_gym.evaluation.pairing`, the one pairing: the map error over the draws both policies
+survived); the **seed is the independent unit**, its clutter levels and draws nested in it (a
+seed's worlds share waypoints, path, landmarks and zones). Fixed-sample intervals are cluster
+intervals over seeds; the sequential design looks at per-seed means. Every metric's report
+names its interval's method and level (``1 - alpha``), whether it holds at a data-dependent stop
+(``anytime_valid``), the seeds behind it, the intraclass correlation of its per-world
+differences within seeds and Kish's effective number of independent worlds. Runs go through the
 benchmark's machinery (:func:`slam_gym.evaluation.run_jobs`: its executors, lock, error rows,
 time limits, and ``results.jsonl`` keyed by job, so a killed comparison resumes without rerunning
 a finished run). Statistics: :mod:`slam_gym.evaluation.paired`.
@@ -17,16 +23,20 @@ a finished run). Statistics: :mod:`slam_gym.evaluation.paired`.
 Two designs:
 
 * **sequential** (``max_worlds``): worlds in batches of ``batch_seeds`` seeds at every clutter
-  level, a look after each batch (from :data:`slam_gym.evaluation.paired.MIN_WORLDS` worlds on),
-  stopping at the first look that decides the question or at ``max_worlds``. ``design`` chooses
-  the interval of a look: ``"confidence-sequence"`` (the default; valid under any number of
-  looks and any stopping, ``max_worlds`` only tunes where it is narrowest) or
+  level, a look after each batch (from :data:`slam_gym.evaluation.paired.MIN_SEEDS` seeds on;
+  :func:`look`, which runs :func:`slam_gym.evaluation.paired.sequential_decisions`), stopping
+  at the first look that decides the question or at ``max_worlds``. After the stop every
+  metric's interval is the one valid there: the design's for the declared metric, the
+  confidence sequence (on per-seed means, tuned to the planned seeds) for the others.
+  ``design`` chooses the interval of a look: ``"confidence-sequence"`` (the default; valid
+  under any number of looks and any stopping, ``max_worlds`` only tunes where it is narrowest) or
   ``"group-sequential"`` (repeated confidence intervals of an O'Brien-Fleming-type design planned
   for ``max_worlds``: about half the worlds for the same question when the answer comes near
   ``max_worlds``, but ``max_worlds`` is then a commitment, not to be raised once rows are
   seen; success only). The looks are a function of the rows alone, so a rerun looks at the
   same batches and decides the same.
-* **fixed** (``seeds``): that many seeds at every level, the fixed-sample intervals, the
+* **fixed** (``seeds``): that many seeds at every level, the fixed-sample intervals (cluster
+  Bonett-Price for success, cluster bootstrap for the rest; ``anytime_valid`` false), the
   question (if any) answered on them.
 
 The question: ``metric`` and ``margin`` (in the metric's reported unit: percentage points for
@@ -65,7 +75,10 @@ MAX_WORLDS = 100_000
 """The most worlds a comparison accepts (``max_worlds`` or seeds x levels)."""
 
 BOOTSTRAP_SEED = 46
-"""The stratified bootstrap's own generator: the same rows give the same intervals."""
+"""The cluster bootstrap's own generator: the same rows give the same intervals."""
+
+SURVIVED_METRICS = frozenset({"map_error_m"})
+"""Metrics paired over the draws both policies survived (:mod:`slam_gym.evaluation.pairing`)."""
 
 
 @dataclass(frozen=True)
@@ -94,14 +107,19 @@ class ComparisonResult:
     rows: list
     out: Path
     n_errors: int
+    level: float = 0.95
+    """Two-sided level of every interval (``1 - alpha``)."""
+    seeds: int | None = None
+    """The seeds run (the independent units; each at every clutter level)."""
     env_id: str | None = None
     env_kwargs: dict = field(default_factory=dict)
 
     def as_dict(self) -> dict:
         return {"a": self.a, "b": self.b, "decision": self.decision, "question": self.question,
-                "worlds": self.worlds, "draws": self.draws, "metrics": self.metrics,
-                "looks": self.looks, "n_errors": self.n_errors, "out": str(self.out),
-                "env_id": self.env_id, "env_kwargs": self.env_kwargs}
+                "worlds": self.worlds, "seeds": self.seeds, "draws": self.draws,
+                "level": self.level, "metrics": self.metrics, "looks": self.looks,
+                "n_errors": self.n_errors, "out": str(self.out), "env_id": self.env_id,
+                "env_kwargs": self.env_kwargs}
 
 
 def resolve_arm(spec: Any) -> Arm:
@@ -123,63 +141,113 @@ def resolve_arm(spec: Any) -> Arm:
     return Arm(entry.name, entry.name, options, entry.shipped)
 
 
-def world_table(rows: list[dict], metric: str) -> dict[tuple[int, int], float]:
-    """(clutter level, seed) -> the mean over the world's draws of ``metric`` (ok rows with a
-    finite value only; a world with none is absent)."""
-    from slam_gym.evaluation.summary import metric_values
+def paired_data(rows_a: list[dict], rows_b: list[dict], metric: str,
+                worlds: list[tuple] | None = None):
+    """The one pairing (:func:`slam_gym.evaluation.pairing.paired_worlds`) of ``metric`` over
+    ``worlds`` ((level, seed); default every world either arm ran)."""
+    from slam_gym.evaluation.pairing import paired_worlds
 
-    by_world: dict[tuple[int, int], list[float]] = {}
-    for row in rows:
-        if row.get("status") != "ok":
-            continue
-        values = metric_values([row], metric)
-        if values:
-            by_world.setdefault((row["clutter_level"], row["seed"]), []).append(values[0])
-    return {w: float(np.mean(v)) for w, v in by_world.items()}
+    return paired_worlds(rows_a, rows_b, metric, worlds=worlds)
 
 
-def paired_arrays(rows_a: list[dict], rows_b: list[dict], metric: str, worlds: list[tuple]):
-    """Per-world aggregates of A and B over ``worlds`` (NaN where missing) and their strata."""
-    ta, tb = world_table(rows_a, metric), world_table(rows_b, metric)
-    a = np.array([ta.get(w, np.nan) for w in worlds])
-    b = np.array([tb.get(w, np.nan) for w in worlds])
-    strata = np.array([-1 if w[0] is None else w[0] for w in worlds], dtype=int)  # -1: none
-    return a, b, strata
-
-
-def metric_report(rows_a, rows_b, metric: str, worlds: list[tuple], confidence: float = 0.95
-                  ) -> dict:
-    """``{"a", "b", "difference", "ci", "worlds", "left_out", "method"}`` of one metric in its
-    reported unit; ``difference`` and ``ci`` are of B - A (fixed-sample intervals)."""
+def interval_labels(interval, differences) -> dict:
+    """What an interval says about itself: its method, level, whether it holds at a
+    data-dependent stop, and the clustering behind it (seeds, intraclass correlation, Kish's
+    effective number of independent worlds)."""
     from slam_gym.evaluation import paired
 
+    d = differences.differences
+    icc = paired.intraclass_correlation(d, differences.clusters) if len(d) >= 2 else None
+    return {"method": interval.method, "level": float(interval.level)
+            if math.isfinite(interval.level) else None,
+            "anytime_valid": bool(interval.anytime_valid),
+            "seeds": int(np.unique(differences.cluster_ids).size),
+            "icc": None if icc is None else float(icc),
+            "effective_worlds": paired.effective_worlds(len(d), differences.clusters, icc)}
+
+
+def fixed_interval(differences, metric: str, confidence: float):
+    """The fixed-sample interval of one metric's per-world differences (any orientation), the
+    seeds the clusters (:mod:`slam_gym.evaluation.pairing`): the cluster Bonett-Price interval
+    for success (:func:`~slam_gym.evaluation.paired.matched_rate_interval` with the seeds'
+    cluster-robust variance), the cluster bootstrap over seeds otherwise."""
+    from slam_gym.evaluation import paired
+
+    if metric in paired.RATE_METRICS:
+        return paired.matched_rate_interval(differences.differences,
+                                            clusters=differences.cluster_ids,
+                                            confidence=confidence)
+    return paired.cluster_bootstrap_interval(differences.differences, differences.strata,
+                                             differences.cluster_ids, rng=BOOTSTRAP_SEED,
+                                             confidence=confidence)
+
+
+def sequential_interval(differences, metric: str, *, alpha: float, planned_seeds: int,
+                        design: str = "confidence-sequence", look_seeds: list | None = None,
+                        worlds_per_seed: int = 1):
+    """The interval of one metric at a sequential look, on the per-seed means (the independent
+    units): ``design``'s for the declared success metric, else the confidence sequence (valid
+    at any stop, whatever metric decided it). Success's pseudo-worlds weigh as one of the
+    ``worlds_per_seed`` worlds of a seed."""
+    from slam_gym.evaluation import paired
+
+    rate = metric in paired.RATE_METRICS
+    units = paired.cluster_means(differences.differences, differences.cluster_ids)
+    if design != "confidence-sequence" and not rate:
+        design = "confidence-sequence"
+    n = units.shape[-1]
+    interval = paired.sequential_interval(
+        units, design=design, planned_worlds=max(planned_seeds, n), alpha=alpha, rate=rate,
+        look_worlds=[t for t in (look_seeds or [n]) if t <= n] or [n],
+        pseudo_units=1.0 / max(1, worlds_per_seed))
+    return interval
+
+
+def metric_report(rows_a, rows_b, metric: str, worlds: list[tuple] | None = None,
+                  confidence: float = 0.95, *, sequential: dict | None = None) -> dict:
+    """One metric in its reported unit: ``a``, ``b`` (means over the paired worlds),
+    ``difference`` and ``ci`` of B - A, ``worlds`` and ``seeds`` with values, ``left_out``
+    worlds, and :func:`interval_labels`. Fixed-sample intervals (``anytime_valid`` false), or
+    with ``sequential`` (``{"planned_seeds", "design", "look_seeds"}``, level ``confidence``)
+    the sequential look's (:func:`sequential_interval`, ``anytime_valid`` true)."""
     scale = UNIT_SCALE.get(metric, 1.0)
-    a, b, strata = paired_arrays(rows_a, rows_b, metric, worlds)
-    diffs = paired.world_differences(a, b, strata)
+    pw = paired_data(rows_a, rows_b, metric, worlds)
+    diffs = pw.differences()
     report = {"a": None, "b": None, "difference": None, "ci": None, "worlds": len(diffs),
-              "left_out": diffs.n_left_out, "method": None, "unit": UNITS[metric]}
-    keep = np.isfinite(a) & np.isfinite(b)
-    if keep.any():
-        report["a"] = float(scale * a[keep].mean())
-        report["b"] = float(scale * b[keep].mean())
+              "seeds": pw.n_clusters, "left_out": diffs.n_left_out, "method": None,
+              "level": confidence, "anytime_valid": sequential is not None, "icc": None,
+              "effective_worlds": None, "unit": UNITS[metric]}
+    if metric in SURVIVED_METRICS:
+        report["paired_over"] = "pairs of draws where both policies survived"
+    if len(pw):
+        report["a"] = float(scale * pw.a.mean())
+        report["b"] = float(scale * pw.b.mean())
         report["difference"] = report["b"] - report["a"]
-    if len(diffs) >= 2:
-        if metric in paired.RATE_METRICS:
-            interval = paired.matched_rate_interval(diffs.differences, confidence=confidence)
+    if pw.n_clusters >= 2:
+        if sequential is None:
+            interval = fixed_interval(diffs, metric, confidence)
         else:
-            interval = paired.stratified_bootstrap_interval(
-                diffs.differences, diffs.strata, rng=BOOTSTRAP_SEED, confidence=confidence)
+            interval = sequential_interval(diffs, metric, alpha=1.0 - confidence,
+                                           planned_seeds=sequential["planned_seeds"],
+                                           design=sequential.get("design",
+                                                                 "confidence-sequence"),
+                                           look_seeds=sequential.get("look_seeds"),
+                                           worlds_per_seed=sequential.get("worlds_per_seed", 1))
         report["ci"] = [float(scale * interval.lo), float(scale * interval.hi)]
-        report["method"] = interval.method
+        report |= interval_labels(interval, diffs)
+        report["level"] = confidence  # a repeated interval's level is over the design's looks
+        if sequential is not None:
+            report["estimate_per_seed_mean"] = float(scale * interval.estimate)
     return report
 
 
-def oriented(metric: str, a: np.ndarray, b: np.ndarray, strata: np.ndarray):
-    """The declared metric's per-world differences with positive = B better."""
+def oriented(metric: str, rows_a: list[dict], rows_b: list[dict],
+             worlds: list[tuple] | None = None):
+    """The declared metric's per-world differences with positive = B better, with their seeds."""
     from slam_gym.evaluation import paired
 
-    return paired.world_differences(a, b, strata,
-                                    lower_is_better=paired.metric_direction(metric) < 0)
+    return paired_data(rows_a, rows_b, metric, worlds).differences(
+        lower_is_better=paired.metric_direction(metric) < 0)
 
 
 def check_question(metric: str | None, margin: float | None) -> None:
@@ -289,7 +357,7 @@ def compare(
     rows_b: list[dict] = []
     worlds: list[tuple[int, int]] = []
     looks: list[dict] = []
-    look_worlds: list[int] = []  # the worlds with values at each decision look so far
+    look_seeds: list[int] = []  # the seeds with values at each decision look so far
     decision = None
     for batch in range(n_batches):
         first = seed_start + batch * batch_seeds
@@ -305,67 +373,134 @@ def compare(
         worlds += [(level, seed) for seed in seed_list for level in levels]
         if metric is None:
             continue
-        scale = UNIT_SCALE.get(metric, 1.0)
-        d = oriented(metric, *paired_arrays(rows_a, rows_b, metric, worlds))
-        first_look = paired.MIN_WORLDS if max_worlds is not None else 2
-        if len(d) < first_look or (look_worlds and len(d) == look_worlds[-1]):
-            # no sequential decision on fewer worlds (paired.MIN_WORLDS), nor a look again at
-            # the worlds of the last one (a batch whose runs all failed adds none): it could only
-            # repeat that undecided look, and a group-sequential design's looks must add worlds
-            looks.append({"worlds": len(worlds), "decision": "undecided", "oriented_ci": None})
-            continue
-        rate = metric in paired.RATE_METRICS
-        if max_worlds is not None:
-            look_worlds.append(len(d))
-            interval = paired.sequential_interval(d.differences, design=design,
-                                                  planned_worlds=max_worlds,
-                                                  look_worlds=look_worlds, alpha=alpha,
-                                                  rate=rate)
-        elif rate:
-            interval = paired.matched_rate_interval(d.differences, confidence=1 - alpha)
-        else:
-            interval = paired.stratified_bootstrap_interval(
-                d.differences, d.strata, rng=BOOTSTRAP_SEED, confidence=1 - alpha)
-        decision = paired.decide(interval.lo, interval.hi, margin / scale)
-        looks.append({"worlds": len(worlds), "decision": decision,
-                      "oriented_ci": [scale * interval.lo, scale * interval.hi],
-                      "method": interval.method})
+        entry, look_seeds = look(rows_a, rows_b, worlds, metric, margin, alpha=alpha,
+                                 planned_seeds=n_batches * batch_seeds if max_worlds else None,
+                                 design=design, look_seeds=look_seeds)
+        looks.append(entry)
+        decision = entry["decision"]
         if decision != "undecided":
             break
-    metrics = {m: metric_report(rows_a, rows_b, m, worlds, confidence=1 - alpha)
-               for m in METRICS}
-    question = None
-    if metric is not None:
-        question = {"metric": metric, "margin": margin, "unit": UNITS[metric],
-                    "design": design if max_worlds is not None else "fixed",
-                    "max_worlds": max_worlds, "alpha": alpha,
-                    "oriented_ci": looks[-1].get("oriented_ci") if looks else None,
-                    "higher_is_better": paired.metric_direction(metric) > 0}
+    metrics, question = report(rows_a, rows_b, worlds, metric, margin, alpha=alpha,
+                               planned_seeds=n_batches * batch_seeds if max_worlds else None,
+                               design=design, look_seeds=look_seeds, looks=looks,
+                               max_worlds=max_worlds)
     n_errors = sum(r.get("status") == "error" for r in rows_a + rows_b)
     return ComparisonResult(arm_a.label, arm_b.label, decision or ("undecided" if metric else None),
                             question, len(worlds), draws, metrics, looks, rows_a + rows_b, out,
-                            n_errors, spec.env_id, spec.kwargs)
+                            n_errors, level=1.0 - alpha,
+                            seeds=len({w[1] for w in worlds}), env_id=spec.env_id,
+                            env_kwargs=spec.kwargs)
+
+
+def look(rows_a: list[dict], rows_b: list[dict], worlds: list[tuple], metric: str,
+         margin: float, *, alpha: float, planned_seeds: int | None,
+         design: str = "confidence-sequence", look_seeds: list[int] | None = None
+         ) -> tuple[dict, list[int]]:
+    """One look at the question on the rows so far: ``(entry, look_seeds)``, the entry of
+    ``looks`` (``worlds``, ``seeds``, ``decision``, ``oriented_ci``, ``method``) and the seed
+    counts of the sequential looks so far.
+
+    Fixed design (``planned_seeds`` None): the fixed-sample interval on all worlds. Sequential:
+    :func:`slam_gym.evaluation.paired.sequential_decisions`, the loop the calibration tests
+    check, on the per-seed means of the oriented differences (the seeds the independent units),
+    its looks the seed counts so far; no look before :data:`~slam_gym.evaluation.paired.
+    MIN_SEEDS` seeds, nor again at the seeds of the last one (a batch whose runs all failed
+    adds none: it could only repeat that undecided look, and a group-sequential design's looks
+    must add units)."""
+    from slam_gym.evaluation import paired
+
+    scale = UNIT_SCALE.get(metric, 1.0)
+    seen = list(look_seeds or [])
+    d = oriented(metric, rows_a, rows_b, worlds)
+    n_seeds = int(np.unique(d.cluster_ids).size) if len(d) else 0
+    entry = {"worlds": len(worlds), "seeds": len({w[1] for w in worlds}),
+             "decision": "undecided", "oriented_ci": None}
+    rate = metric in paired.RATE_METRICS
+    if planned_seeds is None:
+        if n_seeds < 2:
+            return entry, seen
+        interval = fixed_interval(d, metric, 1.0 - alpha)
+        decision, lo, hi, method = (paired.decide(interval.lo, interval.hi, margin / scale),
+                                    interval.lo, interval.hi, interval.method)
+    else:
+        if n_seeds < paired.MIN_SEEDS or (seen and n_seeds == seen[-1]):
+            return entry, seen
+        seen.append(n_seeds)
+        units = paired.cluster_means(d.differences, d.cluster_ids)
+        out = paired.sequential_decisions(
+            units, margin=margin / scale, alpha=alpha, planned_worlds=max(planned_seeds, n_seeds),
+            rate=rate, design=design, looks=seen,
+            pseudo_units=1.0 / max(1, len({w[0] for w in worlds})))
+        decision, lo, hi, method = out.decision, out.lo, out.hi, out.method
+    entry |= {"decision": decision, "oriented_ci": [scale * lo, scale * hi], "method": method,
+              "anytime_valid": planned_seeds is not None}
+    return entry, seen
+
+
+def report(rows_a: list[dict], rows_b: list[dict], worlds: list[tuple], metric: str | None,
+           margin: float | None, *, alpha: float, planned_seeds: int | None,
+           design: str = "confidence-sequence", look_seeds: list[int] | None = None,
+           looks: list[dict] | None = None, max_worlds: int | None = None
+           ) -> tuple[dict, dict | None]:
+    """Every metric's report (:func:`metric_report` at level ``1 - alpha``: the fixed-sample
+    intervals, or after a sequential run the intervals valid at its stop) and the question."""
+    from slam_gym.evaluation import paired
+
+    sequential = None if planned_seeds is None else {
+        "planned_seeds": planned_seeds, "look_seeds": look_seeds,
+        "worlds_per_seed": len({w[0] for w in worlds}),
+        "design": design if metric in paired.RATE_METRICS else "confidence-sequence"}
+    metrics = {}
+    for m in METRICS:
+        seq = None if sequential is None else (
+            sequential if m == metric else sequential | {"design": "confidence-sequence"})
+        metrics[m] = metric_report(rows_a, rows_b, m, worlds, confidence=1.0 - alpha,
+                                   sequential=seq)
+    question = None
+    if metric is not None:
+        last = (looks or [{}])[-1]
+        question = {"metric": metric, "margin": margin, "unit": UNITS[metric],
+                    "design": design if planned_seeds is not None else "fixed",
+                    "max_worlds": max_worlds, "alpha": alpha,
+                    "oriented_ci": last.get("oriented_ci"), "method": last.get("method"),
+                    "anytime_valid": planned_seeds is not None,
+                    "unit_of_decision": "seed" if planned_seeds is not None else "world "
+                    "(intervals clustered by seed)",
+                    "higher_is_better": paired.metric_direction(metric) > 0}
+    return metrics, question
 
 
 def plan(rows_a: list[dict], rows_b: list[dict], metric: str, margin: float, *,
          alpha: float = 0.05, power: float = 0.8, batch_worlds: int = 1) -> dict:
     """Worlds needed for ``metric`` at ``margin`` (reported unit), sequential and fixed, from the
-    pilot's rows (:func:`slam_gym.evaluation.paired.plan_worlds`)."""
+    pilot's rows, under the clustered model: the pilot's per-seed means of the oriented
+    differences are the independent units (:func:`slam_gym.evaluation.paired.plan_worlds` in
+    seeds), and a seed brings the pilot's worlds per seed (its clutter levels). ``batch_worlds``
+    (a batch's worlds) rounds the seeds up to whole batches."""
     from slam_gym.evaluation import paired
 
     check_question(metric, margin)
     scale = UNIT_SCALE.get(metric, 1.0)
     worlds = sorted({(r["clutter_level"], r["seed"]) for r in rows_a if r.get("status") == "ok"})
-    d = oriented(metric, *paired_arrays(rows_a, rows_b, metric, worlds))
-    require(len(d) >= 2, "pilot", len(d), "at least 2 worlds with values of both policies")
+    d = oriented(metric, rows_a, rows_b, worlds)
+    units = paired.cluster_means(d.differences, d.cluster_ids) if len(d) else np.zeros(0)
+    require(units.size >= 2, "pilot", f"{units.size} seeds",
+            "at least 2 seeds with values of both policies")
+    per_seed = max(1, len({w[0] for w in worlds}))  # the clutter levels: worlds a seed brings
+    batch_seeds = max(1, math.ceil(batch_worlds / per_seed))
     rate = metric in paired.RATE_METRICS
+    icc = paired.intraclass_correlation(d.differences, d.cluster_ids)
     out = {"metric": metric, "margin": margin, "pilot_worlds": len(d),
-           "pilot_mean_difference": float(scale * d.differences.mean())}
+           "pilot_seeds": int(units.size), "worlds_per_seed": per_seed,
+           "pilot_icc": None if icc is None else float(icc),
+           "pilot_mean_difference": float(scale * d.differences.mean()),
+           "unit": "seed (its clutter levels and draws nested)"}
     if rate:
         out["pilot_discordant_worlds"] = int(np.sum(d.differences != 0))
     for sequential in (True, False):
-        p = paired.plan_worlds(d.differences, margin / scale, alpha=alpha, power=power,
-                               sequential=sequential, rate=rate, batch_size=batch_worlds)
-        out["sequential" if sequential else "fixed"] = {"worlds": p.worlds,
-                                                         "sd": float(scale * p.sd)}
+        p = paired.plan_worlds(units, margin / scale, alpha=alpha, power=power,
+                               sequential=sequential, rate=rate, batch_size=batch_seeds,
+                               worlds_per_unit=1 if sequential else per_seed)
+        out["sequential" if sequential else "fixed"] = {
+            "worlds": p.worlds * per_seed, "seeds": p.worlds, "sd": float(scale * p.sd)}
     return out

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from filters.validation import require
+from slam_gym.evaluation.pairing import paired_worlds
 from slam_gym.evaluation.summary import mean_interval, wilson_interval
 
 GOAL_SUCCESS_LOWER_PP = -5.0
@@ -64,7 +65,9 @@ def compare(rows: Sequence[Mapping[str, Any]], reference: Sequence[Mapping[str, 
 
     Success (Wilson interval; the paired difference in points with its t interval over all
     worlds), map error of the runs that did not fail (the paired difference over the worlds
-    where neither failed), mean interface CPU and its ratio to the reference's, mean return at
+    where neither failed: :func:`slam_gym.evaluation.pairing.paired_worlds`, the pairing of
+    ``slam-gym compare`` and the headroom report; ``n_map_pairs`` worlds on ``n_map_seeds``
+    seeds), mean interface CPU and its ratio to the reference's, mean return at
     ``price`` and, against ``return_reference`` (default ``reference``), the paired difference.
     """
     mine, ref = _by_world(rows, "rows"), _by_world(reference, "reference")
@@ -74,9 +77,9 @@ def compare(rows: Sequence[Mapping[str, Any]], reference: Sequence[Mapping[str, 
     successes = sum(bool(mine[w]["success"]) for w in worlds)
     success_diff = [100.0 * (float(mine[w]["success"]) - float(ref[w]["success"]))
                     for w in worlds]
-    both = [w for w in worlds if mine[w]["success"] and ref[w]["success"]
-            and mine[w].get("map_error_m") is not None and ref[w].get("map_error_m") is not None]
-    map_diff = [float(mine[w]["map_error_m"]) - float(ref[w]["map_error_m"]) for w in both]
+    # the one paired map error (slam_gym.evaluation.pairing): the worlds both survived
+    pairs = paired_worlds(reference, rows, "map_error_m")
+    map_diff = [float(v) for v in pairs.b - pairs.a]
     survived = [float(mine[w]["map_error_m"]) for w in worlds
                 if mine[w]["success"] and mine[w].get("map_error_m") is not None]
     cpu = float(np.mean([interface_cpu_s(mine[w]) for w in worlds]))
@@ -93,7 +96,8 @@ def compare(rows: Sequence[Mapping[str, Any]], reference: Sequence[Mapping[str, 
         "map_error_m": float(np.mean(survived)) if survived else math.nan,
         "map_error_diff_m": float(np.mean(map_diff)) if map_diff else math.nan,
         "map_error_diff_ci_m": _interval(map_diff),
-        "n_map_pairs": len(both),
+        "n_map_pairs": len(pairs),
+        "n_map_seeds": pairs.n_clusters,
         "interface_cpu_s": cpu,
         "interface_cpu_ratio": cpu / ref_cpu if ref_cpu > 0 else math.nan,
         "n_fusions": float(np.mean([mine[w]["n_fusions"] for w in worlds])),

@@ -1,154 +1,145 @@
-"""Paired statistics of ``slam-gym compare A B`` (issue 46, items 3-5): fixed-sample intervals, an
-anytime-valid sequential decision and the number of worlds to plan.
+"""Paired statistics of ``slam-gym compare A B`` (issues 46 and 56): fixed-sample intervals, an
+anytime-valid sequential decision and the number of worlds to plan, the seed the independent unit.
 
 The data (docs/ARCHITECTURE.md, "Paired comparison statistics"): policies A and B run on the same
-worlds, each world in a stratum (its clutter level) and run with K filter draws per policy under
-common random numbers. The unit of pairing is the world: per world the mean over its draws of each
-arm's values (:func:`world_means`: the success rate over draws, the mean map error over the draws
-that have one) and the per-world difference ``d_w`` oriented so that positive = B better
-(:func:`world_differences`: ``b - a`` where higher is better, ``a - b`` where lower is better). A
-world where either arm has no value is left out of that metric and counted (``n_left_out``).
-Draws stay nested in their world (averaged before any resampling or variance), so every interval
-here is a cluster interval with the worlds as clusters: the variance of the per-world means is the
-cluster-robust variance of the mean over all runs (Liang & Zeger 1986, one cluster per world).
+worlds, a world being (clutter level, seed), with K filter draws per world and policy under common
+random numbers. Rows are paired once, by :mod:`slam_gym.evaluation.pairing` (per (level, seed,
+draw); the map error over the draws both policies survived), and averaged per world: ``d_w``
+oriented so that positive = B better (:func:`world_differences`: ``b - a`` where higher is better,
+``a - b`` where lower is better). **The seed is the cluster**, its clutter levels and draws nested
+in it (issue 56): a seed's worlds at the four levels share its waypoints, true path, landmarks and
+zones, so they are not independent, and treating them as such understated the variance where the
+seed decides the outcome (the best rule on ZonesStarved-v1 succeeds at all four levels or none on
+6 of 10 seeds). Chosen over "every level its own seeds" because the committed rows run every seed
+at every level and the seed's shared world then cancels in the pairing. Every interval here is a
+cluster interval over seeds (Liang & Zeger 1986); beside each, ``compare`` reports the one-way
+ANOVA intraclass correlation of ``d_w`` within seeds (:func:`intraclass_correlation`, Donner
+1986) and Kish's effective number of independent worlds ``N / (1 + (m0 - 1) ICC)``
+(:func:`effective_worlds`).
 
 What each function computes
 ---------------------------
-- :func:`stratified_bootstrap_interval` (continuous metrics, fixed sample). Estimate
-  ``sum_s (n_s / n) mean_s(d_w)`` (stratum-size weights: the mean of all ``d_w``). Interval:
-  ``scipy.stats.bootstrap`` with each stratum's differences as its own sample and
-  ``paired=False``, which resamples every stratum on its own (a stratified bootstrap, Davison &
-  Hinkley 1997, ch. 3), percentile method. A stratum with one world joins the next clutter level.
-  With the default ``small_sample_correction`` two published corrections for small samples are
-  applied: each stratum resamples the adjusted values ``mean_s + sqrt(n_s / (n_s - 1)) (d_w -
-  mean_s)`` (Davison & Hinkley 1997, ch. 3, so the resampled variance is the unbiased one; with
-  four clutter levels a stratum of 12 worlds otherwise loses 1/12 of the variance), and the
-  quantiles are taken at Hesterberg's (2015) expanded level ``2 Phi(t_{(1+c)/2, n-S}) - 1`` (the
-  t-interval's width on normal data). Percentile rather than BCa because the tests measured it
-  closer to nominal on clustered, heavy-tailed differences (below).
-- :func:`matched_rate_interval` (0/1 metrics, fixed sample). Adjusted Wald interval of Bonett &
-  Price (2012) for matched proportions: add 1 to each discordant cell of the paired 2x2 table,
-  ``n' = n + 2`` (Agresti & Min 2005 add 1/2 to all four cells: ``pseudo_weight=0.5``). Adding
-  the cells is adding pseudo-worlds to the n per-world differences: weight ``w`` at ``d = +1``,
-  ``w`` at ``d = -1`` (and ``2 - 2w`` at 0), so::
+- :func:`cluster_bootstrap_interval` (continuous metrics, fixed sample). Estimate: the mean of
+  all ``d_w`` (``sum_g T_g / sum_g m_g``, ``T_g`` a seed's total over its ``m_g`` worlds).
+  Interval: ``scipy.stats.bootstrap`` resampling whole seeds (the seeds' indices are its samples,
+  the statistic the ratio of the resampled totals and sizes), stratified when clusters sit in
+  one clutter level each (the design where every level has its own seeds; a seed spanning levels
+  is resampled with them), percentile method. Two published small-sample corrections: the seeds'
+  totals are first moved to ``r m_g + sqrt(G/(G-1)) (T_g - r m_g)`` (Davison & Hinkley 1997,
+  ch. 3, adjusted values, here for a ratio: the resampled variance is the cluster-robust CR1
+  one), and the quantiles are taken at Hesterberg's (2015) expanded level ``2 Phi(t_{(1+c)/2,
+  G-S}) - 1`` (G seeds, S strata; Cameron & Miller 2015 on t with G - 1 degrees of freedom).
+  Percentile rather than BCa because the tests measured it closer to nominal (below).
+- :func:`matched_rate_interval` (success, fixed sample). The adjusted Wald interval of Bonett &
+  Price (2012) for matched proportions (add 1 to each discordant cell, ``n' = n + 2``; Agresti &
+  Min 2005 add 1/2 to all four cells: ``pseudo_weight=0.5``), written as pseudo-worlds at +1 and
+  -1 among the per-world differences, with the cluster-robust variance over seeds::
 
-      mean' = sum(d_w) / n'
-      var'  = (sum(d_w^2) + 2 w) / n' - mean'^2
-      mean' +- z_{(1+c)/2} sqrt(var' / n')          (clipped to [-1, 1])
+      mean' = sum(d_w) / (n + 2)
+      var'  = G / (G - 1) (sum_g (T_g - mean' m_g)^2 + 2 w + 2 mean'^2) / (n + 2)^2
+      mean' +- t_{(1+c)/2, G-1} sqrt(var')          (clipped to [-1, 1])
 
-  For K = 1 (``d_w`` in {-1, 0, 1}) this is the published interval exactly (a test checks both
-  weights against the 2x2 formulas). For K > 1 the same pseudo-worlds join the per-world rate
-  differences (``d_w`` in [-1, 1] in steps of 1/K) and ``var'`` is the variance of the world
-  means, i.e. cluster-robust: this generalisation is ours. No discordant world (identical arms)
-  gives ``0 +- z sqrt(2) / n'``, where the bootstrap gives [0, 0]. Bonett-Price rather than
-  Agresti-Min because, when B only ever loses (one-directional discordance) at a few per cent,
-  Agresti-Min's interval missed the truth too often (measured below).
-- :func:`confidence_sequence` (sequential, any metric). The asymptotic confidence sequence of
-  Waudby-Smith, Arbour, Sinha, Kennedy & Ramdas (2021), "Time-uniform central limit theory and
-  asymptotic confidence sequences" (arXiv:2103.06476), with its two-sided normal-mixture boundary
-  (Robbins 1970)::
+  Every world its own cluster and without the small-sample correction (CR1 factor, t) it is the
+  published interval exactly (a test checks both weights against the 2x2 formulas); the cluster
+  version is ours. Bonett-Price rather than Agresti-Min because, when B only ever loses at a few
+  per cent, Agresti-Min's interval missed the truth too often (measured below).
+- :func:`confidence_sequence` (sequential, any metric, on per-seed means). The asymptotic
+  confidence sequence of Waudby-Smith, Arbour, Sinha, Kennedy & Ramdas (2021), arXiv:2103.06476,
+  with its two-sided normal-mixture boundary (Robbins 1970)::
 
       mean_t +- sd_t sqrt(2 (t rho^2 + 1) / (t^2 rho^2) log(sqrt(t rho^2 + 1) / alpha))
 
-  ``P(exists t: true mean outside) <= alpha`` asymptotically: it may be looked at after every
-  batch and the comparison stopped at any data-dependent time. ``rho`` makes it narrowest at the
-  planned number of worlds ``t*`` (:func:`cs_rho`, exactly: ``t* rho^2 = -W_{-1}(-alpha^2 / e) -
-  1``, W the lower branch of Lambert's function, ``scipy.special.lambertw``); there the
-  half-width is ``c(alpha) sd / sqrt(t*)``, ``c(0.05) = 3.04`` (:func:`cs_multiplier`; a fixed
-  interval has 1.96). ``sd_t`` is the sample standard deviation (``ddof=1``); for success
-  (``rate=True``) mean, variance and ``t = n + 2`` are those of the sample with the pseudo-worlds
-  above, so zero discordance still gives a finite, shrinking width. ``planned_worlds`` must be
-  fixed before the first look; strata are pooled (batches balanced over clutter levels keep the
-  pooled mean on the balanced mix; pooling only adds the between-level variance).
-- :func:`group_sequential_bounds` and :func:`repeated_confidence_interval` (sequential,
-  success only: ``design="group-sequential"``). A group-sequential design planned for
-  ``planned_worlds`` worlds, its looks at information fractions ``n_k / planned_worlds``: each
-  side spends Lan & DeMets' (1983) O'Brien-Fleming-type function at ``alpha / 2``
-  (:func:`obrien_fleming_spending`, gsDesign's symmetric ``sfLDOF``), the bounds ``c_k`` come
-  from Armitage, McPherson & Rowe's (1969) recursion, and a look's interval is the repeated
-  confidence interval ``mean +- c_k sd / sqrt(t)`` (Jennison & Turnbull 1989; the moments with
-  the pseudo-worlds as above). Its last bound is ~2.1-2.2 for looks every 8 worlds up to 200-400
-  (the sequence's 3.04): about half the worlds for a decision that comes late. The price: the
-  plan is a commitment (raising ``planned_worlds`` after seeing rows voids it), and its Wald
-  intervals are tight enough for skew to show, so it is offered for success only
-  (:func:`check_design`).
+  ``P(exists t: true mean outside) <= alpha`` asymptotically, so it may be looked at after every
+  batch and stopped at any data-dependent time. Its units are the seeds (:func:`cluster_means`:
+  the per-seed mean differences, i.i.d. across seeds). ``rho`` makes it narrowest at the planned
+  number of seeds ``t*`` (:func:`cs_rho`: ``t* rho^2 = -W_{-1}(-alpha^2 / e) - 1``, Lambert's W
+  from ``scipy.special``), where its half-width is ``c(alpha) sd / sqrt(t*)``, ``c(0.05) =
+  3.04`` (:func:`cs_multiplier`). For success the moments are those of the units with the
+  pseudo-worlds above, each the size of one world (``pseudo_units = 1 / worlds per seed``), so
+  zero discordance still gives a finite, shrinking width. It pools the clutter levels: each unit
+  already averages its seed's levels, so the levels' differences do not enter its variance.
+- :func:`group_sequential_bounds` and :func:`repeated_confidence_interval` (sequential, success
+  only: ``design="group-sequential"``). A design planned for ``planned_worlds`` units (seeds), its
+  looks at information fractions ``n_k / planned``: each side spends Lan & DeMets' (1983)
+  O'Brien-Fleming-type function at ``alpha / 2`` (:func:`obrien_fleming_spending`, gsDesign's
+  ``sfLDOF``), bounds ``c_k`` by Armitage, McPherson & Rowe's (1969) recursion, and a look's
+  interval the repeated confidence interval ``mean +- c_k sd / sqrt(t)`` (Jennison & Turnbull
+  1989) on the units' moments as above. The plan is a commitment (raising ``planned`` after
+  seeing rows voids it), and its Wald intervals are tight enough for skew to show, so it is
+  offered for success only (:func:`check_design`).
 - :func:`decide`: the decision rule below on any ``[lo, hi]``.
-- :func:`sequential_decisions`: the looks after every batch of worlds (run order), from
-  :data:`MIN_WORLDS` = 16 on, stopping at the first decided look; vectorised over leading axes
-  (the tests run thousands of comparisons at once).
-- :func:`plan_worlds`: worlds needed to decide ``not worse`` with probability ``power`` when the
-  true difference is ``expected_difference``, from a pilot's per-world standard deviation ``s``
-  (for success essentially the discordance). Continuous: ``n = ((k + z_power) s /
+- :func:`sequential_decisions`: **the one sequential loop**. ``compare`` calls it after every
+  batch on the per-seed means so far with its looks (the seed counts after each batch,
+  :func:`slam_gym.evaluation.compare.look`); the calibration tests call it on simulated units.
+  No decision before :data:`MIN_SEEDS` = 16 seeds; vectorised over leading axes.
+- :func:`plan_worlds`: units (seeds) needed to decide ``not worse`` with probability ``power``
+  when the true difference is ``expected_difference``, from a pilot's per-seed means (the
+  clustered model: their SD holds the seed effect). Continuous: ``n = ((k + z_power) s /
   (expected_difference + margin))^2`` with ``k = z_{1-alpha/2}`` (fixed) or ``c(alpha)``
-  (sequential, the sequence tuned to ``t* = n``: the plan's power is that of the last look
-  alone, the earlier looks only add). Success: the same condition with the pseudo-worlds'
-  variance and shrinkage, solved for n (see its docstring).
+  (sequential, tuned to ``t* = n``); success: the same condition with the pseudo-worlds, for
+  seeds of ``worlds_per_unit`` worlds; ``compare --plan`` multiplies by the clutter levels.
 
 The decision rule
 -----------------
 On a two-sided ``1 - alpha`` interval or confidence sequence ``[lo, hi]`` of the oriented mean
 difference (positive = B better) and a margin ``m >= 0``, in this order: ``better`` if
-``lo > 0``; ``not worse`` if ``lo > -m``; ``worse`` if ``hi < -m``; else ``undecided``. Its
-error: when the true difference is ``-m`` (or lower), a ``better``/``not worse`` verdict has
-probability at most ``alpha / 2`` nominally for a fixed interval, and at most ``alpha`` for the
-sequence over all looks together (the tests check this ``alpha``); symmetrically for ``worse``
-when the truth is ``-m`` or higher. Orientation (:func:`metric_direction`): success, NEES in-band
-fraction and return, higher is better; map error and interface CPU, lower is better; ANEES is
-reported as ``b - a`` without a decision, since its better is closeness to the NEES dimension (3
-for a pose), not a direction, and the in-band fraction already asks the consistency question
-with one.
+``lo > 0``; ``not worse`` if ``lo > -m``; ``worse`` if ``hi < -m``; else ``undecided``. It is a
+non-inferiority test, not an equivalence test (that would be two one-sided tests against
+``-m`` and ``+m``). Its error: when the true difference is ``-m`` (or lower), a ``better``/``not
+worse`` verdict has probability at most ``alpha / 2`` nominally for a fixed interval, and at most
+``alpha`` for the sequence over all looks together (the tests check this ``alpha``). Orientation
+(:func:`metric_direction`): success, NEES in-band fraction and return, higher is better; map
+error and interface CPU, lower is better; ANEES is reported as ``b - a`` without a decision.
 
 Written here, and why
 ---------------------
-From libraries: the bootstrap (``scipy.stats.bootstrap``), the quantiles (``scipy.stats.norm``,
-``scipy.stats.t``), Lambert's W (``scipy.special``). Written here, because no installed,
-maintained library has them: the adjusted-Wald matched-pairs interval and its cluster version
-(statsmodels has McNemar's test and intervals for independent proportions, not this one), the
-asymptotic confidence sequence (its authors publish R code and a research package), the small-
-sample corrections around the bootstrap call, the group-sequential bounds (R's gsDesign and
-rpact have them), the decision rule and the plan (statsmodels'
-``normal_sample_size_one_tail`` is the continuous fixed-sample formula only, and statsmodels
-and its pandas would be new dependencies for one line of ``norm.ppf``). Each is checked by
-simulation in ``tests/slam_gym/test_paired.py``.
+From libraries: the bootstrap's resampling and percentile/BCa quantiles
+(``scipy.stats.bootstrap``), the quantiles (``scipy.stats.norm``, ``scipy.stats.t``), Lambert's W
+(``scipy.special``), root finding (``scipy.optimize.brentq``). Written here, because no installed,
+maintained Python library has them: the cluster adjusted-Wald interval (statsmodels, not a
+dependency, has McNemar's test and intervals for independent proportions, not this one), the
+cluster-robust sums, ICC and Kish's effective size (a few lines each; statsmodels' MixedLM
+would be a new dependency for a variance ratio), the small-sample corrections around the
+bootstrap call, the asymptotic confidence sequence (its authors publish R code), the
+group-sequential bounds (R's gsDesign and rpact have them), the decision rule and the plan.
+Each is checked by simulation in ``tests/slam_gym/test_paired.py``; each calibration test names
+the mutation it was checked against (it fails under it).
 
 Measured by those tests (seeded; Monte Carlo standard error 0.7 pp at 95 % over 1 000 trials,
-0.35 pp over 4 000; the full table is in docs/ARCHITECTURE.md, "Paired comparison statistics"):
-- bootstrap, map errors of 3 draws (B 20 % lower, 10 % of runs without a value, differences of
-  skewness ~1 and excess kurtosis ~9): coverage 0.938 at 96 worlds; 0.939 at 48 worlds, where
-  BCa (same corrections) covered 0.925;
-- success interval, 9 scenarios (1 or 3 draws, 40-96 worlds, moderate, rare, one-directional
-  and zero discordance, clustered and independent draws): coverage 0.943-1.000; Agresti-Min's
-  weight 0.921 where B only loses 7 pp on 80 worlds (Bonett-Price 0.976);
-- sequential, true difference exactly -5 pp = -margin, looks every 8 worlds from 16 to 96 or 200:
-  ``not worse`` declared in 0.000-0.026 of 4 000 comparisons for success (3 scenarios) and
-  0.040 / 0.034 for left-skewed continuous differences (skewness 1.75), against alpha = 0.05; a
-  one-sided level-0.05 t-test repeated at the same looks declared it in 0.20-0.55;
-- identical arms (no discordant world) decide ``not worse`` at margin 5 / 10 / 20 pp after
-  88 / 48 / 24 worlds (about 4.3 / margin); success 20 pp worse decides ``worse`` (median 64
-  worlds, 0.917 by 96, 1.000 by 200);
-- group-sequential design: bounds equal to gsDesign's published ones for five looks (to 1e-3);
-  on 200 000 Brownian paths seen at 16, 24, ..., 200 of 200 worlds it crosses with probability
-  0.05 (within 3 MC SE) and by each look at most its spending; false ``not worse`` at the
-  -5 pp null 0.011-0.052 over the three success scenarios (0.052 where B only ever loses, on
-  5 % of worlds: its one-sided nominal is 0.025), against the sequence's 0.000-0.026; with
-  success 11 pp lower (per-world SD ~0.34), margin 5 pp, at most 400 worlds, it answers
-  ``worse`` in 0.887 of 1 000 comparisons against the sequence's 0.671. On left-skewed
-  continuous differences (skewness 1.75) it declared a false ``not worse`` 0.064 at 96 worlds
-  and 0.044 at 200: hence success only;
-- plans: fixed 0.807 power for 0.80 planned; sequential 0.857 / 0.856 (continuous / success).
-Outside what the tests assert (scratch runs of the same generators): heavier-tailed map errors
-(world spread 0.6 instead of 0.3 in log, skewness 2-3.5) covered 0.91 at 48 worlds and 0.93 at
-96; differences of skewness 6 (lognormal sigma 1) pushed the sequence's false ``not worse`` to
-0.12-0.13 (0.06-0.08 with the first look at 48 worlds). Intervals resting on a central limit
-theorem need more worlds than this when a metric has rare huge values.
+0.35 pp over 4 000):
+- cluster bootstrap, map errors of 3 draws on 24 seeds x 4 levels (B 20 % lower, 10 % of runs
+  without a value, skewness ~1, excess kurtosis ~9): coverage 0.931; on 12 seeds x 4 levels 0.950
+  (BCa 0.930); 8 seeds with a strong seed effect 0.952 (0.88 without the small-sample
+  correction); 12 seeds, strong seed effect 0.938 (0.72 with the levels as independent worlds);
+  every level its own 6 seeds, level means 90x apart: 0.953 (1.000 ignoring the strata);
+- success, worlds independent (1 or 3 draws, 40-96 worlds, moderate, rare and one-directional
+  discordance, clustered draws): coverage 0.945-1.000; Agresti-Min's weight 0.921 where B only
+  loses 7 pp on 80 worlds; with a strong seed effect (10 or 20 seeds x 4 levels x 2 draws)
+  0.961 / 0.957, against 0.75 / 0.74 with the levels as independent worlds and 0.60 with the
+  draws as independent worlds;
+- sequential, true difference exactly -5 pp = -margin: ``not worse`` in 0.000-0.026 of 4 000
+  comparisons (sequence) and 0.011-0.052 (group-sequential) on worlds as units; on seeds as
+  units with a strong seed effect 0.015 / 0.037; left-skewed continuous differences 0.040 /
+  0.034; normal units, margin 0, looks every 2 seeds from 16 to 100: two-sided error 0.025
+  (0.050 with the boundary 10 % narrower);
+- identical arms (no discordant seed, 4 levels a seed) decide ``not worse`` at 5 pp after 44
+  seeds (176 worlds);
+- group-sequential bounds equal gsDesign's for five looks (to 1e-3); on 200 000 Brownian paths
+  the crossing probability is alpha within 3 MC SE;
+- plans: fixed 0.81 power for 0.80 planned (271 seeds; 93 if the levels were independent
+  worlds, power 0.31); sequential at least 0.80.
+Outside what the tests assert: differences of skewness 6 (lognormal sigma 1) pushed the
+sequence's false ``not worse`` to 0.12-0.13 on worlds as units; intervals resting on a central
+limit theorem need more seeds than this when a metric has rare huge values.
 
 References: Efron (1987) JASA 82, 171-185; Davison & Hinkley (1997) Bootstrap Methods and their
-Application, CUP; Hesterberg (2015) Am. Stat. 69, 371-386; Agresti & Min (2005) Stat. Med. 24,
-729-740; Bonett & Price (2012) J. Educ. Behav. Stat. 37, 479-488; Liang & Zeger (1986)
-Biometrika 73, 13-22; Lan & DeMets (1983) Biometrika 70, 659-663; Armitage, McPherson & Rowe
-(1969) J. R. Stat. Soc. A 132, 235-244; Jennison & Turnbull (1989) J. R. Stat. Soc. B 51,
-305-361, and (2000) Group Sequential Methods with Applications to Clinical Trials, CRC;
-Robbins (1970) Ann. Math. Statist. 41, 1397-1409; Waudby-Smith, Arbour,
+Application, CUP; Hesterberg (2015) Am. Stat. 69, 371-386; Cameron & Miller (2015) J. Human
+Resources 50, 317-372; Donner (1986) Int. Stat. Rev. 54, 67-82; Kish (1965) Survey Sampling,
+Wiley; Agresti & Min (2005) Stat. Med. 24, 729-740; Bonett & Price (2012) J. Educ. Behav. Stat.
+37, 479-488; Liang & Zeger (1986) Biometrika 73, 13-22; Lan & DeMets (1983) Biometrika 70,
+659-663; Armitage, McPherson & Rowe (1969) J. R. Stat. Soc. A 132, 235-244; Jennison & Turnbull
+(1989) J. R. Stat. Soc. B 51, 305-361, and (2000) Group Sequential Methods with Applications to
+Clinical Trials, CRC; Robbins (1970) Ann. Math. Statist. 41, 1397-1409; Waudby-Smith, Arbour,
 Sinha, Kennedy & Ramdas (2021) arXiv:2103.06476.
 """
 
@@ -180,13 +171,15 @@ DECISIONS = ("better", "not worse", "worse", "undecided")
 
 BOOTSTRAP_METHODS = ("percentile", "BCa", "basic")
 
-MIN_WORLDS = 16
-"""No sequential decision before this many worlds (:func:`sequential_decisions`)."""
+MIN_SEEDS = 16
+"""No sequential decision before this many independent units (seeds;
+:func:`sequential_decisions`)."""
 
 
 @dataclass(frozen=True, eq=False)
 class WorldDifferences:
-    """Per-world oriented differences of one metric (positive = B better) and their strata."""
+    """Per-world oriented differences of one metric (positive = B better), their strata and
+    their clusters (:mod:`slam_gym.evaluation.pairing`: the seed)."""
 
     differences: np.ndarray
     """``(n,)`` finite ``d_w``."""
@@ -194,9 +187,16 @@ class WorldDifferences:
     """``(n,)`` int stratum (clutter level) of each world."""
     n_left_out: int
     """Worlds dropped because either arm had no (finite) value."""
+    clusters: np.ndarray | None = None
+    """``(n,)`` int cluster (seed) of each world; None: every world its own cluster."""
 
     def __len__(self) -> int:
         return int(self.differences.shape[0])
+
+    @property
+    def cluster_ids(self) -> np.ndarray:
+        """The clusters, every world its own where none were given."""
+        return np.arange(len(self)) if self.clusters is None else self.clusters
 
 
 @dataclass(frozen=True)
@@ -212,6 +212,11 @@ class Interval:
     level: float
     """Two-sided confidence (``1 - alpha`` for a confidence sequence)."""
     method: str
+    n_clusters: int | None = None
+    """The independent units (seeds) behind it; None: every world its own."""
+    anytime_valid: bool = False
+    """True for an interval that holds at a data-dependent stopping time (a confidence
+    sequence, or a group-sequential design's repeated interval over its looks)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -226,7 +231,9 @@ class SequentialOutcome:
     lo: Any
     hi: Any
     looks: tuple[int, ...]
-    """The numbers of worlds at which the sequence was looked at."""
+    """The numbers of units (seeds) at which the sequence was looked at."""
+    method: str = "asymptotic-cs"
+    """The interval of the looks (:data:`SEQUENTIAL_DESIGNS`' ``method`` names)."""
 
 
 @dataclass(frozen=True)
@@ -253,42 +260,101 @@ def metric_direction(metric: str) -> int:
     return -1 if metric in LOWER_IS_BETTER else 0
 
 
-def world_means(values: Any) -> np.ndarray:
-    """Per-world mean over draws of an ``(n_worlds, K)`` array; NaN draws are left out, a world
-    with no finite draw is NaN (left out later by :func:`world_differences`)."""
-    v = np.asarray(values, dtype=float)
-    require(v.ndim == 2 and v.shape[0] >= 1 and v.shape[1] >= 1, "values", f"shape {v.shape}",
-            "a 2-D array (n_worlds >= 1, draws >= 1)")
-    ok = np.isfinite(v)
-    count = ok.sum(axis=1)
-    total = np.where(ok, v, 0.0).sum(axis=1)
-    return np.divide(total, count, out=np.full(v.shape[0], np.nan), where=count > 0)
-
-
-def world_differences(a: Any, b: Any, strata: Any = None, *,
-                      lower_is_better: bool = False) -> WorldDifferences:
+def world_differences(a: Any, b: Any, strata: Any = None, *, clusters: Any = None,
+                      lower_is_better: bool = False, n_left_out: int = 0) -> WorldDifferences:
     """Oriented per-world differences from per-world aggregates ``a`` and ``b`` (``(n,)`` each).
 
     ``d_w = b_w - a_w`` (``a_w - b_w`` if ``lower_is_better``); a world where either value is not
-    finite is left out and counted in ``n_left_out``. ``strata`` (``(n,)`` ints, default all 0)
-    follow their worlds."""
+    finite is left out and counted in ``n_left_out`` (added to the given ``n_left_out``: worlds
+    dropped before). ``strata`` and ``clusters`` (``(n,)`` ints; default all 0, and every world
+    its own cluster) follow their worlds."""
     a_ = np.asarray(a, dtype=float)
     b_ = np.asarray(b, dtype=float)
-    require(a_.ndim == 1 and a_.size >= 1, "a", f"shape {a_.shape}", "a non-empty 1-D array")
+    require(a_.ndim == 1, "a", f"shape {a_.shape}", "a 1-D array")
+    require(a_.size >= 1 or n_left_out > 0, "a", f"shape {a_.shape}", "a non-empty 1-D array")
     require(b_.shape == a_.shape, "b", f"shape {b_.shape}", f"the shape of a, {a_.shape}")
-    if strata is None:
-        s = np.zeros(a_.shape, dtype=int)
-    else:
-        s = np.asarray(strata)
-        require(s.shape == a_.shape, "strata", f"shape {s.shape}", f"the shape of a, {a_.shape}")
-        require(s.size == 0 or np.issubdtype(s.dtype, np.integer), "strata", f"dtype {s.dtype}",
-                "integers (clutter levels)")
+    labels = []
+    for name, given in (("strata", strata), ("clusters", clusters)):
+        if given is None:
+            labels.append(None)
+            continue
+        v = np.asarray(given)
+        require(v.shape == a_.shape, name, f"shape {v.shape}", f"the shape of a, {a_.shape}")
+        require(v.size == 0 or np.issubdtype(v.dtype, np.integer), name, f"dtype {v.dtype}",
+                "integers")
+        labels.append(v.astype(int))
+    s = np.zeros(a_.shape, dtype=int) if labels[0] is None else labels[0]
     keep = np.isfinite(a_) & np.isfinite(b_)
     d = (a_ - b_) if lower_is_better else (b_ - a_)
-    d, s = d[keep], s[keep].astype(int)
-    d.flags.writeable = False
-    s.flags.writeable = False
-    return WorldDifferences(differences=d, strata=s, n_left_out=int((~keep).sum()))
+    d, s = d[keep], s[keep]
+    c = None if labels[1] is None else labels[1][keep]
+    for array in (d, s, c):
+        if array is not None:
+            array.flags.writeable = False
+    return WorldDifferences(differences=d, strata=s, clusters=c,
+                            n_left_out=int(n_left_out) + int((~keep).sum()))
+
+
+def cluster_index(clusters: Any, n: int) -> tuple[np.ndarray, int]:
+    """``(n,)`` cluster labels (None: every world its own) as indices 0..G-1, and G."""
+    if clusters is None:
+        return np.arange(n), n
+    c = np.asarray(clusters)
+    require(c.shape == (n,), "clusters", f"shape {c.shape}", f"one label per world, ({n},)")
+    require(np.issubdtype(c.dtype, np.integer), "clusters", f"dtype {c.dtype}", "integers")
+    labels, index = np.unique(c, return_inverse=True)
+    return index.reshape(-1), int(labels.size)
+
+
+def cluster_sums(values: np.ndarray, index: np.ndarray, g: int) -> np.ndarray:
+    """``(..., G)`` sums over the last axis of ``values`` ``(..., n)`` by cluster ``index``."""
+    order = np.argsort(index, kind="stable")
+    sorted_index = index[order]
+    starts = np.flatnonzero(np.r_[True, sorted_index[1:] != sorted_index[:-1]])
+    out = np.zeros(values.shape[:-1] + (g,))
+    out[..., sorted_index[starts]] = np.add.reduceat(values[..., order], starts, axis=-1)
+    return out
+
+
+def cluster_means(differences: Any, clusters: Any = None) -> np.ndarray:
+    """Per-cluster means ``(..., G)`` of per-world differences ``(..., n)`` (clusters in sorted
+    label order): the independent units a sequential look or a plan counts."""
+    d = np.asarray(differences, dtype=float)
+    index, g = cluster_index(clusters, d.shape[-1])
+    return cluster_sums(d, index, g) / np.bincount(index, minlength=g)
+
+
+def intraclass_correlation(differences: Any, clusters: Any = None) -> float | None:
+    """The one-way ANOVA estimate of the intraclass correlation of the per-world differences
+    within clusters (seeds), for unequal cluster sizes (Donner 1986): ``(MSB - MSW) / (MSB +
+    (m0 - 1) MSW)``, ``m0 = (N - sum m_g^2 / N) / (G - 1)``. None where undefined (fewer than 2
+    clusters, no cluster with 2 worlds, or no variance); negative values are returned as they
+    are (the clusters vary less than chance), :func:`effective_worlds` reads them as 0."""
+    d = np.asarray(differences, dtype=float).ravel()
+    index, g = cluster_index(clusters, d.size)
+    n = d.size
+    if g < 2 or g >= n:
+        return None
+    m = np.bincount(index, minlength=g).astype(float)
+    means = np.bincount(index, weights=d, minlength=g) / m
+    msb = float(np.sum(m * (means - d.mean()) ** 2) / (g - 1))
+    msw = float(np.sum((d - means[index]) ** 2) / (n - g))
+    m0 = (n - float(np.sum(m * m)) / n) / (g - 1)
+    denom = msb + (m0 - 1.0) * msw
+    if not denom > 0.0:
+        return None
+    return (msb - msw) / denom
+
+
+def effective_worlds(n_worlds: int, clusters: Any = None, icc: float | None = None) -> float:
+    """Kish's effective number of independent worlds, ``N / (1 + (m0 - 1) max(icc, 0))``, ``m0``
+    the ANOVA's average cluster size (:func:`intraclass_correlation`); ``N`` with no ICC."""
+    if icc is None or n_worlds < 2:
+        return float(n_worlds)
+    index, g = cluster_index(clusters, n_worlds)
+    m = np.bincount(index, minlength=g).astype(float)
+    m0 = (n_worlds - float(np.sum(m * m)) / n_worlds) / max(g - 1, 1)
+    return float(n_worlds / (1.0 + (m0 - 1.0) * max(icc, 0.0)))
 
 
 def _differences(differences: Any, *, min_worlds: int = 2, rate: bool = False,
@@ -315,7 +381,7 @@ def _alpha(alpha: float) -> float:
 
 
 def _merge_small_strata(strata: np.ndarray) -> np.ndarray:
-    """Relabel so that every stratum has >= 2 worlds: a stratum with one world joins the next
+    """Relabel so that every stratum has >= 2 clusters: a stratum with one joins the next
     clutter level present (the previous one for the highest)."""
     s = strata.copy()
     while True:
@@ -328,33 +394,41 @@ def _merge_small_strata(strata: np.ndarray) -> np.ndarray:
         s[s == levels[i]] = levels[j]
 
 
-def _adjusted_values(d: np.ndarray, strata: np.ndarray) -> np.ndarray:
-    """Davison & Hinkley's adjusted values: within each stratum ``mean_s + sqrt(n_s/(n_s - 1)) *
-    (d - mean_s)``, whose resampled stratum mean has the unbiased variance ``s_s^2 / n_s``."""
-    out = d.copy()
-    for level in np.unique(strata):
-        k = strata == level
-        n_s = int(k.sum())
-        mean = d[k].mean()
-        out[k] = mean + math.sqrt(n_s / (n_s - 1.0)) * (d[k] - mean)
-    return out
+MIXED_STRATUM = -(2**31)
+"""The stratum of a cluster whose worlds span several clutter levels (a seed run at every
+level): such clusters are resampled together, the levels nested in them."""
 
 
-def stratified_bootstrap_interval(differences: Any, strata: Any = None, *,
-                                  rng: np.random.Generator | int, confidence: float = 0.95,
-                                  n_resamples: int = 9999, method: str = "percentile",
-                                  small_sample_correction: bool = True) -> Interval:
+def cluster_strata(strata: np.ndarray, index: np.ndarray, g: int) -> np.ndarray:
+    """``(G,)`` the stratum of each cluster: its worlds' clutter level where they share one,
+    else :data:`MIXED_STRATUM`."""
+    lo = np.full(g, np.iinfo(np.int64).max)
+    hi = np.full(g, np.iinfo(np.int64).min)
+    np.minimum.at(lo, index, strata)
+    np.maximum.at(hi, index, strata)
+    return np.where(lo == hi, lo, MIXED_STRATUM)
+
+
+def cluster_bootstrap_interval(differences: Any, strata: Any = None, clusters: Any = None, *,
+                               rng: np.random.Generator | int, confidence: float = 0.95,
+                               n_resamples: int = 9999, method: str = "percentile",
+                               small_sample_correction: bool = True) -> Interval:
     """Stratified cluster bootstrap interval of the mean per-world difference (fixed sample).
 
-    ``differences`` ``(n,)`` finite per-world differences (draws already averaged: worlds are
-    the resampled clusters), ``strata`` ``(n,)`` their clutter levels (default one stratum; a
-    stratum with one world joins the next level). Estimate ``sum_s (n_s/n) mean_s``, each stratum
-    resampled on its own by ``scipy.stats.bootstrap`` (``method`` ``"percentile"``, ``"BCa"`` or
-    ``"basic"``). ``small_sample_correction``: resample the adjusted values of
-    :func:`_adjusted_values` and ask for the expanded level ``2 Phi(t_{(1+c)/2, n-S}) - 1`` (S
-    strata), so the interval has the width of a Student-t interval on normal data. Differences
-    constant within every stratum give the estimate as the interval (no resampling variance; use
-    :func:`matched_rate_interval` for 0/1 metrics)."""
+    ``differences`` ``(n,)`` finite per-world differences (draws already averaged), ``strata``
+    their clutter levels (default one), ``clusters`` their seeds (default every world its own).
+    Estimate: the mean of all ``d_w`` (``sum_g T_g / sum_g m_g``, ``T_g`` a cluster's total over
+    its ``m_g`` worlds). Resampled: whole clusters, by ``scipy.stats.bootstrap`` (the clusters'
+    indices as its samples), within each cluster stratum (a cluster's clutter level, or one
+    stratum for clusters that span levels; a stratum of one cluster joins the next level), the
+    estimate over a stratum the ratio of its resampled totals and sizes, weighted by the
+    stratum's share of worlds. ``small_sample_correction``: the clusters' totals are first
+    moved to ``r_s m_g + sqrt(G_s / (G_s - 1)) (T_g - r_s m_g)`` (Davison & Hinkley's adjusted
+    values for a ratio, ``r_s`` the stratum's ratio: the resampled variance is then the
+    cluster-robust CR1 one) and the level asked is ``2 Phi(t_{(1+c)/2, G - S}) - 1`` (Hesterberg
+    2015; G clusters, S strata: the width of a t-interval with the cluster count's degrees of
+    freedom, Cameron & Miller 2015). Differences constant within every stratum give the
+    estimate as the interval."""
     d = _differences(differences, one_d=True)
     conf = _confidence(confidence)
     check_int_range("n_resamples", n_resamples, 99)
@@ -365,40 +439,60 @@ def stratified_bootstrap_interval(differences: Any, strata: Any = None, *,
     require(s.shape == d.shape, "strata", f"shape {s.shape}",
             f"the shape of differences, {d.shape}")
     require(np.issubdtype(s.dtype, np.integer), "strata", f"dtype {s.dtype}", "integers")
-    s = _merge_small_strata(s.astype(int))
-    levels = np.unique(s)
-    weights = np.array([np.count_nonzero(s == level) for level in levels], dtype=float) / d.size
-
-    def statistic(*groups: np.ndarray, axis: int = -1) -> np.ndarray:
-        return sum(w * np.mean(g, axis=axis) for w, g in zip(weights, groups, strict=True))
-
-    estimate = float(statistic(*(d[s == level] for level in levels)))
-    name = f"stratified-bootstrap-{method}"
-    if all(np.ptp(d[s == level]) == 0 for level in levels):
-        return Interval(estimate, estimate, estimate, int(d.size), conf, name)
+    index, g = cluster_index(clusters, d.size)
+    require(g >= 2, "clusters", f"{g} cluster", "at least 2 clusters (seeds)")
+    totals = np.bincount(index, weights=d, minlength=g)
+    sizes = np.bincount(index, minlength=g).astype(float)
+    cs = _merge_small_strata(cluster_strata(s.astype(np.int64), index, g))
+    levels = np.unique(cs)
+    members = [np.flatnonzero(cs == level) for level in levels]
+    weights = np.array([sizes[k].sum() for k in members]) / d.size
+    estimate = float(totals.sum() / sizes.sum())
+    name = f"cluster-bootstrap-{method}"
+    ratios = [totals[k].sum() / sizes[k].sum() for k in members]
+    scale_ = max(1.0, float(np.abs(d).max()))
+    if all(np.abs(totals[k] - r * sizes[k]).max() <= 1e-12 * scale_ * sizes[k].max()
+           for k, r in zip(members, ratios, strict=True)):  # no cluster varies: nothing to resample
+        return Interval(estimate, estimate, estimate, int(d.size), conf, name, g)
     level_asked = conf
     if small_sample_correction:
-        d = _adjusted_values(d, s)
-        q = stats.t.ppf(0.5 + conf / 2.0, d.size - levels.size)
+        for k, r in zip(members, ratios, strict=True):
+            totals[k] = r * sizes[k] + math.sqrt(k.size / (k.size - 1.0)) * (totals[k]
+                                                                            - r * sizes[k])
+        q = stats.t.ppf(0.5 + conf / 2.0, g - levels.size)
         level_asked = float(2.0 * stats.norm.cdf(q) - 1.0)
         name += "-corrected"
-    samples = tuple(d[s == level] for level in levels)
+
+    def statistic(*groups: np.ndarray, axis: int = -1) -> np.ndarray:
+        out = 0.0
+        for w, group in zip(weights, groups, strict=True):
+            k = group.astype(np.int64)
+            out = out + w * totals[k].sum(axis=axis) / sizes[k].sum(axis=axis)
+        return out
+
+    samples = tuple(k.astype(float) for k in members)
     res = stats.bootstrap(samples, statistic, n_resamples=n_resamples, vectorized=True,
                           paired=False, confidence_level=level_asked, method=method,
                           rng=np.random.default_rng(rng))
     lo, hi = float(res.confidence_interval.low), float(res.confidence_interval.high)
-    return Interval(estimate, lo, hi, int(d.size), conf, name)
+    return Interval(estimate, lo, hi, int(d.size), conf, name, g)
 
 
-def _augmented_moments(d: np.ndarray, pseudo_weight: float
+def _augmented_moments(d: np.ndarray, pseudo_weight: float, pseudo_units: float = 1.0
                        ) -> tuple[np.ndarray, np.ndarray, float]:
     """Pseudo-worlds of weight ``pseudo_weight`` at +1 and at -1 added (and Agresti-Min's weight 1
-    at 0 when ``pseudo_weight`` is 1/2, so the total is ``n + 2``): mean, plug-in variance and
-    total weight over the last axis."""
-    weight = d.shape[-1] + 2.0
+    at 0 when ``pseudo_weight`` is 1/2, so the total is 2), each of the size ``pseudo_units`` of
+    one unit of ``d`` (1 / its worlds when the units are seeds of several worlds, so that a
+    pseudo-world weighs as a world): mean, plug-in variance and total weight over the last
+    axis."""
+    weight = d.shape[-1] + 2.0 * pseudo_units
     mean = d.sum(axis=-1) / weight
-    var = ((d * d).sum(axis=-1) + 2.0 * pseudo_weight) / weight - mean * mean
+    var = ((d * d).sum(axis=-1) + 2.0 * pseudo_weight * pseudo_units) / weight - mean * mean
     return mean, np.maximum(var, 0.0), weight
+
+
+def _pseudo_units(pseudo_units: float) -> float:
+    return check_range("pseudo_units", pseudo_units, 0.0, 1.0, low_open=True)
 
 
 def _pseudo_weight(pseudo_weight: float) -> float:
@@ -409,22 +503,43 @@ def _out(x: np.ndarray) -> Any:
     return float(x) if np.ndim(x) == 0 else x
 
 
-def matched_rate_interval(differences: Any, *, confidence: float = 0.95,
-                          pseudo_weight: float = 1.0) -> Interval:
+def matched_rate_interval(differences: Any, *, clusters: Any = None, confidence: float = 0.95,
+                          pseudo_weight: float = 1.0,
+                          small_sample_correction: bool = True) -> Interval:
     """Adjusted Wald interval for the difference of matched success rates, cluster version.
 
     ``differences`` ``(..., n)``: per-world differences of success rates over K draws
-    (``b_rate - a_rate``, in [-1, 1]); leading axes are independent comparisons. Two pseudo-worlds
-    of weight ``pseudo_weight`` (1: Bonett & Price 2012; 1/2: Agresti & Min 2005) at +1 and -1,
-    total weight ``n + 2``; ``mean' +- z sqrt(var'/(n+2))`` clipped to [-1, 1]. Valid with few or
-    no discordant worlds."""
+    (``b_rate - a_rate``, in [-1, 1]); leading axes are independent comparisons. ``clusters``
+    ``(n,)`` the worlds' seeds (default every world its own). Two pseudo-worlds of weight
+    ``pseudo_weight`` (1: Bonett & Price 2012; 1/2: Agresti & Min 2005) at +1 and -1, each its
+    own cluster, total weight ``W = n + 2``; ``mean' = sum d / W``; the cluster-robust (Liang &
+    Zeger 1986) variance ``(sum_g (T_g - mean' m_g)^2 + 2 w + 2 mean'^2) / W^2`` (``T_g`` a
+    cluster's total over its ``m_g`` worlds, the last two terms the pseudo-worlds'); ``mean' +-
+    q sqrt(var')`` clipped to [-1, 1]. ``small_sample_correction`` (default): the CR1 factor
+    ``G / (G - 1)`` on the variance and ``q = t_{(1+c)/2, G-1}`` (Cameron & Miller 2015), G the
+    clusters; without it ``q = z`` and, every world its own cluster, this is the published
+    interval exactly. Valid with few or no discordant worlds."""
     d = _differences(differences, min_worlds=1, rate=True)
     conf = _confidence(confidence)
-    mean, var, weight = _augmented_moments(d, _pseudo_weight(pseudo_weight))
-    half = stats.norm.ppf(0.5 + conf / 2.0) * np.sqrt(var / weight)
+    w = _pseudo_weight(pseudo_weight)
+    index, g = cluster_index(clusters, d.shape[-1])
+    weight = d.shape[-1] + 2.0
+    mean = d.sum(axis=-1) / weight
+    totals, sizes = cluster_sums(d, index, g), np.bincount(index, minlength=g)
+    ss = ((totals - mean[..., None] * sizes) ** 2).sum(axis=-1) + 2.0 * w + 2.0 * mean * mean
+    var = ss / (weight * weight)
+    if small_sample_correction and g >= 2:
+        var = var * g / (g - 1.0)
+        q = stats.t.ppf(0.5 + conf / 2.0, g - 1)
+    else:
+        q = stats.norm.ppf(0.5 + conf / 2.0)
+    half = q * np.sqrt(var)
     lo, hi = np.maximum(mean - half, -1.0), np.minimum(mean + half, 1.0)
-    method = "bonett-price-cluster" if pseudo_weight == 1.0 else "adjusted-wald-cluster"
-    return Interval(_out(mean), _out(lo), _out(hi), int(d.shape[-1]), conf, method)
+    method = "bonett-price-cluster" if w == 1.0 else "adjusted-wald-cluster"
+    if small_sample_correction:
+        method += "-cr1-t"
+    return Interval(_out(mean), _out(lo), _out(hi), int(d.shape[-1]), conf, method,
+                    None if clusters is None else g)
 
 
 def _lambert_x(alpha: float) -> float:
@@ -432,12 +547,14 @@ def _lambert_x(alpha: float) -> float:
     return -float(np.real(special.lambertw(-alpha * alpha / math.e, k=-1))) - 1.0
 
 
-def _sequential_moments(d: np.ndarray, rate: bool, pseudo_weight: float):
+def _sequential_moments(d: np.ndarray, rate: bool, pseudo_weight: float,
+                        pseudo_units: float = 1.0):
     """Mean, standard deviation and weight ``t`` of the differences for a sequential interval:
     for success (``rate``) those of the sample with the pseudo-worlds of
     :func:`matched_rate_interval` (``t = n + 2``), else the sample's (``ddof=1``, ``t = n``)."""
     if rate:
-        mean, var, t = _augmented_moments(d, _pseudo_weight(pseudo_weight))
+        mean, var, t = _augmented_moments(d, _pseudo_weight(pseudo_weight),
+                                          _pseudo_units(pseudo_units))
         return mean, np.sqrt(var), t
     return d.mean(axis=-1), d.std(axis=-1, ddof=1), float(d.shape[-1])
 
@@ -458,7 +575,8 @@ def cs_multiplier(alpha: float = 0.05) -> float:
 
 
 def confidence_sequence(differences: Any, *, planned_worlds: int, alpha: float = 0.05,
-                        rate: bool = False, pseudo_weight: float = 1.0) -> Interval:
+                        rate: bool = False, pseudo_weight: float = 1.0,
+                        pseudo_units: float = 1.0) -> Interval:
     """Asymptotic confidence sequence (Waudby-Smith et al. 2021) of the mean difference, at the
     current number of worlds ``n`` (the last axis of ``differences``, ``(..., n)``, n >= 2).
 
@@ -469,13 +587,14 @@ def confidence_sequence(differences: Any, *, planned_worlds: int, alpha: float =
     d = _differences(differences, rate=rate)
     a = _alpha(alpha)
     rho = cs_rho(planned_worlds, a)
-    mean, sd, t = _sequential_moments(d, rate, pseudo_weight)
+    mean, sd, t = _sequential_moments(d, rate, pseudo_weight, pseudo_units)
     x = t * rho * rho
     half = sd * math.sqrt(2.0 * (x + 1.0) / (t * x) * math.log(math.sqrt(x + 1.0) / a))
     lo, hi = mean - half, mean + half
     if rate:
         lo, hi = np.maximum(lo, -1.0), np.minimum(hi, 1.0)
-    return Interval(_out(mean), _out(lo), _out(hi), int(d.shape[-1]), 1.0 - a, "asymptotic-cs")
+    return Interval(_out(mean), _out(lo), _out(hi), int(d.shape[-1]), 1.0 - a, "asymptotic-cs",
+                    anytime_valid=True)
 
 
 SEQUENTIAL_DESIGNS = ("confidence-sequence", "group-sequential")
@@ -556,7 +675,8 @@ def group_sequential_bounds(fractions: Any, alpha: float = 0.05,
 
 
 def repeated_confidence_interval(differences: Any, *, bound: float, rate: bool = False,
-                                 pseudo_weight: float = 1.0) -> Interval:
+                                 pseudo_weight: float = 1.0,
+                                 pseudo_units: float = 1.0) -> Interval:
     """Repeated confidence interval (Jennison & Turnbull 1989) of the mean difference at one
     look of a group-sequential design: ``mean +- bound sd / sqrt(t)``, ``bound`` that look's
     :func:`group_sequential_bounds` value; together over the design's looks they cover the
@@ -564,14 +684,14 @@ def repeated_confidence_interval(differences: Any, *, bound: float, rate: bool =
     :func:`matched_rate_interval`, clipped to [-1, 1], as in :func:`confidence_sequence`."""
     d = _differences(differences, rate=rate)
     c = check_range("bound", bound, 0.0, math.inf, low_open=True)
-    mean, sd, t = _sequential_moments(d, rate, pseudo_weight)
+    mean, sd, t = _sequential_moments(d, rate, pseudo_weight, pseudo_units)
     half = c * sd / math.sqrt(t)
     lo, hi = mean - half, mean + half
     if rate:
         lo, hi = np.maximum(lo, -1.0), np.minimum(hi, 1.0)
     level = float("nan")  # simultaneous over the design's looks, not at one look
     return Interval(_out(mean), _out(lo), _out(hi), int(d.shape[-1]), level,
-                    "group-sequential-rci")
+                    "group-sequential-rci", anytime_valid=True)
 
 
 def check_design(design: str, rate: bool) -> None:
@@ -585,7 +705,7 @@ def check_design(design: str, rate: bool) -> None:
 
 def sequential_interval(differences: Any, *, design: str, planned_worlds: int,
                         look_worlds: Any = None, alpha: float = 0.05, rate: bool = False,
-                        pseudo_weight: float = 1.0) -> Interval:
+                        pseudo_weight: float = 1.0, pseudo_units: float = 1.0) -> Interval:
     """The interval of the current look (the last axis of ``differences``: the worlds so far)
     under ``design`` (:data:`SEQUENTIAL_DESIGNS`): the :func:`confidence_sequence` tuned to
     ``planned_worlds``, or the :func:`repeated_confidence_interval` with the bound of the
@@ -594,7 +714,8 @@ def sequential_interval(differences: Any, *, design: str, planned_worlds: int,
     check_design(design, rate)
     if design == "confidence-sequence":
         return confidence_sequence(differences, planned_worlds=planned_worlds, alpha=alpha,
-                                   rate=rate, pseudo_weight=pseudo_weight)
+                                   rate=rate, pseudo_weight=pseudo_weight,
+                                   pseudo_units=pseudo_units)
     n = np.shape(differences)[-1]
     looks = [int(v) for v in (look_worlds if look_worlds is not None else [n])]
     require(bool(looks) and looks[-1] == n, "look_worlds", look_worlds,
@@ -604,7 +725,7 @@ def sequential_interval(differences: Any, *, design: str, planned_worlds: int,
             f">= the worlds seen ({looks[-1]})")
     bound = group_sequential_bounds(np.asarray(looks, dtype=float) / planned, alpha)[-1]
     return repeated_confidence_interval(differences, bound=bound, rate=rate,
-                                        pseudo_weight=pseudo_weight)
+                                        pseudo_weight=pseudo_weight, pseudo_units=pseudo_units)
 
 
 def decide(lo: Any, hi: Any, margin: float) -> Any:
@@ -625,44 +746,56 @@ def decide(lo: Any, hi: Any, margin: float) -> Any:
 
 def sequential_decisions(differences: Any, *, margin: float, alpha: float = 0.05,
                          planned_worlds: int | None = None, batch_size: int = 8,
-                         rate: bool = False, min_worlds: int = MIN_WORLDS,
-                         pseudo_weight: float = 1.0,
-                         design: str = "confidence-sequence") -> SequentialOutcome:
-    """Run the sequential non-inferiority decision over worlds in the given order.
+                         rate: bool = False, min_worlds: int = MIN_SEEDS,
+                         pseudo_weight: float = 1.0, design: str = "confidence-sequence",
+                         looks: Any = None, pseudo_units: float = 1.0) -> SequentialOutcome:
+    """Run the sequential non-inferiority decision over independent units in the given order:
+    the one sequential loop (``slam-gym compare`` runs it after every batch on the seeds so
+    far, the calibration tests on simulated ones).
 
-    ``differences`` ``(..., n)``: per-world oriented differences in run order (leading axes:
-    independent comparisons). Looks after every ``batch_size`` worlds from ``min_worlds`` on (and
-    at ``n``); at each look the interval of ``design`` (:func:`sequential_interval`: the
-    :func:`confidence_sequence`, or the group-sequential design's repeated interval; planned for
-    ``planned_worlds``, default ``n``) and :func:`decide`; the first look that is not
+    ``differences`` ``(..., n)``: per-unit oriented differences in run order (the per-seed means
+    of :func:`cluster_means`; leading axes: independent comparisons). Looks after every
+    ``batch_size`` units from ``min_worlds`` on (and at ``n``), or at the given ``looks`` (the
+    units seen at each look so far, increasing, the last ``n``: ``compare``'s looks, where a
+    batch whose runs all failed adds fewer). At each look the interval of ``design``
+    (:func:`confidence_sequence`, or the group-sequential design's repeated interval; planned
+    for ``planned_worlds`` units, default ``n``) and :func:`decide`; the first look that is not
     ``undecided`` stops. Returns that look's decision and interval, or the last look's
-    (``undecided``). ``min_worlds`` (default :data:`MIN_WORLDS`): no
-    decision before, because the sequence rests on a central limit theorem and its variance
-    estimate from a few skewed worlds is too small too often."""
+    (``undecided``). ``min_worlds`` (default :data:`MIN_SEEDS`): no decision before, because the
+    sequence rests on a central limit theorem and its variance estimate from a few skewed units
+    is too small too often."""
     d = _differences(differences, rate=rate)
     check_design(design, rate)
     n = d.shape[-1]
     batch = check_int_range("batch_size", batch_size, 1)
     first = check_int_range("min_worlds", min_worlds, 2)
     planned = n if planned_worlds is None else planned_worlds
-    looks = [t for t in range(batch, n + 1, batch) if t >= first]
-    if not looks or looks[-1] != n:
-        looks.append(n)
+    if looks is None:
+        looks = [t for t in range(batch, n + 1, batch) if t >= first]
+        if not looks or looks[-1] != n:
+            looks.append(n)
+    else:
+        looks = [int(t) for t in looks]
+        require(bool(looks) and looks[-1] == n and all(np.diff(looks) > 0) and looks[0] >= 2,
+                "looks", looks, f"increasing unit counts >= 2 ending at n = {n}")
+        looks = [t for t in looks if t >= first] or [n]
     shape = d.shape[:-1]
     decision = np.full(shape, DECISIONS[3], dtype=object)
     at = np.full(shape, n)
     est, lo, hi = (np.full(shape, np.nan) for _ in range(3))
     open_ = np.ones(shape, dtype=bool)
     if design == "group-sequential":  # a look's bound depends only on the looks before it
-        require(n <= planned, "planned_worlds", planned_worlds, f">= the worlds ({n})")
+        require(n <= planned, "planned_worlds", planned_worlds, f">= the units ({n})")
         bounds = group_sequential_bounds(np.asarray(looks, dtype=float) / planned, alpha)
     for i, t in enumerate(looks):
         if design == "group-sequential":
             cs = repeated_confidence_interval(d[..., :t], bound=bounds[i], rate=rate,
-                                              pseudo_weight=pseudo_weight)
+                                              pseudo_weight=pseudo_weight,
+                                              pseudo_units=pseudo_units)
         else:
             cs = confidence_sequence(d[..., :t], planned_worlds=planned, alpha=alpha,
-                                     rate=rate, pseudo_weight=pseudo_weight)
+                                     rate=rate, pseudo_weight=pseudo_weight,
+                                     pseudo_units=pseudo_units)
         now = np.asarray(decide(cs.lo, cs.hi, margin), dtype=object)
         take = open_ & ((now != DECISIONS[3]) | (t == n))
         decision[take] = now[take]
@@ -671,15 +804,17 @@ def sequential_decisions(differences: Any, *, margin: float, alpha: float = 0.05
         lo[take] = np.asarray(cs.lo)[take]
         hi[take] = np.asarray(cs.hi)[take]
         open_ &= ~take
+    method = "group-sequential-rci" if design == "group-sequential" else "asymptotic-cs"
     if decision.ndim == 0:
         return SequentialOutcome(str(decision), int(at), float(est), float(lo), float(hi),
-                                 tuple(looks))
-    return SequentialOutcome(decision.astype(str), at, est, lo, hi, tuple(looks))
+                                 tuple(looks), method)
+    return SequentialOutcome(decision.astype(str), at, est, lo, hi, tuple(looks), method)
 
 
 def plan_worlds(pilot_differences: Any, margin: float, *, alpha: float = 0.05,
                 power: float = 0.8, expected_difference: float = 0.0, sequential: bool = True,
-                rate: bool = False, batch_size: int = 1, pseudo_weight: float = 1.0) -> WorldPlan:
+                rate: bool = False, batch_size: int = 1, pseudo_weight: float = 1.0,
+                worlds_per_unit: int = 1) -> WorldPlan:
     """Worlds needed to decide ``not worse`` (``lo > -margin``) with probability ``power`` when the
     true oriented difference is ``expected_difference``.
 
@@ -692,7 +827,7 @@ def plan_worlds(pilot_differences: Any, margin: float, *, alpha: float = 0.05,
     Rate: ``est = n delta / W`` and ``half_n = sqrt(v / W)`` with the pseudo-worlds' ``W = n + 2``,
     ``v = (n (s^2 + delta^2) + 2 w) / W - est^2``, ``sd(est) = s sqrt(n) / W`` (so a pilot with
     no discordant world still asks for a finite number). Rounded up to a multiple of
-    ``batch_size``, at least 2 (:data:`MIN_WORLDS` for the sequential design)."""
+    ``batch_size``, at least 2 (:data:`MIN_SEEDS` for the sequential design)."""
     d = _differences(pilot_differences, one_d=True, rate=rate, name="pilot_differences")
     m = check_range("margin", margin, 0.0, math.inf)
     a = _alpha(alpha)
@@ -700,6 +835,7 @@ def plan_worlds(pilot_differences: Any, margin: float, *, alpha: float = 0.05,
     delta = check_range("expected_difference", expected_difference, -math.inf, math.inf)
     batch = check_int_range("batch_size", batch_size, 1)
     w = _pseudo_weight(pseudo_weight)
+    per_unit = check_int_range("worlds_per_unit", worlds_per_unit, 1)
     require(delta + m > 0.0, "expected_difference", expected_difference,
             f"> -margin (= {-m}): at or below -margin, not worse cannot be shown")
     sd = float(d.std(ddof=1))
@@ -710,10 +846,18 @@ def plan_worlds(pilot_differences: Any, margin: float, *, alpha: float = 0.05,
         """E[est] + margin - k half_n - z_power sd(est) at n worlds (>= 0: enough)."""
         if not rate:
             return delta + m - (multiplier + z_power) * sd / math.sqrt(n)
-        total = n + 2.0
-        est = n * delta / total
-        var = max((n * (sd * sd + delta * delta) + 2.0 * w) / total - est * est, 0.0)
-        return est + m - multiplier * math.sqrt(var / total) - z_power * sd * math.sqrt(n) / total
+        if sequential:  # the moments of sequential_decisions on per-seed means
+            units = 1.0 / per_unit
+            total = n + 2.0 * units
+            est = n * delta / total
+            var = max((n * (sd * sd + delta * delta) + 2.0 * w * units) / total - est * est, 0.0)
+            return (est + m - multiplier * math.sqrt(var / total)
+                    - z_power * sd * math.sqrt(n) / total)
+        total = n * per_unit + 2.0  # the cluster interval on the worlds (matched_rate_interval)
+        est = n * per_unit * delta / total
+        ss = per_unit**2 * n * (sd * sd + (delta - est) ** 2) + 2.0 * w + 2.0 * est * est
+        return (est + m - multiplier * math.sqrt(ss) / total
+                - z_power * per_unit * sd * math.sqrt(n) / total)
 
     hi = 2
     while slack(hi) < 0.0:
@@ -724,6 +868,6 @@ def plan_worlds(pilot_differences: Any, margin: float, *, alpha: float = 0.05,
     while hi - lo > 1:  # smallest n with slack >= 0 (slack grows with n beyond the pilot's scale)
         mid = (lo + hi) // 2
         lo, hi = (lo, mid) if slack(mid) >= 0.0 else (mid, hi)
-    n = max(MIN_WORLDS if sequential else 2, hi)
+    n = max(MIN_SEEDS if sequential else 2, hi)
     n = batch * math.ceil(n / batch)
     return WorldPlan(n, sd, delta + m, multiplier, int(d.size), bool(sequential))
