@@ -362,11 +362,12 @@ def test_model_digest_identifies_the_file_and_a_stale_digest_is_rejected(ppo_zip
 def test_benchmark_jobs_of_the_learned_policy_name_its_model(ppo_zip, a2c_zip):
     """A resumed benchmark must not reuse one model's rows for another saved under the same
     name: the model's digest is part of the job (and so of its key)."""
+    from slam_gym.envs.spec import resolve_env
     from slam_gym.evaluation.core import learned_options, run_policy
 
     first, second = learned_options(str(ppo_zip)), learned_options(str(a2c_zip))
     assert first["model_sha256"] != second["model_sha256"]
     assert learned_options(None)["model_sha256"] == learned.model_digest(None)
     with pytest.raises(ValueError, match="model_sha256"):
-        run_policy("learned", "brooks-bailey", 0, 0, model_path=str(a2c_zip),
-                   model_sha256=first["model_sha256"], n_steps=20)
+        run_policy("learned", resolve_env(None, {"n_steps": 20}), 0, 0,
+                   model_path=str(a2c_zip), model_sha256=first["model_sha256"])

@@ -9,6 +9,7 @@ import pytest
 
 import policies
 from slam_gym.envs.hybrid_slam import HybridSLAMEnv
+from slam_gym.envs.spec import resolve_env
 from slam_gym.evaluation.core import run_policy_object
 from slam_gym.lookahead import FullLookahead, LookaheadPolicy, PrivilegedLookahead
 from slam_gym.scenarios import get_scenario
@@ -145,11 +146,11 @@ def test_lookahead_that_never_leaves_the_rule_plays_the_rules_episode_to_the_bit
     the rule's, every decision (so the copies never touched the real env or its generators)."""
     rule_actions, la_actions = [], []
     options = dict(n_particles=60, n_steps=500, w_compute=10.0, compute_clip_s=0.2)
-    ep_rule, env_rule = run_policy_object(policies.make(RULE), "brooks-bailey", 1, 1,
-                                          on_step=lambda a, i: rule_actions.append(a), **options)
+    ep_rule, env_rule = run_policy_object(policies.make(RULE), resolve_env(None, options), 1, 1,
+                                          on_step=lambda a, i: rule_actions.append(a))
     lookahead = LookaheadPolicy(horizon_decisions=3, n_futures=2, min_gain=1e9)
-    ep_la, env_la = run_policy_object(lookahead, "brooks-bailey", 1, 1,
-                                      on_step=lambda a, i: la_actions.append(a), **options)
+    ep_la, env_la = run_policy_object(lookahead, resolve_env(None, options), 1, 1,
+                                      on_step=lambda a, i: la_actions.append(a))
     assert lookahead.planned_decisions > 0 and lookahead.simulated_decisions > 0
     assert lookahead.deviations == 0
     assert [a.tolist() for a in la_actions] == [a.tolist() for a in rule_actions]
@@ -163,9 +164,8 @@ def test_lookahead_is_deterministic_and_plans_only_where_the_rule_fuses():
     for _ in range(2):
         actions = []
         policy = LookaheadPolicy(horizon_decisions=4, n_futures=2, min_gain=0.0, z_gain=0.0)
-        _, env = run_policy_object(policy, "brooks-bailey", 2, 8,
-                                   on_step=lambda a, i, actions=actions: actions.append(a),
-                                   **options)
+        _, env = run_policy_object(policy, resolve_env(None, options), 2, 8,
+                                   on_step=lambda a, i, actions=actions: actions.append(a))
         runs.append(([a.tolist() for a in actions], env.episode_return, policy.episode_fields()))
     assert runs[0][:2] == runs[1][:2]
     fields = runs[0][2]
@@ -189,7 +189,7 @@ def test_early_fusion_plans_where_the_rule_waits_and_can_fuse_there():
         actions.append(action.tolist())
         ages.append(info["features"]["local_map_age_s"])
 
-    run_policy_object(policy, "brooks-bailey", 2, 8, on_step=seen, **options)
+    run_policy_object(policy, resolve_env(None, options), 2, 8, on_step=seen)
     fusions = sum(a[0] for a in actions)
     assert policy.planned_decisions > fusions  # decisions where the rule waited were planned
     # the fusion at the first planned decision: the age the observation showed before it
