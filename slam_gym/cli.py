@@ -8,8 +8,8 @@ import importlib
 import re
 import sys
 
-COMMAND_MODULES = ("simulate", "reproduce", "benchmark", "compare", "train", "threshold-rule",
-                   "front", "fingerprint", "speed")
+COMMAND_MODULES = ("simulate", "reproduce", "benchmark", "compare", "headroom", "train",
+                   "threshold-rule", "front", "fingerprint", "speed")
 
 
 class Parser(argparse.ArgumentParser):

@@ -26,7 +26,6 @@ tables still print, and the command exits 3 unless ``--allow-errors`` is given.
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -69,38 +68,11 @@ def add_parser(subparsers) -> None:
     p.set_defaults(run=run)
 
 
-def _threshold_rules(path: str | None, env) -> dict[str, dict[str, Any]]:
-    """Price -> the chosen threshold rule's name and options (from ``chosen.json``), chosen in
-    ``env`` (a :class:`~slam_gym.envs.spec.ResolvedEnv`): a file of another env is refused,
-    since its rule was chosen on other worlds (``ValueError`` naming both)."""
-    if path is None:
-        return {}
-    doc = json.loads(Path(path).read_text())
-    chose_in = chosen_env(doc)
-    mine = {"env_id": env.env_id, "scenario": env.scenario, "n_particles": env.get("n_particles")}
-    differ = {k: (v, mine[k]) for k, v in chose_in.items() if v is not None and v != mine[k]}
-    if differ:
-        raise ValueError(
-            f"threshold_rules={path!r} is invalid: its rules were chosen in another env ("
-            + ", ".join(f"{k} {a!r} there, {b!r} here" for k, (a, b) in differ.items())
-            + f"): run front in that env (--env {chose_in.get('env_id') or '...'}) or choose "
-            "the rules in this one (slam-gym threshold-rule --env ...)")
-    return {price: c for price, c in doc["chosen"].items()}
-
-
-def chosen_env(doc: Mapping[str, Any]) -> dict[str, Any]:
-    """What env a ``chosen.json`` was made in: its ``env_id``, scenario and particles (files
-    before issue 55 name only ``scenario`` and ``particles``)."""
-    kwargs = doc.get("env_kwargs") or {}
-    return {"env_id": doc.get("env_id"),
-            "scenario": kwargs.get("scenario", doc.get("scenario")),
-            "n_particles": kwargs.get("n_particles", doc.get("particles"))}
-
-
 def run(args) -> int:
     import policies
     from filters.validation import require
     from slam_gym.commands.envargs import env_from_args
+    from slam_gym.commands.threshold_rule import read_chosen
     from slam_gym.evaluation import benchmark
     from slam_gym.evaluation.benchmarking import resolve_policies
     from slam_gym.evaluation.front import compare, goal, plot_front
@@ -113,7 +85,7 @@ def run(args) -> int:
     require(REFERENCE in rule_names, "rules", args.rules, f"a list including {REFERENCE}")
     check_run_options(args)
     env = env_from_args(args)
-    chosen = _threshold_rules(args.threshold_rules, env)
+    chosen = read_chosen(args.threshold_rules, env, "threshold_rules")
     rules: dict[str, Any] = {name: policies.make(name) for name in rule_names}
     for c in chosen.values():
         if c["rule"] not in rules:  # its printed name is its name (ThresholdOptimise)

@@ -193,3 +193,32 @@ def run(args) -> int:
                        if failed else []),
                      f"wrote {out}/candidates.md, chosen.json"])
     return errors_exit_code(args, result.rows)
+
+
+def read_chosen(path: str | None, env, field: str = "threshold_rule"
+                ) -> dict[str, dict[str, Any]]:
+    """Price -> the chosen threshold rule's name and options (from ``chosen.json``), chosen in
+    ``env`` (a :class:`~slam_gym.envs.spec.ResolvedEnv`): a file of another env is refused,
+    since its rule was chosen on other worlds (``ValueError`` naming both)."""
+    if path is None:
+        return {}
+    doc = json.loads(Path(path).read_text())
+    chose_in = chosen_env(doc)
+    mine = {"env_id": env.env_id, "scenario": env.scenario, "n_particles": env.get("n_particles")}
+    differ = {k: (v, mine[k]) for k, v in chose_in.items() if v is not None and v != mine[k]}
+    if differ:
+        raise ValueError(
+            f"{field}={path!r} is invalid: its rules were chosen in another env ("
+            + ", ".join(f"{k} {a!r} there, {b!r} here" for k, (a, b) in differ.items())
+            + f"): run in that env (--env {chose_in.get('env_id') or '...'}) or choose "
+            "the rules in this one (slam-gym threshold-rule --env ...)")
+    return {price: c for price, c in doc["chosen"].items()}
+
+
+def chosen_env(doc: Mapping[str, Any]) -> dict[str, Any]:
+    """What env a ``chosen.json`` was made in: its ``env_id``, scenario and particles (files
+    before issue 55 name only ``scenario`` and ``particles``)."""
+    kwargs = doc.get("env_kwargs") or {}
+    return {"env_id": doc.get("env_id"),
+            "scenario": kwargs.get("scenario", doc.get("scenario")),
+            "n_particles": kwargs.get("n_particles", doc.get("particles"))}

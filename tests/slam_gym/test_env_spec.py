@@ -322,3 +322,33 @@ def test_train_on_a_task_evaluates_on_its_worlds_and_its_model_names_the_task(tm
     assert main(["fingerprint", str(out / "model.zip"), "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["matches"] and doc["fingerprint"]["env_id"] == task
+
+
+def test_the_headroom_command_runs_a_task_and_refuses_a_rule_chosen_elsewhere(tmp_path, capsys):
+    """``slam-gym headroom --env ID`` at a tiny size: rows of the task's env, a report whose
+    best rule is the threshold rule under its own name, and ``--table`` over the report; a
+    ``chosen.json`` made in another env is refused before any run."""
+    task = "SlamGym/HybridSLAM-ZonesStarved-v1"
+    name = "threshold-optimise[global_position_std_m>=2]"
+    chosen = {"env_id": task, "env_kwargs": {"scenario": "brooks-bailey-zones",
+                                             "n_particles": 150},
+              "chosen": {"10": {"rule": name, "feature": "global_position_std_m",
+                                "threshold": 2.0}}}
+    (tmp_path / "chosen.json").write_text(json.dumps(chosen))
+    out = tmp_path / "h"
+    assert main(["headroom", "--env", task, "--seeds", "2", "--seed-start", "0",
+                 "--clutter-levels", "1", "--n-steps", "30", "--policies", "fixed-10s",
+                 "--threshold-rule", str(tmp_path / "chosen.json"), "--executor", "serial",
+                 "--out", str(out), "--quiet"]) == 0
+    doc = json.loads((out / "headroom.json").read_text())
+    assert doc["best_rule"] == name and doc["task"] == task
+    assert doc["clutter_levels"] == [1] and doc["env_kwargs"]["n_particles"] == 150
+    assert {r["env_id"] for r in read_results(out)} == {task}
+    assert policies.make(doc["best_rule"]).threshold == 2.0  # the name it prints types back
+    capsys.readouterr()
+    assert main(["headroom", "--table", str(out / "headroom.json")]) == 0
+    assert f"`{name}`" in capsys.readouterr().out
+    other = tmp_path / "other"
+    assert main(["headroom", "--env", "SlamGym/HybridSLAM-Zones-v1", "--seeds", "2",
+                 "--threshold-rule", str(tmp_path / "chosen.json"), "--out", str(other)]) == 2
+    assert "chosen in another env" in capsys.readouterr().err and not other.exists()
