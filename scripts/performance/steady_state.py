@@ -6,7 +6,7 @@ e.g.   python scripts/performance/steady_state.py --schedule fixed-10s --decisio
 
 Makes ``--env`` (default ``SlamGym/HybridSLAM-v1``, its defaults) with ``gym.make``, resets it
 on world ``--seed`` and plays ``slam-gym speed``'s schedule ``--schedule`` (``fixed-10s``,
-``fixed-10s-optimise``, ...: :func:`slam_gym.commands.speed._schedule_action`); an episode that
+``fixed-10s-optimise``, ...: :func:`slam_gym.commands.speed.schedule_action`); an episode that
 ends is followed by ``reset(seed=previous + 1)``, so two commits play the same worlds. The first
 ``--warmup`` decisions (the compiled kernels loaded, the caches warm) are not counted; of the next
 ``--decisions`` the CPU time of the steps alone (``time.process_time`` around each ``step``; the
@@ -29,7 +29,7 @@ import time
 import gymnasium as gym
 
 import slam_gym  # noqa: F401  (registers the env ids)
-from slam_gym.commands.speed import _schedule_action
+from slam_gym.commands.speed import schedule_action
 
 
 def measure(env_id: str, schedule: str, warmup: int, decisions: int, seed: int) -> dict:
@@ -40,7 +40,7 @@ def measure(env_id: str, schedule: str, warmup: int, decisions: int, seed: int) 
     step_cpu_s = reset_cpu_s = 0.0
     resets = 0
     for k in range(warmup + decisions):
-        action = _schedule_action(schedule, env.unwrapped.episode.iteration)
+        action = schedule_action(schedule, env.unwrapped.episode.iteration)
         start = time.process_time()
         *_, terminated, truncated, _ = env.step(action)
         if k >= warmup:

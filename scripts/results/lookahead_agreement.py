@@ -21,8 +21,8 @@ planner's one future is the full planner's first). One line per planning point i
 
 ``--report`` prints the agreement: the fraction of planning points where the two choose the
 same, pooled, and the mean over worlds of each world's fraction with its 95 % interval (the
-stratified cluster bootstrap over worlds of :mod:`slam_gym.evaluation.paired`, strata the
-clutter levels, with its small-sample correction: a world's planning points are not
+cluster bootstrap of :mod:`slam_gym.evaluation.paired`, the seed the cluster and the clutter
+levels the strata, with its small-sample correction: a world's planning points are not
 independent), the same restricted to the points where the full planner leaves the rule, the
 CPU of the two planners on the same states, and the emulated planners' agreement and cost.
 Writes ``OUT/agreement.json``.
@@ -152,7 +152,7 @@ def emulate(state: dict, n_futures: int, horizon: int) -> tuple[str, int]:
 
 def agreement(states: list[dict], chosen: list[str]) -> dict:
     """Pooled and per-world agreement of ``chosen`` with the full planner's choices."""
-    from slam_gym.evaluation.paired import stratified_bootstrap_interval
+    from slam_gym.evaluation.paired import cluster_bootstrap_interval
 
     by_world: dict = defaultdict(list)
     for s, c in zip(states, chosen, strict=True):
@@ -165,7 +165,9 @@ def agreement(states: list[dict], chosen: list[str]) -> dict:
         if np.ptp(fractions) == 0.0:
             out["mean_over_worlds"] = [float(fractions[0])] * 3
         else:
-            iv = stratified_bootstrap_interval(fractions, np.array([w[0] for w in worlds]), rng=0)
+            # the worlds' seeds are the clusters (issue 56): a seed's levels share its world
+            iv = cluster_bootstrap_interval(fractions, np.array([w[0] for w in worlds]),
+                                            np.array([w[1] for w in worlds]), rng=0)
             out["mean_over_worlds"] = [float(iv.estimate), float(iv.lo), float(iv.hi)]
     return out
 

@@ -137,7 +137,7 @@ ENV_SCHEDULES = {
 logic, so only the env's own cost is measured)."""
 
 
-def _schedule_action(schedule: str, iteration: int) -> np.ndarray:
+def schedule_action(schedule: str, iteration: int) -> np.ndarray:
     at_fusion = int(iteration % 100 == 0)  # BB's 10 s at 10 Hz, decisions every 10 iterations
     return np.array({
         "fixed-10s": (at_fusion, 0),
@@ -180,7 +180,7 @@ def measure_task(env_id: str, seed: int = TASK_SEED, schedule: str = "fixed-10s-
     while True:
         t0 = time.process_time()
         _, _, terminated, truncated, info = env.step(
-            _schedule_action(schedule, env.episode.iteration))
+            schedule_action(schedule, env.episode.iteration))
         step_s.append(time.process_time() - t0)
         submaps.append(info["features"]["stored_submaps"])
         features.append(len(env.system.landmarks().ids))
@@ -216,7 +216,7 @@ def measure_env(decisions, seed, schedule: str = "fixed-10s", **config):
     env.reset(seed=seed)
     done_decisions, resets = 0, 1
     while decisions is None or done_decisions < decisions:
-        action = _schedule_action(schedule, env.episode.iteration)
+        action = schedule_action(schedule, env.episode.iteration)
         _, _, terminated, truncated, _ = env.step(action)
         done_decisions += 1
         if terminated or truncated:
@@ -291,7 +291,7 @@ def measure_full_path(schedule: str, episodes: int, *, n_particles: int = 500,
         _snapshot_before_optimising(env.system, excluded_s)
         n = 0
         while True:
-            action = _schedule_action(schedule, env.episode.iteration)
+            action = schedule_action(schedule, env.episode.iteration)
             _, _, terminated, truncated, _ = env.step(action)
             n += 1
             if terminated or truncated:
