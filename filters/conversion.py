@@ -478,9 +478,9 @@ def _take_slots(values, safe):
     return taken.reshape(safe.shape + values.shape[2:])
 
 
-def _feature_weights(w, has):
-    """Each particle's share (P, N) of each feature's moments: its weight over the feature's
-    mass among the particles holding it."""
+def _feature_mass(w, has):
+    """Each common feature's mass ``w @ has`` (N,): the weight of the particles holding it, which
+    must be positive for every feature (``ValueError`` naming ``slots``)."""
     mass = w @ has
     require(
         bool(np.all(mass > 0.0)),
@@ -488,7 +488,13 @@ def _feature_weights(w, has):
         "a feature held by no weighted particle",
         "every common feature held by a particle of positive weight",
     )
-    return w[:, None] * has / mass
+    return mass
+
+
+def _feature_weights(w, has):
+    """Each particle's share (P, N) of each feature's moments: its weight over the feature's
+    mass among the particles holding it."""
+    return w[:, None] * has / _feature_mass(w, has)
 
 
 def feature_moments(weights, means, covs, slots):
@@ -523,14 +529,7 @@ def feature_means_xy(weights, mx, my, slots):
     :func:`feature_moments`' ``einsum``, to the bit (tests/filters/test_conversion.py)."""
     w = _normalised(weights)
     slots = np.asarray(slots, dtype=np.int64)
-    has = slots >= 0
-    mass = w @ has
-    require(
-        bool(np.all(mass > 0.0)),
-        "slots",
-        "a feature held by no weighted particle",
-        "every common feature held by a particle of positive weight",
-    )
+    mass = _feature_mass(w, slots >= 0)
     return _feature_means_sums(w, np.asarray(mx, float), np.asarray(my, float), slots, mass)
 
 
