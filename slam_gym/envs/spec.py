@@ -68,8 +68,8 @@ def check_env_id(env_id: Any, field_name: str = "env") -> str:
     close = difflib.get_close_matches(str(env_id), ids, n=3, cutoff=0.5)
     hint = (f"did you mean {' or '.join(close)}?" if close
             else f"one of the {len(ids)} ids starting {NAMESPACE}HybridSLAM, "
-            f"{NAMESPACE}EKFSubmap or {NAMESPACE}MRCLAM (python -c \"import slam_gym; "
-            "print(slam_gym.registered_ids())\" lists them)")
+            f"{NAMESPACE}EKFSubmap or {NAMESPACE}MRCLAM (python -c \"from slam_gym.envs.spec "
+            "import registered_ids; print(registered_ids())\" lists them)")
     raise ValueError(f"{field_name}={env_id!r} is invalid: not a registered env id; {hint}")
 
 

@@ -191,6 +191,12 @@ def test_an_unknown_id_gets_one_line_naming_the_closest():
     message = str(info.value)
     assert "\n" not in message and len(message) < 300
     assert "did you mean SlamGym/HybridSLAM-Zones-v1" in message
+    with pytest.raises(ValueError) as far:  # nothing close: how to list them, as a command
+        check_env_id("Foo")
+    command = str(far.value).split('python -c "')[1].split('"')[0]
+    listed = subprocess.run([sys.executable, "-c", command], capture_output=True, text=True,
+                            cwd=REPO, check=True).stdout
+    assert "SlamGym/HybridSLAM-Zones-v1" in listed
 
 
 def test_env_kwargs_parse_as_json_else_text():
