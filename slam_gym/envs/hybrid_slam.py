@@ -219,7 +219,9 @@ class HybridSLAMConfig:
     """Every option of the env, with defaults; any field is a ``gym.make`` keyword argument.
 
     ``scenario``/``clutter_level``/``alpha``/``beta``/``scenario_overrides``: the simulated world
-    (``clutter_level=None`` with ``alpha`` and ``beta`` for a custom sensor). ``front_end``:
+    (``clutter_level=None`` with ``alpha`` and ``beta`` for a custom sensor; a tuple of levels
+    draws one per episode from the env's generator, after the world seed, unless ``reset``
+    names one: the tasks of :mod:`slam_gym.envs.tasks`). ``front_end``:
     ``"fastslam"`` (HYBRID) or ``"ekf"`` (EKF sub-mapping); ``back_end``: ``"ekf"`` or
     ``"relative"``; ``n_particles``: FastSLAM particles (BB: 500, the default).
     ``decision_interval``: filter iterations per decision (10 = 1 s). ``max_decisions``:
