@@ -76,6 +76,17 @@ from slam_gym.envs.hybrid_slam import HybridSLAMEnv
 MRCLAM_ROBOTS = (1, 2, 3, 4, 5)
 #: base-config options that describe a simulated world and do not apply to recorded data
 SIMULATION_ONLY_OPTIONS = ("scenario", "clutter_level", "alpha", "beta", "scenario_overrides")
+def refuse_simulation_options(options) -> None:
+    """``ValueError`` naming the first of :data:`SIMULATION_ONLY_OPTIONS` in ``options``: the
+    recording fixes the world, the sensor and the clutter."""
+    for name in SIMULATION_ONLY_OPTIONS:
+        require(
+            name not in options, name, options.get(name),
+            "left out for MRCLAMEnv (the recording fixes the world, the sensor and the "
+            "clutter; choose data_dir and robot)",
+        )
+
+
 MRCLAM_FILES = ("Barcodes.dat", "Landmark_Groundtruth.dat")
 ROBOT_FILES = ("Odometry", "Measurement", "Groundtruth")
 
@@ -175,12 +186,7 @@ class MRCLAMEnv(HybridSLAMEnv):
         terminate_on_failure: bool = False,
         **config,
     ):
-        for name in SIMULATION_ONLY_OPTIONS:
-            require(
-                name not in config, name, config.get(name),
-                "left out for MRCLAMEnv (the recording fixes the world, the sensor and the "
-                "clutter; choose data_dir and robot)",
-            )
+        refuse_simulation_options(config)
         self.robot = check_robot(robot)
         self.data_dir = check_mrclam_dir(data_dir, self.robot)
         check_range("sensor_noise_scale", sensor_noise_scale, 0.0, 1000.0, low_open=True)
@@ -224,10 +230,7 @@ class MRCLAMEnv(HybridSLAMEnv):
         own = {name: p.default for name, p in inspect.signature(cls.__init__).parameters.items()
                if p.kind is inspect.Parameter.KEYWORD_ONLY}
         given = cls.DEFAULTS | kwargs
-        for name in SIMULATION_ONLY_OPTIONS:
-            require(name not in given, name, given.get(name),
-                    "left out for MRCLAMEnv (the recording fixes the world, the sensor and the "
-                    "clutter; choose data_dir and robot)")
+        refuse_simulation_options(given)
         config = {k: v for k, v in given.items() if k not in own}
         resolved = HybridSLAMConfig.from_kwargs(**config).as_kwargs()
         for name in SIMULATION_ONLY_OPTIONS:

@@ -99,6 +99,7 @@ def registered_kwargs(env_id: str) -> dict[str, Any]:
 
 
 def _plain(value: Any) -> Any:
+    """A value as JSON holds it (tuples as lists), to compare a given option with the id's."""
     return [_plain(v) for v in value] if isinstance(value, (tuple, list)) else value
 
 
@@ -118,8 +119,7 @@ class ResolvedEnv:
     @classmethod
     def of(cls, env_id: str, kwargs: Mapping[str, Any], levels: Iterable = ()) -> ResolvedEnv:
         """From an id and already-resolved keyword arguments (a row's), without resolving."""
-        text = json.dumps({k: _plain(v) for k, v in kwargs.items()}, sort_keys=True,
-                          separators=(",", ":"))
+        text = json.dumps(dict(kwargs), sort_keys=True, separators=(",", ":"))  # tuples: lists
         return cls(env_id, text, tuple(levels))
 
     @property
