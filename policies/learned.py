@@ -21,6 +21,13 @@ it was trained: "optimise only" is excluded when ``info["optimise_redundant"]`` 
 a no-op (:func:`policies.base.discrete_action_mask`), both for the mode and for sampled actions.
 Without that key in ``info`` (an env of another kind) it acts unmasked.
 
+History: a model whose config says ``frame_stack: K`` (K > 1) was trained on its last K
+observations, oldest first, concatenated (Gymnasium's ``FrameStackObservation`` with its
+default padding, the episode's first observation repeated, then ``FlattenObservation``); the
+policy keeps the same history (:class:`ObservationHistory`), and ``reset()`` clears it. The
+transform (``log1p``) applies to each observation, the normalisation to the stacked vector, as
+in training.
+
 Memory: a RecurrentPPO model carries its LSTM state from one decision to the next within an
 episode (both for the mode and for sampled actions); ``reset()`` clears it, so every episode
 starts from the zero state it was trained from.
@@ -271,6 +278,30 @@ def _load_model(algorithm: Any, model_path: Path, device: str) -> Any:
     return model
 
 
+class ObservationHistory:
+    """The last ``frame_stack`` observations, oldest first, as one flat vector: what
+    ``FlattenObservation(FrameStackObservation(env, frame_stack))`` gives (the episode's first
+    observation fills the history it does not have yet, Gymnasium's ``padding_type="reset"``).
+    One history per episode: :meth:`reset` at its start."""
+
+    def __init__(self, frame_stack: int) -> None:
+        require(isinstance(frame_stack, int) and not isinstance(frame_stack, bool)
+                and frame_stack >= 1, "frame_stack", frame_stack, "a positive integer")
+        self.frame_stack = frame_stack
+        self._frames: list[np.ndarray] = []
+
+    def reset(self) -> None:
+        self._frames = []
+
+    def __call__(self, observation: np.ndarray) -> np.ndarray:
+        observation = np.asarray(observation, dtype=np.float32).reshape(-1)
+        if not self._frames:
+            self._frames = [observation] * self.frame_stack
+        else:
+            self._frames = self._frames[1:] + [observation]
+        return np.concatenate(self._frames)
+
+
 class LearnedPolicy(Policy):
     """A stable-baselines3 model as an interface policy: ``act(obs, info)`` reads ``obs``, or
     ``info["features"]`` when the model's config lists ``feature_names`` (below).
@@ -383,7 +414,12 @@ class LearnedPolicy(Policy):
                 "a list of positive times (s) in the model's config JSON")
         self.fusion_intervals_s = None if intervals is None else tuple(float(v) for v in intervals)
         self._pending: tuple[float, int] | None = None  # interval model: the fusion planned
+        frame_stack = config.get("frame_stack", 1)
+        self.history = ObservationHistory(frame_stack)
         self._check_spaces()
+        require(self.observation_shape[0] % frame_stack == 0, "frame_stack", frame_stack,
+                f"a divisor of the model's observation size {self.observation_shape[0]}")
+        self.frame_shape: tuple[int, ...] = (self.observation_shape[0] // frame_stack,)
         self.options = {
             "path": str(model_path),
             "algo": algo,
@@ -394,10 +430,11 @@ class LearnedPolicy(Policy):
         }
         if self.feature_names is not None:
             require(
-                len(self.feature_names) == self.observation_shape[0],
+                len(self.feature_names) == self.frame_shape[0],
                 "feature_names",
                 len(self.feature_names),
-                f"{self.observation_shape[0]} names, the model's observation size",
+                f"{self.frame_shape[0]} names, the model's observation size "
+                f"{self.observation_shape[0]} over its frame_stack {frame_stack}",
             )
         self.provenance: dict[str, Any] = (
             check_model_provenance(model_path, config or None) if check_provenance
@@ -408,6 +445,7 @@ class LearnedPolicy(Policy):
         self._rng = np.random.default_rng(self.sample_seed)
         self._lstm_state = None  # RecurrentPPO: zero state, as at the start of a training episode
         self._pending = None
+        self.history.reset()
 
     @property
     def recurrent(self) -> bool:
@@ -521,13 +559,14 @@ class LearnedPolicy(Policy):
             obs = [info["features"][n] for n in self.feature_names]
         x = np.asarray(obs, dtype=np.float32)
         require(
-            x.shape == self.observation_shape,
+            x.shape == self.frame_shape,
             "obs shape",
             x.shape,
-            f"{self.observation_shape}, the observation shape the model was trained on",
+            f"{self.frame_shape}, the observation shape the model was trained on",
         )
         if self.observation_transform == "log1p":
             x = np.log1p(x).astype(np.float32)
+        x = self.history(x)
         if self.normalisation is not None:
             mean, std, clip = self.normalisation
             x = np.clip((x - mean) / std, -clip, clip).astype(np.float32)

@@ -9,7 +9,7 @@ import re
 import sys
 
 COMMAND_MODULES = ("simulate", "reproduce", "benchmark", "compare", "headroom", "train",
-                   "threshold-rule", "front", "fingerprint", "speed")
+                   "threshold-rule", "front", "fingerprint", "speed", "distil")
 
 
 class Parser(argparse.ArgumentParser):

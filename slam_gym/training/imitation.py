@@ -19,6 +19,7 @@ past; the few lines here are what it would do for a discrete policy.
 
 from __future__ import annotations
 
+import copy
 import logging
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -61,6 +62,97 @@ def agreement(model, observations: np.ndarray, actions: np.ndarray) -> float:
     return float(np.mean(same.all(axis=1) if same.ndim > 1 else same))
 
 
+def _actor_optimiser(model, learning_rate: float):
+    """Adam over the actor's parameters (the critic's, ``value_net``, are left alone)."""
+    import torch
+
+    actor = [p for name, p in model.policy.named_parameters()
+             if not name.startswith("value_net")]
+    return torch.optim.Adam(actor, lr=learning_rate)
+
+
+def _nll_epoch(policy, optimiser, obs_t, act_t, order: np.ndarray, batch_size: int) -> float:
+    """One pass of minibatch steps on the negative log-likelihood of the demonstrated actions
+    (``policy.evaluate_actions``, PPO's own log-likelihood); the mean loss."""
+    losses = []
+    for start in range(0, len(order), batch_size):
+        batch = order[start:start + batch_size]
+        _, log_prob, _ = policy.evaluate_actions(obs_t[batch], act_t[batch])
+        loss = -log_prob.mean()
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+        losses.append(loss.item())
+    return float(np.mean(losses))
+
+
+def mean_nll(model, observations: np.ndarray, actions: np.ndarray) -> float:
+    """The mean negative log-likelihood of ``actions`` under the policy at ``observations``."""
+    import torch
+
+    with torch.no_grad():
+        _, log_prob, _ = model.policy.evaluate_actions(
+            torch.as_tensor(observations, dtype=torch.float32),
+            torch.as_tensor(actions, dtype=torch.int64))
+    return float(-log_prob.mean())
+
+
+def fit_labels(model, observations: np.ndarray, actions: np.ndarray, groups: np.ndarray, *,
+               validation_fraction: float = 0.15, max_epochs: int = 100, patience: int = 8,
+               batch_size: int = 256, learning_rate: float = 1e-3, seed: int = 0,
+               ) -> dict[str, float]:
+    """Fit ``model``'s actor to labelled decisions (a teacher's, DAgger's aggregate) by the
+    negative log-likelihood, with early stopping on held-out episodes.
+
+    Labels from a planner are not a function of what the policy observes, so a fit to the
+    last label overfits; the decisions of a ``validation_fraction`` of the ``groups``
+    (episodes, drawn with ``seed``) are held out, and the actor's weights of the epoch with the
+    lowest held-out negative log-likelihood are kept (at most ``max_epochs``, stopping
+    ``patience`` epochs after the best). Returns the epochs run, the best epoch, the held-out
+    NLL and agreement (the mode against the label) there, and the training agreement."""
+    import torch
+
+    groups = np.asarray(groups)
+    if not (len(observations) == len(actions) == len(groups) > 0):
+        raise ValueError(f"observations, actions, groups=({len(observations)}, {len(actions)}, "
+                         f"{len(groups)}) are invalid: must be the same positive length")
+    if not 0.0 < validation_fraction < 1.0:
+        raise ValueError(f"validation_fraction={validation_fraction!r} is invalid: must be in "
+                         "(0, 1)")
+    generator = np.random.default_rng(seed)
+    unique = np.unique(groups)
+    n_held = max(1, int(round(validation_fraction * len(unique))))
+    if n_held >= len(unique):
+        raise ValueError(f"groups has {len(unique)} episode(s): too few to hold out "
+                         f"{validation_fraction:.0%} and train on the rest")
+    held = np.isin(groups, generator.choice(unique, size=n_held, replace=False))
+    train_obs, train_act = observations[~held], actions[~held]
+    val_obs, val_act = observations[held], actions[held]
+    policy = model.policy
+    optimiser = _actor_optimiser(model, learning_rate)
+    obs_t = torch.as_tensor(train_obs, dtype=torch.float32)
+    act_t = torch.as_tensor(train_act, dtype=torch.int64)
+    best = (mean_nll(model, val_obs, val_act), 0, copy.deepcopy(policy.state_dict()))
+    epochs = 0
+    while epochs < max_epochs and epochs - best[1] < patience:
+        policy.set_training_mode(True)
+        _nll_epoch(policy, optimiser, obs_t, act_t, generator.permutation(len(train_act)),
+                   batch_size)
+        policy.set_training_mode(False)
+        epochs += 1
+        held_nll = mean_nll(model, val_obs, val_act)
+        if held_nll < best[0]:
+            best = (held_nll, epochs, copy.deepcopy(policy.state_dict()))
+    policy.load_state_dict(best[2])
+    report = {"epochs": epochs, "best_epoch": best[1], "validation_nll": best[0],
+              "validation_agreement": agreement(model, val_obs, val_act),
+              "training_agreement": agreement(model, train_obs, train_act),
+              "n_training": int(len(train_act)), "n_validation": int(len(val_act))}
+    logger.info("fit to %d labels: held-out NLL %.4f, agreement %.4f (epoch %d of %d)",
+                len(actions), best[0], report["validation_agreement"], best[1], epochs)
+    return report
+
+
 def clone_rule(model, observations: np.ndarray, actions: np.ndarray, *,
                target_agreement: float = 0.995, max_epochs: int = 200, batch_size: int = 256,
                learning_rate: float = 1e-3, seed: int = 0) -> dict[str, float]:
@@ -76,8 +168,7 @@ def clone_rule(model, observations: np.ndarray, actions: np.ndarray, *,
         raise ValueError(f"observations, actions=({len(observations)}, {len(actions)}) are "
                          "invalid: must be the same positive number of demonstrations")
     policy = model.policy
-    actor = [p for name, p in policy.named_parameters() if not name.startswith("value_net")]
-    optimiser = torch.optim.Adam(actor, lr=learning_rate)
+    optimiser = _actor_optimiser(model, learning_rate)
     obs_t = torch.as_tensor(observations, dtype=torch.float32)
     act_t = torch.as_tensor(actions, dtype=torch.int64)
     generator = np.random.default_rng(seed)
@@ -85,18 +176,9 @@ def clone_rule(model, observations: np.ndarray, actions: np.ndarray, *,
     epochs, nll = 0, float("nan")
     reached = agreement(model, observations, actions)
     while reached < target_agreement and epochs < max_epochs:
-        order = generator.permutation(len(actions))
-        losses = []
-        for start in range(0, len(order), batch_size):
-            batch = order[start:start + batch_size]
-            _, log_prob, _ = policy.evaluate_actions(obs_t[batch], act_t[batch])
-            loss = -log_prob.mean()
-            optimiser.zero_grad()
-            loss.backward()
-            optimiser.step()
-            losses.append(loss.item())
+        nll = _nll_epoch(policy, optimiser, obs_t, act_t, generator.permutation(len(actions)),
+                         batch_size)
         epochs += 1
-        nll = float(np.mean(losses))
         reached = agreement(model, observations, actions)
     policy.set_training_mode(False)
     logger.info("behaviour cloning: agreement %.4f after %d epochs (NLL %.4f) on %d decisions",
