@@ -195,3 +195,30 @@ def test_renamed_rows_are_reported_under_their_new_name_with_a_headroom_interval
     assert doc["normalised_headroom"] == arms["lookahead"]["point"]
     against_full = headroom.summarise(joined, "lookahead-full", 10.0)
     assert set(against_full["normalised_headroom_by_arm"]) == {"lookahead"}
+
+
+def test_a_learner_gets_the_gap_it_closes_to_each_planner_with_a_seed_bootstrap_interval():
+    """(learner - best) / (planner - best) on success: 0.5 where the learner saves half the
+    seeds the planner saves; no figure where the planner has no room (map error), none for a
+    rule; the interval holds the point and is not a point itself."""
+    from slam_gym.evaluation.headroom import gap_closed
+
+    rows = []
+    for s in range(40):
+        rows.append(_row("fixed-10s-optimise", s % 4, s, s % 4 != 0, ret=-100.0))
+        rows.append(_row("fixed-10s", s % 4, s, s % 4 != 0, ret=-100.0))
+        rows.append(_row("lookahead", s % 4, s, True, ret=-60.0))
+        rows.append(_row("learned", s % 4, s, s % 4 != 0 or s % 8 == 0, ret=-80.0))
+    doc = headroom.summarise(rows, "fixed-10s-optimise", 10.0)
+    assert set(doc["gap_closed"]) == {"learned"}  # neither the rules nor the planner
+    gap = doc["gap_closed"]["learned"]["lookahead"]
+    assert gap["point"]["success"] == pytest.approx(0.5)
+    assert gap["point"]["return"] == pytest.approx(0.5)
+    assert "map_error_m" not in gap["point"]  # the planner has no room there
+    lo, hi = gap["interval"]["success"]
+    assert lo < 0.5 < hi and hi - lo > 0.05
+    assert gap == gap_closed(doc, {p: [r for r in rows if r["policy"] == p] for p in
+                                   ("learned", "lookahead")},
+                             [r for r in rows if r["policy"] == "fixed-10s-optimise"], 10.0)[
+        "learned"]["lookahead"]
+    assert "Gap closed (learned - best) / (lookahead - best)" in headroom.markdown(doc)

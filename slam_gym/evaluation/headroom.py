@@ -30,7 +30,10 @@ interval, which covers where the seed decides the outcome). Each difference carr
 seeds, method, the intraclass correlation within seeds and the effective number of independent
 worlds (``<metric>_paired`` in ``headroom.json``). Normalised headroom:
 ``(lookahead - best) / (bound - best)``, reported only where the bound's interval excludes 0
-on the better side of the measure. Writes ``OUT/headroom.json`` and ``OUT/headroom.md``.
+on the better side of the measure. A policy that is neither a rule of the report, a planner
+nor the bound (a learner, issue 58) also gets the **gap closed**, ``(policy - best) / (planner
+- best)`` for each planner present, with the same interval (:func:`gap_closed`). Writes
+``OUT/headroom.json`` and ``OUT/headroom.md``.
 
 ``--report-only`` recomputes them from the rows without running anything. ``--rows DIR``
 (repeatable) adds the rows of other runs' folders, e.g. the halves of the declared worlds run
@@ -151,6 +154,38 @@ def summarise(rows: Sequence[Mapping], best: str, price: float) -> dict:
         out["normalised_headroom_by_arm"][arm] = {"point": point, "interval": interval}
         if arm == "lookahead":
             out["normalised_headroom"] = point
+    out["gap_closed"] = gap_closed(out, by_policy, reference, price)
+    return out
+
+
+def gap_closed(doc: Mapping, by_policy: Mapping[str, Sequence[Mapping]],
+               reference: Sequence[Mapping], price: float) -> dict:
+    """Per policy that is neither a rule (:data:`RULES`, the threshold family), a planner nor
+    the bound (a learner): the share
+    of the gap from the best rule to each planner it closes, ``mean(arm - best) / mean(planner
+    - best)`` with its 95 % cluster-bootstrap interval (:func:`headroom_interval`, the seeds
+    resampled), for each measure on which the planner's own interval excludes 0 on the better
+    side (issue 58's question 4)."""
+    out: dict = {}
+    best = doc["best_rule"]
+    for arm, entry in doc["policies"].items():
+        if arm in (best, BOUND, *PLANNERS, *RULES) or arm.startswith("threshold-"):
+            continue
+        for planner in PLANNERS:
+            look = doc["policies"].get(planner)
+            if look is None or planner == best:
+                continue
+            point, interval = {}, {}
+            for metric in METRICS:
+                lk, d = look.get(f"{metric}_diff"), entry.get(f"{metric}_diff")
+                if lk is None or d is None:
+                    continue
+                room = lk[1] > 0.0 if BETTER_IF_HIGHER[metric] else lk[2] < 0.0
+                if room and lk[0]:
+                    point[metric] = d[0] / lk[0]
+                    interval[metric] = headroom_interval(by_policy[arm], by_policy[planner],
+                                                         reference, metric, price)
+            out.setdefault(arm, {})[planner] = {"point": point, "interval": interval}
     return out
 
 
@@ -226,6 +261,13 @@ def markdown(doc: Mapping) -> str:
                      "interval excludes 0 on the better side: " + (", ".join(
                          f"{m} {v:.2f}" + _interval_text((h.get("interval") or {}).get(m))
                          for m, v in h["point"].items() if v is not None) or "none"))
+    for arm, planners in (doc.get("gap_closed") or {}).items():
+        for planner, g in planners.items():
+            lines.append("")
+            lines.append(f"Gap closed ({arm} - best) / ({planner} - best), where the planner's "
+                         "interval excludes 0 on the better side: " + (", ".join(
+                             f"{m} {v:.2f}" + _interval_text(g["interval"].get(m))
+                             for m, v in g["point"].items()) or "none"))
     return "\n".join(lines) + "\n"
 
 
