@@ -21,7 +21,8 @@ Names (``policies.available()``):
   trigger instead;
 * ``never`` (pure FastSLAM), ``always`` (fuse at every decision, EKF-like);
 * ``adaptive-diversity`` and ``imminent-closure`` -- adaptive rules of BB sections 6 and 5.4;
-* ``learned`` -- a stable-baselines3 model zip (``path``, ``algo``).
+* ``learned`` -- a stable-baselines3 model zip (``path``, ``algo``; ``env_id``: the model
+  shipped for that env, else the default one, :func:`policies.learned.resolve_model_path`).
 
 Policies of your own (:mod:`policies.registry`): ``policies.register("my-rule", MyRule)`` for
 this process; the entry-point group ``slam_gym.policies`` for an installed package (its names

@@ -8,6 +8,14 @@ one does), on those features read by name from ``info["features"]``, which it th
 ``info["optimise_redundant"]`` gives a MaskablePPO model its mask (below). stable-baselines3 (and
 torch) are imported only when a model is loaded, so ``import policies`` stays light.
 
+Which model (:func:`resolve_model_path`): an explicit ``path`` wins; else the model shipped for
+the ``env_id`` the policy acts in (``policies.make("learned", env_id=...)``; every command with
+``--env ID`` passes its id): the ``*.zip`` of :data:`MODELS_DIR` whose config JSON records that
+``env_id`` (or runs it as the system of a wrapped env: :func:`model_table`); else the default
+model ``learned-default.zip``, with one WARNING per env id and process naming the env and the
+env the default was trained on. Shipping a model for an env is dropping its zip and config JSON
+in :data:`MODELS_DIR` (package data ``models/*.zip``, ``models/*.json``).
+
 Algorithms: PPO (default of ``slam-gym train``), A2C, DQN and sb3-contrib's MaskablePPO
 (``maskable-ppo``) and RecurrentPPO (``recurrent-ppo``; sb3-contrib is needed only to load such a
 model). Without ``algo`` the algorithm is read from the zip's ``data`` entry: DQN saves a
@@ -45,6 +53,7 @@ import json
 import logging
 import zipfile
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any
@@ -63,10 +72,16 @@ from policies.heuristics import AGE_TOLERANCE_S
 logger = logging.getLogger(__name__)
 
 MODELS_DIR = Path(__file__).resolve().parent / "models"
-"""Directory of the models shipped with the package (package data ``models/*.zip``)."""
+"""Directory of the models shipped with the package (package data ``models/*.zip`` and
+``models/*.json``): every ``*.zip`` in it is a shipped model, found by the ``env_id`` of the
+config JSON beside it (:func:`model_table`)."""
 
-DEFAULT_MODEL_PATH = MODELS_DIR / "learned-default.zip"
-"""The model ``policies.make("learned")`` loads when no ``path`` is given."""
+DEFAULT_MODEL_NAME = "learned-default.zip"
+"""File name of the default model in a models directory: the model ``learned`` falls back to."""
+
+DEFAULT_MODEL_PATH = MODELS_DIR / DEFAULT_MODEL_NAME
+"""The packaged default model: what ``policies.make("learned")`` loads without ``path`` and
+``env_id``, and for an env id no shipped model is for (:func:`resolve_model_path`)."""
 
 ALGORITHMS: tuple[str, ...] = ("ppo", "a2c", "dqn", "maskable-ppo", "recurrent-ppo")
 """Values of the ``algo`` option (case-insensitive)."""
@@ -77,16 +92,157 @@ _TRAIN_HINT = (
 )
 
 
-def resolve_model_path(path: str | Path | None) -> Path:
-    """The model file: ``path`` (``.zip`` appended if needed) or the packaged default."""
-    hint = _TRAIN_HINT.format(default=DEFAULT_MODEL_PATH)
+def check_env_id(env_id: Any) -> str | None:
+    """``env_id`` (None, or an env id such as ``"SlamGym/HybridSLAM-Zones-v1"``; a
+    ``module:`` prefix as ``gym.make`` takes it, ``slam_gym:SlamGym/...``, is dropped);
+    ``ValueError`` naming ``env_id`` for anything else. Only the type is checked: which ids are
+    registered is the env's to say (``slam_gym.envs.spec.check_env_id``), a floor above this
+    package."""
+    if env_id is None:
+        return None
+    require(isinstance(env_id, str) and env_id.strip() != "", "env_id", env_id,
+            "an env id (a non-empty str such as 'SlamGym/HybridSLAM-v1') or None")
+    return env_id.strip().rpartition(":")[2]
+
+
+def _models_dir(models_dir: str | Path | None) -> Path:
+    """``models_dir`` as a path, or the package's :data:`MODELS_DIR` (read at call time)."""
+    if models_dir is None:
+        return Path(MODELS_DIR)
+    require(isinstance(models_dir, (str, Path)) and str(models_dir) != "", "models_dir",
+            models_dir, "a directory path or None")
+    return Path(models_dir).expanduser()
+
+
+@dataclass(frozen=True)
+class ShippedModel:
+    """A model zip of a models directory and the env ids its config JSON records.
+
+    ``env_id``: the env it was trained in (config ``env_id``; None: its config names none or it
+    has no config); ``system_id``: the system that env runs (its ``fingerprint``'s ``env_id``,
+    written by ``slam-gym train``): the same id, or for a wrapped env (one action per fusion,
+    ``SlamGym/HybridSLAM-Interval-v1``) the id it wraps (``SlamGym/HybridSLAM-v1``), which the
+    model acts in as well (:class:`LearnedPolicy` plans its intervals itself); ``has_config``:
+    whether the config JSON is there (a zip without it names no env: no env id maps to it)."""
+
+    path: Path
+    env_id: str | None
+    system_id: str | None
+    has_config: bool
+
+    @property
+    def is_default(self) -> bool:
+        """Whether this is its directory's default model (:data:`DEFAULT_MODEL_NAME`)."""
+        return self.path.name == DEFAULT_MODEL_NAME
+
+
+def shipped_models(models_dir: str | Path | None = None) -> list[ShippedModel]:
+    """Every model of ``models_dir`` (None: :data:`MODELS_DIR`): each ``*.zip`` with the env ids
+    of the config JSON beside it (same stem), sorted by file name; [] when the directory does
+    not exist. A config that is not a JSON object is a ``ValueError`` naming it."""
+    directory = _models_dir(models_dir)
+    if not directory.is_dir():
+        return []
+    models = []
+    for zip_path in sorted(directory.glob("*.zip")):
+        config = read_model_config(zip_path)
+        env_id = system_id = None
+        if config is not None:
+            env_id = config.get("env_id")
+            fingerprint = config.get("fingerprint")
+            system_id = fingerprint.get("env_id") if isinstance(fingerprint, dict) else None
+        env_id = env_id if isinstance(env_id, str) and env_id else None
+        system_id = system_id if isinstance(system_id, str) and system_id else None
+        models.append(ShippedModel(zip_path, env_id, system_id, config is not None))
+    return models
+
+
+def model_table(models_dir: str | Path | None = None) -> dict[str, Path]:
+    """Env id -> the model shipped for it in ``models_dir`` (None: :data:`MODELS_DIR`).
+
+    A model is for the env id its config records (``env_id``) and, when its fingerprint names
+    another (the system a wrapped env runs), for that id too. An id recorded as some model's own
+    ``env_id`` goes to that model; an id only some models run as their system goes to the
+    default model (:data:`DEFAULT_MODEL_NAME`) if it is one of them. Two models with the same
+    claim on one id are a ``ValueError`` naming ``models_dir``, both files and the id: which
+    one a run would load must not depend on the order of a directory listing.
+
+    Shipping a model for an env is dropping its zip and config JSON (``"env_id": ID``, as
+    ``slam-gym train`` writes it) in the directory."""
+    directory = _models_dir(models_dir)
+    own: dict[str, ShippedModel] = {}
+    systems: dict[str, list[ShippedModel]] = {}
+    for model in shipped_models(directory):
+        if model.env_id is not None:
+            if model.env_id in own:
+                raise ValueError(
+                    f"models_dir={str(directory)!r} is invalid: must hold one model per env id "
+                    f"({own[model.env_id].path.name} and {model.path.name} are both for env_id "
+                    f"{model.env_id!r})")
+            own[model.env_id] = model
+        if model.system_id is not None and model.system_id != model.env_id:
+            systems.setdefault(model.system_id, []).append(model)
+    table = {env_id: model.path for env_id, model in own.items()}
+    for env_id, candidates in systems.items():
+        if env_id in table:
+            continue
+        defaults = [m for m in candidates if m.is_default]
+        chosen = defaults or candidates
+        if len(chosen) > 1:
+            raise ValueError(
+                f"models_dir={str(directory)!r} is invalid: must hold one model per env id "
+                f"({' and '.join(m.path.name for m in chosen)} all run {env_id!r} and none is "
+                f"the default model {DEFAULT_MODEL_NAME}; record that env_id in one of them)")
+        table[env_id] = chosen[0].path
+    return table
+
+
+_FALLBACK_WARNED: set[tuple[str, str]] = set()
+"""(env id, default model) pairs whose fallback this process has warned about (once each)."""
+
+
+def _warn_fallback(env_id: str, default: Path) -> None:
+    """The one WARNING of this process that ``env_id`` runs the default model of another env."""
+    key = (env_id, str(default))
+    if key in _FALLBACK_WARNED:
+        return
+    _FALLBACK_WARNED.add(key)
+    try:
+        trained_on = (read_model_config(default) or {}).get("env_id") or "an env it does not name"
+    except ValueError:
+        trained_on = "an env its config does not name"
+    logger.warning(
+        "no learned model ships for env %s: it runs the default model %s, which was trained on "
+        "another env (%s); ship one (a zip and its config JSON with \"env_id\": \"%s\" in %s) "
+        "or pass the model's path", env_id, default.name, trained_on, env_id, default.parent)
+
+
+def resolve_model_path(path: str | Path | None, env_id: str | None = None, *,
+                       models_dir: str | Path | None = None, warn: bool = True) -> Path:
+    """The model file ``learned`` loads. The rule: an explicit ``path`` wins (``.zip``
+    appended if needed); else the model shipped for ``env_id`` (:func:`model_table` of
+    ``models_dir``, None: :data:`MODELS_DIR`); else the directory's default model
+    (:data:`DEFAULT_MODEL_NAME`), and, when ``env_id`` was given (an env with no model of its
+    own), one WARNING per env id and process saying that the default model was trained on
+    another env, naming both (``warn=False``: none, for a caller that has warned already, e.g. a
+    worker running a job its parent made). ``FileNotFoundError`` when the file is missing;
+    ``ValueError`` naming ``env_id`` or ``path`` for a bad value."""
+    env_id = check_env_id(env_id)
+    directory = _models_dir(models_dir)
+    default = directory / DEFAULT_MODEL_NAME
+    hint = _TRAIN_HINT.format(default=default)
     if path is None:
-        candidate = Path(DEFAULT_MODEL_PATH)
-        if not candidate.is_file():
+        if env_id is not None:
+            shipped = model_table(directory).get(env_id)
+            if shipped is not None:
+                return shipped
+        if not default.is_file():
             raise FileNotFoundError(
-                f"no default learned model at {candidate} (none ships yet): {hint}"
+                f"no default learned model at {default} (none ships yet): {hint}"
             )
-        return candidate
+        if env_id is not None and warn:
+            _warn_fallback(env_id, default)
+        return default
     require(isinstance(path, (str, Path)) and str(path) != "", "path", path, "a file path")
     candidate = Path(path).expanduser()
     if not candidate.is_file() and candidate.suffix != ".zip":
@@ -98,18 +254,22 @@ def resolve_model_path(path: str | Path | None) -> Path:
     return candidate
 
 
-def model_digest(path: str | Path | None = None) -> str:
-    """The first 16 hex digits of the SHA-256 of the model file ``path`` (None: the packaged
-    default): what identifies a model in a benchmark's resumable job keys, so that results of a
-    model are never reused for another one saved under the same name."""
-    return hashlib.sha256(resolve_model_path(path).read_bytes()).hexdigest()[:16]
+def model_digest(path: str | Path | None = None, env_id: str | None = None) -> str:
+    """The first 16 hex digits of the SHA-256 of the model file ``learned`` loads for ``path``
+    and ``env_id`` (:func:`resolve_model_path`; both None: the packaged default): what
+    identifies a model in a benchmark's resumable job keys, so that results of a model are never
+    reused for another one saved under the same name or shipped for another env."""
+    resolved = resolve_model_path(path, env_id, warn=False)
+    return hashlib.sha256(resolved.read_bytes()).hexdigest()[:16]
 
 
-def check_model_digest(path: str | Path | None, expected: str | None) -> None:
+def check_model_digest(path: str | Path | None, expected: str | None,
+                       env_id: str | None = None) -> None:
     """``ValueError`` naming ``model_sha256`` if ``expected`` (None: no check) is not the
-    :func:`model_digest` of ``path``: the model changed since the job naming it was made."""
+    :func:`model_digest` of ``path`` for ``env_id``: the model changed since the job naming it
+    was made."""
     if expected is not None:
-        found = model_digest(path)
+        found = model_digest(path, env_id)
         require(found == expected, "model_sha256", expected,
                 f"the digest of the model file ({found}); the model changed since the job was made")
 
@@ -310,7 +470,11 @@ class LearnedPolicy(Policy):
     trained on, in order; the policy then builds its input from ``info["features"]`` by name, so
     a model keeps working when the env's observation gains features.
 
-    Options: ``path`` (model zip; default :data:`DEFAULT_MODEL_PATH`), ``algo`` (one of
+    Options: ``path`` (model zip; default: the model shipped for ``env_id``, else
+    :data:`DEFAULT_MODEL_PATH`: :func:`resolve_model_path`), ``env_id`` (the env the policy acts
+    in, e.g. ``"SlamGym/HybridSLAM-Zones-v1"``: it chooses the shipped model when ``path`` is not
+    given; an env with no model of its own runs the default model, with one WARNING naming
+    both envs), ``algo`` (one of
     :data:`ALGORITHMS`; default: detected from the zip), ``deterministic`` (True: the mode of
     the policy's action distribution / the greedy Q action; False (PPO, A2C): a draw from the
     distribution with the policy's own generator, seeded with ``sample_seed`` (default 0) at every
@@ -339,6 +503,7 @@ class LearnedPolicy(Policy):
         self,
         *,
         path: str | Path | None = None,
+        env_id: str | None = None,
         algo: str | None = None,
         deterministic: bool | None = None,
         sample_seed: int = 0,
@@ -354,7 +519,8 @@ class LearnedPolicy(Policy):
             "sample_seed", sample_seed, "a non-negative integer",
         )
         require(isinstance(device, str) and device != "", "device", device, "a torch device name")
-        model_path = resolve_model_path(path)
+        env_id = check_env_id(env_id)
+        model_path = resolve_model_path(path, env_id)
         config = read_model_config(model_path) or {}  # read once: every setting below comes from it
         detected = detect_algorithm(model_path)
         if algo is None:
@@ -395,6 +561,7 @@ class LearnedPolicy(Policy):
             config.get("observation_normalisation", None)
         )
         self.path = model_path
+        self.env_id = env_id  # the env the model was resolved for (None: not given)
         self.algo = algo
         if deterministic is None:
             deterministic = config.get("deterministic", True)
@@ -422,6 +589,7 @@ class LearnedPolicy(Policy):
         self.frame_shape: tuple[int, ...] = (self.observation_shape[0] // frame_stack,)
         self.options = {
             "path": str(model_path),
+            "env_id": env_id,
             "algo": algo,
             "deterministic": deterministic,
             "sample_seed": sample_seed,

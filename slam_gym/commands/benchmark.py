@@ -47,7 +47,9 @@ def add_parser(subparsers) -> None:
                    "(dead-reckoning; '' for none): dead reckoning meets BB's success "
                    "criterion without a map, which map completeness shows")
     add_env_options(p)
-    p.add_argument("--model", default=None, help="model zip for the learned policy")
+    p.add_argument("--model", default=None,
+                   help="model zip for the learned policy (default: the model shipped for "
+                   "--env, else the default model)")
     p.add_argument("--draws", type=int, default=1, metavar="K",
                    help="filter draws per world for every policy (default 1): the same world "
                    "run K times with other draws of the filter's random numbers, draw k the "

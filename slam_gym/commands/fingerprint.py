@@ -5,6 +5,12 @@ Compares the system fingerprint a model records in its config JSON (``model.json
 env options, and prints whether they match and, if not, what differs. Exit status 0 when the
 model matches, 1 when it does not (or records no fingerprint).
 
+Which model: ``MODEL``; else, with ``--env ID``, the model ``learned`` runs in that env (the one
+shipped for it, else the default: :func:`policies.learned.resolve_model_path`); else every
+shipped model (each ``*.zip`` of ``policies/models``), each with the env id it was trained on
+and the env ids it is the model of (:func:`policies.learned.model_table`), exit 1 when any of
+them does not match.
+
 ``--stamp`` writes the current fingerprint into the model's JSON instead: for a model trained on
 this very code whose JSON predates fingerprints (or was copied without one). Stamping asserts
 that the model was trained on this code; the fingerprint then carries ``"stamped": true``.
@@ -21,6 +27,7 @@ from __future__ import annotations
 import json
 import logging
 import zipfile
+from pathlib import Path
 
 from slam_gym.commands.common import emit
 
@@ -32,7 +39,8 @@ def add_parser(subparsers) -> None:
         "fingerprint",
         help="whether a learned model matches the code (its system fingerprint); --stamp it")
     p.add_argument("model", nargs="?", default=None,
-                   help="model zip (default: the packaged learned-default.zip)")
+                   help="model zip (default: the model shipped for --env; without --env every "
+                   "shipped model, each with its env id; --stamp: learned-default.zip)")
     p.add_argument("--stamp", action="store_true",
                    help="write the current fingerprint into the model's JSON (only for a model "
                         "trained on this code)")
@@ -96,22 +104,87 @@ def env_version_lines(config: dict) -> tuple[list[str], dict]:
     return lines, version
 
 
-def run(args) -> int:
-    from policies.learned import read_model_config, resolve_model_path
+def check_model(args, path: Path, config: dict) -> tuple[dict, list[str]]:
+    """The report of one model (its JSON object and its lines): whether its fingerprint matches
+    the code's for the env :func:`env_to_check` chooses, what differs, and its env version."""
     from slam_gym.training.provenance import compare_fingerprints, system_fingerprint
 
-    try:
-        path = resolve_model_path(args.model)
-    except FileNotFoundError as exc:
-        raise ValueError(f"MODEL={args.model!r} is invalid: {exc}") from exc
+    saved = config.get("fingerprint")
+    current = system_fingerprint(*env_to_check(args, config))
+    differences = compare_fingerprints(saved, current)
+    matches = not differences
+    if matches:
+        lines = [f"{path}: matches the code (fingerprint {current['digest'][:16]}, env options "
+                 f"{current['env_options']})"]
+    else:
+        lines = [f"{path}: does NOT match the code (trained on a different system):",
+                 *(f"  - {d}" for d in differences)]
+    version_lines, version = env_version_lines(config)
+    return ({"model": str(path), "matches": matches, "differences": differences,
+             "fingerprint": current, "saved_fingerprint": saved, "env_version": version},
+            lines + version_lines)
+
+
+def model_file(path: Path, given: str) -> tuple[Path, dict]:
+    """The model zip at ``path`` and its config JSON; ``ValueError`` naming ``given`` (the
+    ``MODEL`` argument, or the shipped file) when it is not a zip or has no config."""
+    from policies.learned import read_model_config
+
     if not zipfile.is_zipfile(path):
-        raise ValueError(f"MODEL={str(path)!r} is invalid: it is not a zip file (a model is the "
+        raise ValueError(f"{given}={str(path)!r} is invalid: it is not a zip file (a model is the "
                          "zip that slam-gym train writes, with its config JSON beside it)")
     config = read_model_config(path)
     if config is None:
-        raise ValueError(f"MODEL={str(path)!r} is invalid: it has no config JSON "
+        raise ValueError(f"{given}={str(path)!r} is invalid: it has no config JSON "
                          f"({path.with_suffix('.json').name}, written by slam-gym train), so "
                          "the env options it was trained under are unknown")
+    return path, config
+
+
+def run_shipped(args) -> int:
+    """Every shipped model, each with the env id it was trained on, the env ids it is the model
+    of, and whether it matches the code; exit 1 when any does not (or cannot be read)."""
+    from policies.learned import MODELS_DIR, model_table, shipped_models
+
+    models = shipped_models()
+    if not models:
+        raise ValueError(f"MODEL=None is invalid: no model ships in {MODELS_DIR} (give a model "
+                         "zip)")
+    table = model_table()
+    docs, lines = [], []
+    for model in models:
+        serves = sorted(env_id for env_id, path in table.items() if path == model.path)
+        head = {"env_id": model.env_id, "serves": serves, "default": model.is_default}
+        lines.append(f"{model.path.name}: trained on {model.env_id or 'an env it does not name'}"
+                     + (" (the default model)" if model.is_default else "")
+                     + "; the model of " + (", ".join(serves) if serves else "no env id"))
+        try:
+            doc, model_lines = check_model(args, *model_file(model.path, "model"))
+        except ValueError as exc:
+            doc = {"model": str(model.path), "matches": False, "differences": [str(exc)]}
+            model_lines = [f"{model.path}: does NOT match the code: {exc}"]
+        docs.append(head | doc)
+        lines += [f"  {line}" for line in model_lines]
+    matches = all(d["matches"] for d in docs)
+    emit(args, {"models": docs, "matches": matches}, lines)
+    return 0 if matches else 1
+
+
+def run(args) -> int:
+    from policies.learned import resolve_model_path
+    from slam_gym.envs.spec import check_env_id
+    from slam_gym.training.provenance import compare_fingerprints, system_fingerprint
+
+    if args.model is None and args.env is None and not args.stamp:
+        return run_shipped(args)
+    if args.env is not None:
+        check_env_id(args.env)  # before resolving: a typo is named, not a model's fallback
+    try:
+        path = resolve_model_path(args.model, None if args.model is not None or args.stamp
+                                  else args.env)
+    except FileNotFoundError as exc:
+        raise ValueError(f"MODEL={args.model!r} is invalid: {exc}") from exc
+    path, config = model_file(path, "MODEL")
     saved = config.get("fingerprint")
     if args.stamp:
         from slam_gym.envs import system_env_id
@@ -137,17 +210,6 @@ def run(args) -> int:
              [f"{path}: stamped with the current fingerprint {current['digest'][:16]} "
               f"(env options {current['env_options']}; {current['cpu_s']:.2f} s CPU)"])
         return 0
-    current = system_fingerprint(*env_to_check(args, config))
-    differences = compare_fingerprints(saved, current)
-    matches = not differences
-    if matches:
-        lines = [f"{path}: matches the code (fingerprint {current['digest'][:16]}, env options "
-                 f"{current['env_options']})"]
-    else:
-        lines = [f"{path}: does NOT match the code (trained on a different system):",
-                 *(f"  - {d}" for d in differences)]
-    version_lines, version = env_version_lines(config)
-    emit(args, {"model": str(path), "matches": matches, "differences": differences,
-                "fingerprint": current, "saved_fingerprint": saved, "env_version": version},
-         lines + version_lines)
-    return 0 if matches else 1
+    doc, lines = check_model(args, path, config)
+    emit(args, doc, lines)
+    return 0 if doc["matches"] else 1

@@ -102,7 +102,8 @@ def run(args) -> int:
             "OLD=NEW pairs")
     env = env_from_args(args).replace(w_compute=args.price)
     names = [n.strip() for n in args.policies.split(",") if n.strip()]
-    specs: dict = {n: policies.make(n) for n in names}
+    specs: dict = {n: policies.make(n, **({"env_id": env.env_id} if n == "learned" else {}))
+                   for n in names}  # learned: the model shipped for the task
     best = args.best_rule or "fixed-10s-optimise"
     chosen = read_chosen(args.threshold_rule, env).get(f"{args.price:g}")
     if args.threshold_rule and chosen is None:

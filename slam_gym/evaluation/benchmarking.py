@@ -86,9 +86,13 @@ class PolicyEntry:
     """:func:`policies.registry.policy_digest` of a user's policy (None: the project's)."""
 
 
-def resolve_policies(specs: Any, model: str | None = None) -> list[PolicyEntry]:
+def resolve_policies(specs: Any, model: str | None = None,
+                     env_id: str | None = None) -> list[PolicyEntry]:
     """Check and name the ``policies`` argument of :func:`benchmark` (``ValueError`` naming the
-    entry at fault). Names and references are resolved here, so a typo fails before any run."""
+    entry at fault). Names and references are resolved here, so a typo fails before any run;
+    ``learned`` loads ``model``, or the model shipped for ``env_id`` (the env the jobs run in),
+    else the default (:func:`policies.learned.resolve_model_path`, which warns once for an env
+    with no model of its own)."""
     import policies
     from policies.registry import is_policy, policy_digest, policy_label
 
@@ -125,7 +129,7 @@ def resolve_policies(specs: Any, model: str | None = None) -> list[PolicyEntry]:
             entries.append(PolicyEntry(name, value, policy_digest(value)))
             continue
         if name == "learned":  # load the model now: a missing file fails before any run
-            policies.make("learned", **({"path": model} if model else {}))
+            policies.make("learned", **({"path": model} if model else {}), env_id=env_id)
             entries.append(PolicyEntry(name))
             continue
         target = policies.REGISTRY.factory(name)  # ValueError for an unknown name
@@ -272,13 +276,14 @@ def benchmark(
     env is ``gym.make(id, **kwargs)``; :func:`env_of`). ``clutter_levels``: None runs the env's
     own (a task's four, the level an id fixes, BB's four otherwise). ``seeds``: a number of
     worlds from ``seed_start``, or the seeds themselves. ``model``: the model zip of policy
-    ``learned`` (None: the shipped one). ``draws``: filter draws per world for every policy (each
-    run's row carries its ``draw``; a draw is the same on every policy: common random numbers,
-    issue 46). ``workers``, ``executor`` (``"process"``, ``"ray"``, ``"serial"``) and
-    ``ray_address`` as :func:`slam_gym.evaluation.run_jobs`, and so are ``retry_errors`` (run
-    the error rows again), ``rerun_changed`` (replace the rows of a user policy whose code or
-    options changed; without it such rows make the call refuse with ``ValueError`` naming the
-    policy) and ``run_timeout_s`` (the time limit of one run; None: none).
+    ``learned`` (None: the one shipped for the env's id, else the default). ``draws``: filter
+    draws per world for every policy (each run's row carries its ``draw``; a draw is the same
+    on every policy: common random numbers, issue 46). ``workers``, ``executor``
+    (``"process"``, ``"ray"``, ``"serial"``) and ``ray_address`` as
+    :func:`slam_gym.evaluation.run_jobs`, and so are ``retry_errors`` (run the error rows
+    again), ``rerun_changed`` (replace the rows of a user policy whose code or options changed;
+    without it such rows make the call refuse with ``ValueError`` naming the policy) and
+    ``run_timeout_s`` (the time limit of one run; None: none).
 
     Every option is checked before any run (``ValueError`` naming it).
     """
@@ -289,7 +294,7 @@ def benchmark(
 
     spec = env_of(env, env_kwargs, clutter_levels)
     levels = list(spec.levels)
-    entries = resolve_policies(policies, model)
+    entries = resolve_policies(policies, model, spec.env_id)
     draws = check_draws(draws)
     baselines = list(baselines)
     bad = [b for b in baselines if b not in BASELINE_SYSTEMS]
@@ -306,7 +311,7 @@ def benchmark(
 
     jobs = []
     for entry in entries:
-        opts = learned_options(model) if entry.name == "learned" else {}
+        opts = learned_options(model, spec.env_id) if entry.name == "learned" else {}
         if entry.digest is not None:
             opts["policy_sha256"] = entry.digest
         jobs += [Job.in_env("policy", entry.name, spec, level, seed, opts | {"draw": draw})

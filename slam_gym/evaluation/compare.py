@@ -122,9 +122,11 @@ class ComparisonResult:
                 "env_kwargs": self.env_kwargs}
 
 
-def resolve_arm(spec: Any) -> Arm:
+def resolve_arm(spec: Any, env_id: str | None = None) -> Arm:
     """A policy name, a ``package.module:attribute`` reference, a policy object, or the path of
-    a learned model (a file ending in ``.zip``: policy ``learned`` with that model)."""
+    a learned model (a file ending in ``.zip``: policy ``learned`` with that model). ``env_id``:
+    the env the arm runs in; ``learned`` by name runs the model shipped for it
+    (:func:`policies.learned.resolve_model_path`)."""
     from slam_gym.evaluation.benchmarking import resolve_policies
     from slam_gym.evaluation.core import learned_options
 
@@ -134,8 +136,8 @@ def resolve_arm(spec: Any) -> Arm:
             raise FileNotFoundError(f"model {path!r} is invalid: no such file")
         resolve_policies(["learned"], path)  # loads it: a bad model fails before any run
         return Arm(str(spec), "learned", learned_options(path))
-    (entry,) = resolve_policies([spec])
-    options = learned_options(None) if entry.name == "learned" else {}
+    (entry,) = resolve_policies([spec], env_id=env_id)
+    options = learned_options(None, env_id) if entry.name == "learned" else {}
     if entry.digest is not None:
         options["policy_sha256"] = entry.digest
     return Arm(entry.name, entry.name, options, entry.shipped)
@@ -342,7 +344,7 @@ def compare(
     require(isinstance(seed_start, int) and 0 <= seed_start
             and seed_start + n_batches * batch_seeds < 2**31, "seed_start", seed_start,
             "an integer >= 0 with every seed below 2**31")
-    arm_a, arm_b = resolve_arm(a), resolve_arm(b)
+    arm_a, arm_b = resolve_arm(a, spec.env_id), resolve_arm(b, spec.env_id)
     if executor != "serial":
         check_picklable((arm_a, arm_b), executor)
     out = make_out_dir(out)

@@ -19,7 +19,9 @@ Policy jobs run in their env (``job.env``, :class:`~slam_gym.envs.spec.ResolvedE
 ``gym.make(id, **kwargs)``; the world ``seed`` at the job's clutter level and the filter's
 ``draw`` are ``reset`` options) and take only the policy's own options: ``model_path``,
 ``model_sha256`` (the model file's :func:`policies.learned.model_digest`: a run checks it, so a
-job key names the model it was run with) and ``deterministic`` (for ``learned``),
+job key names the model it was run with; without ``model_path`` the model is the one shipped for
+the job's env id, :func:`policies.learned.resolve_model_path`) and ``deterministic`` (for
+``learned``),
 ``policy_sha256`` (a user policy's :func:`policies.registry.policy_digest`, checked likewise)
 and ``draw`` (0: which draw of the filter's random numbers on the world). Every option of the env
 (particles, back-end, the price of compute, ...) is in its keyword arguments, never a job option.
@@ -168,31 +170,40 @@ def run_policy(
     ``model_path``, ``model_sha256`` and ``deterministic`` are options of ``learned``,
     ``factories`` the policies only this process knows (:func:`make_policy`), ``run_options``
     those of :func:`run_policy_object` (``draw``, ``on_step``)."""
+    env_id = env if isinstance(env, str) else getattr(env, "env_id", None)
     policy = make_policy(policy_name, model_path=model_path, model_sha256=model_sha256,
-                         deterministic=deterministic, factories=factories)
+                         deterministic=deterministic, factories=factories, env_id=env_id)
     return run_policy_object(policy, env, clutter_level, seed, policy_name=policy_name,
                              **run_options)
 
 
-def learned_options(model_path: str | None = None) -> dict:
-    """The job options of policy ``learned``: its model file (None: the packaged default, not
-    named) and that file's digest, so that a resumed run never reuses the rows of another model
-    saved at the same path (e.g. the shipped default before it was retrained)."""
-    from policies.learned import model_digest
+def learned_options(model_path: str | None = None, env_id: str | None = None) -> dict:
+    """The job options of policy ``learned`` in env ``env_id``: its model file (None: the model
+    shipped for ``env_id``, else the packaged default; not named, so keys do not depend on where
+    the package is installed) and the digest of the model that resolves to, so that a resumed
+    run never reuses the rows of another model: one saved at the same path (e.g. the shipped
+    default before it was retrained), or one shipped for another env. An env with no model of
+    its own is warned about here, once (:func:`policies.learned.resolve_model_path`); the
+    workers running the jobs resolve the same model quietly."""
+    from policies.learned import model_digest, resolve_model_path
 
+    resolve_model_path(model_path, env_id)  # the fallback's one WARNING, in the job's maker
     return ({"model_path": model_path} if model_path else {}) | {
-        "model_sha256": model_digest(model_path)}
+        "model_sha256": model_digest(model_path, env_id)}
 
 
 def make_policy(name: str, *, model_path=None, model_sha256=None, deterministic=None,
-                factories=None):
+                factories=None, env_id=None):
     """The policy object a job names. For ``learned``: the model at ``model_path`` (None: the
-    packaged default), checked against the job's ``model_sha256`` (None: not checked; another
-    digest is a ``ValueError``), acting by ``deterministic`` (None: the model's default). The
-    other policies take none of these. ``factories`` (name -> factory or policy object) holds
-    the policies a worker process cannot resolve by name (objects and names registered at run
-    time in the process that made the jobs); other names go to :func:`policies.make` (the
-    project's names, plug-ins' entry points, ``package.module:attribute`` references)."""
+    one shipped for the job's ``env_id``, else the packaged default:
+    :func:`policies.learned.resolve_model_path`, resolved without its fallback warning, which
+    the process that made the job gave), checked against the job's ``model_sha256`` (None: not
+    checked; another digest is a ``ValueError``), acting by ``deterministic`` (None: the model's
+    default). The other policies take none of these. ``factories`` (name -> factory or policy
+    object) holds the policies a worker process cannot resolve by name (objects and names
+    registered at run time in the process that made the jobs); other names go to
+    :func:`policies.make` (the project's names, plug-ins' entry points,
+    ``package.module:attribute`` references)."""
     import policies
     from policies.registry import build
 
@@ -200,11 +211,12 @@ def make_policy(name: str, *, model_path=None, model_sha256=None, deterministic=
         return build(factories[name], name, {})
     if name != "learned":
         return policies.make(name)
-    from policies.learned import check_model_digest
+    from policies.learned import check_model_digest, resolve_model_path
 
-    check_model_digest(model_path, model_sha256)
-    kwargs = {k: v for k, v in (("path", model_path), ("deterministic", deterministic))
-              if v is not None}
+    check_model_digest(model_path, model_sha256, env_id)
+    path = resolve_model_path(model_path, env_id, warn=False)
+    kwargs = {k: v for k, v in (("path", str(path)), ("deterministic", deterministic),
+                                ("env_id", env_id)) if v is not None}
     return policies.make("learned", **kwargs)
 
 
@@ -333,7 +345,8 @@ def run_job(job, policy_factories=None, recorder=None) -> dict:
     check_policy_digest(job.name, opts.pop("policy_sha256"), policy_factories)
     policy = make_policy(job.name, model_path=opts.pop("model_path"),
                          model_sha256=opts.pop("model_sha256"),
-                         deterministic=opts.pop("deterministic"), factories=policy_factories)
+                         deterministic=opts.pop("deterministic"), factories=policy_factories,
+                         env_id=job.env.env_id)
     recording = recorder.start(job) if recorder is not None else None
     episode, env = run_policy_object(policy, job.env, job.clutter_level, job.seed,
                                      policy_name=job.name, draw=opts["draw"],

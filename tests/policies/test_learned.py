@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import subprocess
 import sys
 import zipfile
@@ -262,10 +263,12 @@ def test_not_a_model_zip_raises(tmp_path):
 
 
 def test_missing_model_says_how_to_train_one(tmp_path, monkeypatch):
-    monkeypatch.setattr(learned, "DEFAULT_MODEL_PATH", tmp_path / "learned-default.zip")
+    monkeypatch.setattr(learned, "MODELS_DIR", tmp_path)
     with pytest.raises(FileNotFoundError, match="slam-gym train") as excinfo:
         policies.make("learned")
-    assert "learned-default.zip" in str(excinfo.value)
+    assert str(tmp_path / "learned-default.zip") in str(excinfo.value)
+    with pytest.raises(FileNotFoundError, match="slam-gym train"):  # no model for it, no default
+        policies.make("learned", env_id="SlamGym/HybridSLAM-Zones-v1")
     with pytest.raises(FileNotFoundError, match="slam-gym train"):
         policies.make("learned", path=tmp_path / "nowhere.zip")
 
@@ -333,20 +336,29 @@ def test_the_shipped_model_loads_acts_and_says_how_it_was_made():
         policy.act(None, {"features": {}})
 
 
-def test_the_packaged_default_model_matches_the_code():
-    """The shipped model was trained on the system this code is: its recorded fingerprint (a
-    fixed seeded rollout of the env under its env options) equals the code's. Fails when the
-    filters, features or reward change under a shipped model: retrain and ship it (or, for a
-    model trained on this code whose JSON predates fingerprints, `slam-gym fingerprint --stamp`)."""
-    import json
-
+@pytest.mark.parametrize("model", learned.shipped_models(), ids=lambda m: m.path.name)
+def test_every_packaged_model_matches_the_code_and_names_its_env(model):
+    """Each shipped model (the default and any model shipped for a task) was trained on the
+    system this code is: its recorded fingerprint (a fixed seeded rollout of the env under its
+    env options) equals the code's. Fails when the filters, features or reward change under a
+    shipped model: retrain and ship it (or, for a model trained on this code whose JSON
+    predates fingerprints, `slam-gym fingerprint --stamp`). Its config names the env it is for,
+    so that ``learned`` in that env loads it."""
+    from slam_gym.envs.spec import check_env_id
     from slam_gym.training.provenance import compare_fingerprints, fingerprint_of_config
 
-    config = json.loads(learned.DEFAULT_MODEL_PATH.with_suffix(".json").read_text())
+    config = learned.read_model_config(model.path)
+    assert config is not None, f"{model.path.name} ships without its config JSON"
+    check_env_id(model.env_id, "env_id")  # a registered id
     differences = compare_fingerprints(config.get("fingerprint"), fingerprint_of_config(config))
     assert not differences, (
-        f"the packaged model {learned.DEFAULT_MODEL_PATH.name} does not match the code it ships "
+        f"the packaged model {model.path.name} does not match the code it ships "
         "with (trained on a different system): " + "; ".join(differences))
+    assert learned.resolve_model_path(None, model.env_id, warn=False) == model.path
+
+
+def test_the_default_model_ships():
+    assert learned.DEFAULT_MODEL_PATH in [m.path for m in learned.shipped_models()]
 
 
 def test_model_digest_identifies_the_file_and_a_stale_digest_is_rejected(ppo_zip, a2c_zip):
@@ -371,3 +383,168 @@ def test_benchmark_jobs_of_the_learned_policy_name_its_model(ppo_zip, a2c_zip):
     with pytest.raises(ValueError, match="model_sha256"):
         run_policy("learned", resolve_env(None, {"n_steps": 20}), 0, 0,
                    model_path=str(a2c_zip), model_sha256=first["model_sha256"])
+
+
+# ------------------------------------------------------------------------------------------------
+# the model of the env it runs in (issue 58 item 6)
+# ------------------------------------------------------------------------------------------------
+ZONES = "SlamGym/HybridSLAM-Zones-v1"
+INTERVAL = "SlamGym/HybridSLAM-Interval-v1"
+BB = "SlamGym/HybridSLAM-v1"
+
+
+@pytest.fixture
+def models_dir(tmp_path, monkeypatch):
+    """A models directory standing in for the package's: the packaged default model, and a
+    model shipped for the Zones task; fallback warnings not yet given in this process."""
+    from shipped_models import ship_copy
+
+    directory = tmp_path / "models"
+    ship_copy(directory, "learned-default.zip", INTERVAL)
+    ship_copy(directory, "learned-zones.zip", ZONES)
+    monkeypatch.setattr(learned, "MODELS_DIR", directory)
+    monkeypatch.setattr(learned, "_FALLBACK_WARNED", set())
+    return directory
+
+
+def fallback_warnings(caplog) -> list[str]:
+    return [r.getMessage() for r in caplog.records
+            if r.name == "policies.learned" and r.levelname == "WARNING"]
+
+
+def test_the_shipped_table_maps_each_env_id_to_its_model(models_dir):
+    table = learned.model_table()
+    assert table == {ZONES: models_dir / "learned-zones.zip",
+                     INTERVAL: models_dir / "learned-default.zip",
+                     BB: models_dir / "learned-default.zip"}  # the system Interval-v1 wraps
+    assert learned.model_table(models_dir) == table  # a directory given, not the patched one
+    assert [(m.path.name, m.env_id, m.is_default) for m in learned.shipped_models()] == [
+        ("learned-default.zip", INTERVAL, True), ("learned-zones.zip", ZONES, False)]
+
+
+def test_the_packaged_table_gives_bbs_world_the_default_model():
+    assert learned.model_table()[BB] == learned.DEFAULT_MODEL_PATH
+    assert learned.resolve_model_path(None, BB) == learned.DEFAULT_MODEL_PATH
+
+
+def test_learned_resolves_the_model_shipped_for_its_env(models_dir, caplog):
+    with caplog.at_level(logging.WARNING, logger="policies.learned"):
+        zones = policies.make("learned", env_id=ZONES, check_provenance=False)
+        bb = policies.make("learned", env_id=BB, check_provenance=False)
+        unnamed = policies.make("learned", check_provenance=False)
+        prefixed = learned.resolve_model_path(None, "slam_gym:" + ZONES)  # as gym.make takes it
+    assert zones.path == models_dir / "learned-zones.zip" and zones.env_id == ZONES
+    assert zones.options["env_id"] == ZONES
+    assert bb.path == unnamed.path == models_dir / "learned-default.zip"
+    assert prefixed == models_dir / "learned-zones.zip"
+    assert fallback_warnings(caplog) == []  # every env here has a model of its own
+    assert learned.model_digest(None, ZONES) != learned.model_digest(None, BB)
+    assert learned.model_digest(None, BB) == learned.model_digest(None)
+
+
+def test_an_env_without_a_model_falls_back_to_the_default_with_one_warning(models_dir, caplog):
+    task = "SlamGym/HybridSLAM-LongMission-v1"
+    with caplog.at_level(logging.WARNING, logger="policies.learned"):
+        first = learned.resolve_model_path(None, task)
+        policy = policies.make("learned", env_id=task, check_provenance=False)
+    assert first == policy.path == models_dir / "learned-default.zip"
+    (message,) = fallback_warnings(caplog)  # once per env id and process, not per policy
+    assert task in message and INTERVAL in message and "learned-default.zip" in message
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="policies.learned"):
+        learned.resolve_model_path(None, "SlamGym/HybridSLAM-v0")  # another env: its own warning
+        learned.resolve_model_path(None, "SlamGym/HybridSLAM-Light-v1", warn=False)
+    (message,) = fallback_warnings(caplog)
+    assert "SlamGym/HybridSLAM-v0" in message
+
+
+def test_an_explicit_path_wins_over_the_env(models_dir, ppo_zip, caplog):
+    with caplog.at_level(logging.WARNING, logger="policies.learned"):
+        policy = policies.make("learned", path=ppo_zip, env_id=ZONES, check_provenance=False)
+        other = policies.make("learned", path=ppo_zip, env_id="SlamGym/HybridSLAM-LongMission-v1",
+                              check_provenance=False)
+    assert policy.path == other.path == ppo_zip
+    assert learned.resolve_model_path(models_dir / "learned-default", ZONES) == (
+        models_dir / "learned-default.zip")
+    assert fallback_warnings(caplog) == []  # the env's model is not used: nothing to warn about
+    assert learned.model_digest(ppo_zip, ZONES) == learned.model_digest(ppo_zip)
+
+
+@pytest.mark.parametrize("env_id", [3, "", "  ", ["SlamGym/HybridSLAM-v1"], b"SlamGym/X-v1"])
+def test_a_bad_env_id_raises_naming_it(models_dir, ppo_zip, env_id):
+    with pytest.raises(ValueError, match="env_id="):
+        learned.resolve_model_path(None, env_id)
+    with pytest.raises(ValueError, match="env_id="):
+        policies.make("learned", path=ppo_zip, env_id=env_id)  # checked with a path too
+
+
+def test_shipping_a_model_for_an_env_is_dropping_it_in_the_directory(models_dir, caplog):
+    from shipped_models import ship_copy
+
+    task = "SlamGym/HybridSLAM-ZonesStarved-v1"
+    before = learned.resolve_model_path(None, task)
+    assert before == models_dir / "learned-default.zip"
+    shipped = ship_copy(models_dir, "learned-zones-starved.zip", task)
+    assert learned.resolve_model_path(None, task) == shipped
+    assert learned.model_digest(None, task) != learned.model_digest(None, ZONES)
+    shipped.with_suffix(".json").unlink()  # a zip without its config names no env: not shipped
+    assert learned.resolve_model_path(None, task) == before
+
+
+def test_two_models_for_one_env_are_refused_naming_both(models_dir):
+    from shipped_models import ship_copy
+
+    ship_copy(models_dir, "learned-zones-again.zip", ZONES)
+    with pytest.raises(ValueError, match="models_dir=") as excinfo:
+        learned.resolve_model_path(None, ZONES)
+    assert "learned-zones.zip" in str(excinfo.value)
+    assert "learned-zones-again.zip" in str(excinfo.value)
+
+
+def test_a_model_of_an_env_is_preferred_to_one_that_only_runs_its_system(models_dir):
+    from shipped_models import ship_copy
+
+    own = ship_copy(models_dir, "learned-bb.zip", BB)  # trained on BB's env itself
+    assert learned.resolve_model_path(None, BB) == own
+    assert learned.resolve_model_path(None, INTERVAL) == models_dir / "learned-default.zip"
+
+
+def test_the_package_data_ships_every_model_of_the_models_directory():
+    import fnmatch
+    import tomllib
+    from pathlib import Path
+
+    root = Path(learned.__file__).resolve().parents[1]
+    globs = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"][
+        "package-data"]["policies"]
+    for name in ("learned-default", "learned-zones", "learned-long-mission"):
+        for suffix in (".zip", ".json"):
+            assert any(fnmatch.fnmatch(f"models/{name}{suffix}", g) for g in globs), (name, globs)
+
+
+def test_benchmark_and_compare_jobs_in_a_task_run_the_tasks_model(models_dir, tmp_path):
+    """A job of ``learned`` in an env names the digest of the model shipped for that env (so
+    rows of two models never share a key) and its run loads that model: a job made with
+    another model's digest is refused by the run."""
+    from slam_gym.envs.spec import resolve_env
+    from slam_gym.evaluation import Job, benchmark
+    from slam_gym.evaluation.compare import resolve_arm
+    from slam_gym.evaluation.core import learned_options, run_job
+
+    zones_digest = learned.model_digest(models_dir / "learned-zones.zip")
+    default_digest = learned.model_digest(models_dir / "learned-default.zip")
+    assert zones_digest != default_digest
+    assert learned_options(None, ZONES) == {"model_sha256": zones_digest}
+    assert learned_options(None, BB) == {"model_sha256": default_digest}
+    assert resolve_arm("learned", ZONES).options == {"model_sha256": zones_digest}
+    assert resolve_arm("learned", BB).options == {"model_sha256": default_digest}
+    env = resolve_env(ZONES, {"n_particles": 5, "n_steps": 40})
+    result = benchmark(["learned"], env=env, clutter_levels=[1], seeds=[3], baselines=[],
+                       executor="serial", figures=False, out=tmp_path / "out")
+    (row,) = result.rows
+    assert row["status"] == "ok", row.get("error")
+    assert row["env_id"] == ZONES and row["options"]["model_sha256"] == zones_digest
+    assert row["model_matches_code"] is True  # the copy keeps the fingerprint of its weights
+    stale = Job.in_env("policy", "learned", env, 1, 3, {"model_sha256": default_digest})
+    with pytest.raises(ValueError, match="model_sha256"):
+        run_job(stale)  # the run resolves the task's model, not the one the job names

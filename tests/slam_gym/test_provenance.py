@@ -239,6 +239,58 @@ def test_the_fingerprint_command_reports_and_stamps(stale_zip, tmp_path, capsys)
     assert main(["fingerprint", str(tmp_path / "missing.zip")]) == 2
 
 
+def test_the_fingerprint_command_lists_every_shipped_model_with_its_env(tmp_path, monkeypatch,
+                                                                        capsys):
+    """Without MODEL, every model of the models directory: the env it was trained on, the env
+    ids it is the model of, whether it matches the code; exit 1 when one does not. With
+    ``--env ID`` and no MODEL, the model shipped for that env."""
+    import zipfile
+
+    from shipped_models import ship_copy
+
+    import policies.learned as learned
+
+    interval, zones = "SlamGym/HybridSLAM-Interval-v1", "SlamGym/HybridSLAM-Zones-v1"
+    directory = tmp_path / "models"
+    ship_copy(directory, "learned-default.zip", interval)
+    zones_zip = ship_copy(directory, "learned-zones.zip", zones)
+    monkeypatch.setattr(learned, "MODELS_DIR", directory)
+    assert main(["fingerprint"]) == 0
+    out = capsys.readouterr().out
+    assert (f"learned-default.zip: trained on {interval} (the default model); the model of "
+            f"{interval}, SlamGym/HybridSLAM-v1") in out
+    assert f"learned-zones.zip: trained on {zones}; the model of {zones}\n" in out
+    assert out.count(": matches the code") == 2
+    assert main(["fingerprint", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["matches"] is True
+    assert [(m["model"], m["env_id"], m["serves"], m["matches"]) for m in doc["models"]] == [
+        (str(directory / "learned-default.zip"), interval, [interval, "SlamGym/HybridSLAM-v1"],
+         True),
+        (str(zones_zip), zones, [zones], True)]
+    # --env without MODEL: the model that env runs
+    assert main(["fingerprint", "--env", zones, "--json"]) == 1  # weights of BB's system
+    assert json.loads(capsys.readouterr().out)["model"] == str(zones_zip)
+    # a shipped model of another system, and a zip without its config: listed, exit 1
+    saved = json.loads(zones_zip.with_suffix(".json").read_text())["fingerprint"]
+    other = dict(saved, digest="0" * 64, summary=dict(saved["summary"], **{"return": 1.0}))
+    ship_copy(directory, "learned-long.zip", "SlamGym/HybridSLAM-LongMission-v1",
+              fingerprint=other)
+    with zipfile.ZipFile(directory / "learned-bare.zip", "w") as bare:
+        bare.writestr("data", "{}")
+    assert main(["fingerprint", "--json"]) == 1
+    doc = json.loads(capsys.readouterr().out)
+    verdicts = {m["model"].rsplit("/", 1)[1]: (m["env_id"], m["matches"]) for m in doc["models"]}
+    assert verdicts == {"learned-bare.zip": (None, False), "learned-default.zip": (interval, True),
+                        "learned-long.zip": ("SlamGym/HybridSLAM-LongMission-v1", False),
+                        "learned-zones.zip": (zones, True)}
+    assert main(["fingerprint"]) == 1
+    out = capsys.readouterr().out
+    assert "learned-long.zip: trained on SlamGym/HybridSLAM-LongMission-v1" in out
+    assert "does NOT match the code" in out and "return: 1.0 (model)" in out
+    assert "learned-bare.zip: trained on an env it does not name" in out and "config JSON" in out
+
+
 def test_benchmark_rows_carry_whether_the_model_matches_the_code(model_zip, stale_zip):
     from slam_gym.evaluation import Job
     from slam_gym.evaluation.core import learned_options, run_job
