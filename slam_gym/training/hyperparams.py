@@ -17,11 +17,18 @@ An entry holds two kinds of keys:
   observes it as the feature ``compute_price_per_s``, so one policy is conditioned on the price
   of compute; ``env_kwargs.w_compute`` stays the price its evaluations are scored at);
   ``behaviour_cloning_decisions`` (on-policy algorithms: before training, the actor is fitted to
-  ``fixed-10s-optimise``'s decisions on this many decisions of training worlds,
+  the rule's decisions on this many decisions of training worlds,
   :mod:`slam_gym.training.imitation`), ``rule_anchor_weight`` and ``rule_anchor_fraction``
   (kickstarting: every decision that differs from the rule's costs this weight in the training
   reward, decaying linearly to 0 at this fraction of ``n_timesteps``;
-  :class:`slam_gym.envs.wrappers.RuleAnchor`);
+  :class:`slam_gym.envs.wrappers.RuleAnchor`); ``rule`` (the policy name of that rule, a
+  heuristic of :mod:`policies.heuristics` such as
+  ``threshold-optimise[global_position_std_m>=2]``; default :data:`DEFAULT_RULE`; only with
+  cloning or the anchor, and only the default in the interval env, whose one rule action is
+  ``fixed-10s-optimise``'s); ``frame_stack`` (K >= 1, default 1: the policy observes its last K
+  observations, oldest first, flattened, Gymnasium's ``FrameStackObservation`` after ``log1p``
+  and before ``VecNormalize``; not with ``recurrent-ppo``, which has its own memory, nor in the
+  interval env);
 * the algorithm's constructor arguments (:data:`ALGO_KEYS`), e.g. PPO's ``n_steps``.
 
 ``policy_kwargs`` is a YAML mapping (rl-zoo3 writes a Python string; a mapping needs no ``eval``).
@@ -51,8 +58,13 @@ HYPERPARAMS_DIR = Path(__file__).resolve().parent / "hyperparams"
 RUN_KEYS: tuple[str, ...] = (
     "n_timesteps", "n_envs", "policy", "normalize", "norm_reward", "clip_obs", "env_kwargs",
     "initial_fuse_probability", "initial_optimise_probability", "compute_price_range",
-    "behaviour_cloning_decisions", "rule_anchor_weight", "rule_anchor_fraction",
+    "behaviour_cloning_decisions", "rule_anchor_weight", "rule_anchor_fraction", "rule",
+    "frame_stack",
 )
+
+DEFAULT_RULE = "fixed-10s-optimise"
+"""The rule a learner is cloned from and anchored to when its entry names none (``rule``):
+round three's (issue 39)."""
 _ON_POLICY = ("learning_rate", "n_steps", "gamma", "gae_lambda", "ent_coef", "vf_coef",
               "max_grad_norm", "policy_kwargs", "normalize_advantage")
 _PPO = _ON_POLICY + ("batch_size", "n_epochs", "clip_range", "clip_range_vf", "target_kl")
@@ -197,7 +209,43 @@ def validate_hyperparams(algo: str, params: dict[str, Any], where: str = "hyperp
             raise ValueError(f"{where}: {key}={value!r} is invalid: must be a number in "
                              f"[{low}, {high}]")
         params[key] = kind(value)
+    if "rule" in params:
+        check_rule(params["rule"], where)
+        if not ({"behaviour_cloning_decisions", "rule_anchor_weight"} & set(params)):
+            raise ValueError(f"{where}: rule={params['rule']!r} is invalid without "
+                             "behaviour_cloning_decisions or rule_anchor_weight (nothing "
+                             "would imitate it or be anchored to it)")
+    if "frame_stack" in params:
+        value = params["frame_stack"]
+        if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+            raise ValueError(f"{where}: frame_stack={value!r} is invalid: must be an integer "
+                             ">= 1")
+        if value > 1 and algo == "recurrent-ppo":
+            raise ValueError(f"{where}: frame_stack={value!r} is invalid for recurrent-ppo "
+                             "(its LSTM carries the history; use frame_stack 1)")
     if "policy_kwargs" in params and not isinstance(params["policy_kwargs"], dict):
         raise ValueError(f"{where}: policy_kwargs={params['policy_kwargs']!r} is invalid: "
                          "must be a mapping")
     return params
+
+
+def check_rule(rule: Any, where: str = "hyperparams") -> str:
+    """``rule`` if it names a heuristic that acts on one decision's features (what
+    :class:`slam_gym.training.run.RuleAction` asks it for); else ``ValueError`` naming
+    ``rule``. The name is built with :func:`policies.make`, so a bad name fails here, before any
+    run is set up or written."""
+    import policies
+    from policies.base import HeuristicPolicy
+
+    if not isinstance(rule, str) or not rule:
+        raise ValueError(f"{where}: rule={rule!r} is invalid: must be a policy name, e.g. "
+                         f"{DEFAULT_RULE!r}")
+    try:
+        policy = policies.make(rule)
+    except ValueError as exc:
+        raise ValueError(f"{where}: rule={rule!r} is invalid: {exc}") from exc
+    if not isinstance(policy, HeuristicPolicy):
+        raise ValueError(f"{where}: rule={rule!r} is invalid: must be a heuristic rule on the "
+                         "interface features (e.g. threshold-optimise[...]); "
+                         f"{type(policy).__name__} is not one")
+    return rule

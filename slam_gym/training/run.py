@@ -10,6 +10,8 @@ The run lives in its own directory::
     logs/tensorboard/            when tensorboard is installed
     eval.csv                     one row per periodic evaluation on held-out worlds
     evals/t<t>/                  the evaluated snapshot and its results.jsonl (benchmark rows)
+    behaviour_cloning.json       with behaviour_cloning_decisions: the rule cloned, the epochs
+                                 and the agreement reached (also in model.json)
 
 A segment starts at ``t0`` decisions: 0 for a fresh run, the checkpoint's count for a resumed
 one. Resuming loads the newest checkpoint (model, ``VecNormalize`` statistics, DQN's replay buffer)
@@ -17,10 +19,13 @@ and trains the remaining decisions; the training worlds continue from a seed der
 checkpoint, so a resumed run is deterministic given its checkpoint, though not bit-identical to
 an uninterrupted one.
 
-Observations pass through ``log1p`` (:class:`~slam_gym.envs.wrappers.LogFeatures`) and then, with
-``normalize``, through ``VecNormalize``; the statistics are written into ``model.json``
-(``observation_normalisation``) so :class:`policies.learned.LearnedPolicy` applies the same
-transform without SB3's pickles. Evaluation runs the snapshot through the benchmark's own code
+Observations pass through ``log1p`` (:class:`~slam_gym.envs.wrappers.LogFeatures`), with
+``frame_stack`` K > 1 through Gymnasium's ``FrameStackObservation`` (the last K, oldest first,
+the episode's first observation repeated where there is no history yet) flattened, and then,
+with ``normalize``, through ``VecNormalize`` (its statistics cover the stacked vector); the
+statistics and K are written into ``model.json`` (``observation_normalisation``,
+``frame_stack``) so :class:`policies.learned.LearnedPolicy` applies the same transform without
+SB3's pickles. Evaluation runs the snapshot through the benchmark's own code
 (:func:`slam_gym.evaluation.run_jobs`, policy ``learned``) on worlds below
 :data:`~slam_gym.envs.wrappers.TRAINING_WORLD_SEED_OFFSET`, never trained on.
 """
@@ -44,7 +49,7 @@ import numpy as np
 
 from policies.learned import algorithm_class
 from slam_gym.training.evaluation import DEFAULT_EVAL_SEEDS, append_csv_row
-from slam_gym.training.hyperparams import ALGO_KEYS
+from slam_gym.training.hyperparams import ALGO_KEYS, DEFAULT_RULE
 
 logger = logging.getLogger(__name__)
 
@@ -94,6 +99,40 @@ class TrainingSetup:
                 and 0 <= self.seed < 2**32):
             raise ValueError(f"seed={self.seed!r} is invalid: must be an integer in [0, 2**32)")
         self.evaluation_env()  # the id and every env option, checked before anything runs
+        self._check_rule_and_history()
+
+    def _check_rule_and_history(self) -> None:
+        """``rule`` and ``frame_stack`` against the env and the algorithm (their values were
+        checked with the hyper-parameters; checked again here for a setup built directly)."""
+        from slam_gym.envs import INTERVAL_ENV_ID
+        from slam_gym.training.hyperparams import check_rule
+
+        if "rule" in self.hyperparams:
+            check_rule(self.hyperparams["rule"])
+        if self.env_id == INTERVAL_ENV_ID and self.rule != DEFAULT_RULE:
+            raise ValueError(f"rule={self.rule!r} is invalid in {INTERVAL_ENV_ID}: its one rule "
+                             f"action is {DEFAULT_RULE}'s (10 s, optimise)")
+        k = self.frame_stack
+        if not (isinstance(k, int) and not isinstance(k, bool) and k >= 1):
+            raise ValueError(f"frame_stack={k!r} is invalid: must be an integer >= 1")
+        if k > 1 and self.env_id == INTERVAL_ENV_ID:
+            raise ValueError(f"frame_stack={k} is invalid in {INTERVAL_ENV_ID}: a learned model "
+                             "of the interval env is played between its fusions without the "
+                             "observations it would stack (use frame_stack 1)")
+        if k > 1 and self.algo == "recurrent-ppo":
+            raise ValueError(f"frame_stack={k} is invalid for recurrent-ppo (its LSTM carries "
+                             "the history; use frame_stack 1)")
+
+    @property
+    def rule(self) -> str:
+        """The rule the learner is cloned from and anchored to (``rule``, default
+        :data:`~slam_gym.training.hyperparams.DEFAULT_RULE`)."""
+        return self.hyperparams.get("rule", DEFAULT_RULE)
+
+    @property
+    def frame_stack(self) -> int:
+        """How many of its last observations the policy sees (``frame_stack``, default 1)."""
+        return self.hyperparams.get("frame_stack", 1)
 
     @property
     def discrete(self) -> bool:
@@ -167,6 +206,7 @@ def make_env_fn(setup: TrainingSetup, rank: int):
     env_id, options = setup.env_id, dict(setup.hyperparams.get("env_kwargs", {}))
     levels, discrete, price_range = setup.clutter_levels, setup.discrete, setup.price_range
     anchored = "rule_anchor_weight" in setup.hyperparams
+    rule, frame_stack = setup.rule, setup.frame_stack
     if price_range is not None:
         options["features"] = setup.feature_names
 
@@ -186,8 +226,11 @@ def make_env_fn(setup: TrainingSetup, rank: int):
         if price_range is not None:
             env = RandomComputePrice(env, *price_range)
         if anchored:  # the callback sets the weight (train_run)
-            env = RuleAnchor(env, RuleAction(env_id))
+            env = RuleAnchor(env, RuleAction(env_id, rule))
         env = LogFeatures(env)
+        if frame_stack > 1:  # what policies.learned.ObservationHistory rebuilds at play
+            env = gym.wrappers.FlattenObservation(
+                gym.wrappers.FrameStackObservation(env, frame_stack))
         if discrete:
             env = DiscreteActions(env)
         return env
@@ -196,15 +239,28 @@ def make_env_fn(setup: TrainingSetup, rank: int):
 
 
 class RuleAction:
-    """``fixed-10s-optimise``'s action in env ``env_id`` from a decision's ``info``: the rule
-    itself in the per-decision env, its constant action in the interval env (the rule a learner
-    is cloned from and anchored to, issue 39 item 2)."""
+    """The action of ``rule`` (a policy name, default ``fixed-10s-optimise``) in env ``env_id``
+    from a decision's ``info``: the rule itself in the per-decision env, its constant action in
+    the interval env, where only ``fixed-10s-optimise`` has one (the rule a learner is cloned
+    from and anchored to, issue 39 item 2; issue 58: the task's best rule).
 
-    def __init__(self, env_id: str):
+    The rule is asked once per decision from that decision's ``info`` alone, by every env of a
+    vector env in turn and never reset, so it must keep no state between decisions: a heuristic
+    on the features (the threshold rules, ``fixed-*``; ``ValueError`` naming ``rule`` for a name
+    that is not a heuristic, or for another rule in the interval env)."""
+
+    def __init__(self, env_id: str, rule: str = DEFAULT_RULE):
         import policies
+        from slam_gym.envs import INTERVAL_ENV_ID
+        from slam_gym.training.hyperparams import check_rule
 
+        check_rule(rule, "RuleAction")
+        if env_id == INTERVAL_ENV_ID and rule != DEFAULT_RULE:
+            raise ValueError(f"rule={rule!r} is invalid in {env_id}: its one rule action is "
+                             f"{DEFAULT_RULE}'s (10 s, optimise)")
         self.env_id = env_id
-        self.rule = policies.make("fixed-10s-optimise")
+        self.name = rule
+        self.rule = policies.make(rule)
 
     def __call__(self, info) -> np.ndarray:
         from slam_gym.envs import INTERVAL_ENV_ID
@@ -269,6 +325,7 @@ def model_config(setup: TrainingSetup, vec, timesteps: int, **extra) -> dict[str
         "versions": {"python": platform.python_version(), **_versions()},
         "fingerprint": system_fingerprint(system_env_id(setup.env_id), setup.env_options()),
         **interval_config(setup.env_id),
+        **({"frame_stack": setup.frame_stack} if setup.frame_stack > 1 else {}),
         **extra,
     }
 
@@ -504,12 +561,15 @@ def train_run(setup: TrainingSetup, run_dir: Path, *, resume: bool = False,
         if params.get("behaviour_cloning_decisions"):
             from slam_gym.training.imitation import clone_rule, rule_demonstrations
 
-            demos = rule_demonstrations(vec, RuleAction(setup.env_id),
+            demos = rule_demonstrations(vec, RuleAction(setup.env_id, setup.rule),
                                         int(params["behaviour_cloning_decisions"]))
             report = clone_rule(model, *demos, seed=setup.seed)
-            setup.extra["behaviour_cloning"] = report
-            logger.warning("%s: cloned fixed-10s-optimise on %d decisions: agreement %.4f "
-                           "after %d epochs", run_dir.name, len(demos[1]), report["agreement"],
+            setup.extra["behaviour_cloning"] = {"rule": setup.rule, **report}
+            # kept beside the checkpoints, so a resumed run's model.json still reports it
+            (run_dir / "behaviour_cloning.json").write_text(
+                json.dumps(setup.extra["behaviour_cloning"], indent=2) + "\n")
+            logger.warning("%s: cloned %s on %d decisions: agreement %.4f after %d epochs",
+                           run_dir.name, setup.rule, len(demos[1]), report["agreement"],
                            report["epochs"])
     else:
         model = algo_cls.load(str(run_dir / "checkpoints" / f"model_{checkpoint}.zip"),
@@ -518,6 +578,9 @@ def train_run(setup: TrainingSetup, run_dir: Path, *, resume: bool = False,
         if replay.is_file():
             model.load_replay_buffer(str(replay))
         logger.warning("resuming %s from its checkpoint at %d decisions", run_dir, checkpoint)
+        cloning = run_dir / "behaviour_cloning.json"
+        if cloning.is_file():
+            setup.extra["behaviour_cloning"] = json.loads(cloning.read_text())
     formats = ["csv"] + (["tensorboard"] if _has_tensorboard() else [])
     sb3_logger = configure(str(run_dir / "logs"), formats)
     for fmt in sb3_logger.output_formats:  # one CSV per segment: SB3 truncates its file

@@ -366,3 +366,126 @@ def test_cloning_and_anchor_options_are_validated(key, value):
     with pytest.raises(ValueError, match=key):
         validate_hyperparams("ppo", load_hyperparams("ppo", "SlamGym/HybridSLAM-v1")
                              | {key: value})
+
+
+# ---- issue 58, Learner 2: the rule cloned and anchored to, and a stacked observation ----------
+BEST_ZONED = "threshold-optimise[global_position_std_m>=2]"
+
+
+def _info(age_s, position_std_m):
+    return {"features": {**dict.fromkeys(FEATURE_NAMES, 0.0), "local_map_age_s": age_s,
+                         "global_position_std_m": position_std_m}}
+
+
+def test_rule_action_gives_the_named_rules_action_in_the_per_decision_env():
+    """A threshold rule fuses on BB's clock and optimises only above its threshold, where
+    fixed-10s-optimise (the default) optimises at every fusion."""
+    from slam_gym.training.run import RuleAction
+
+    best, default = RuleAction("SlamGym/HybridSLAM-v1", BEST_ZONED), RuleAction(
+        "SlamGym/HybridSLAM-v1")
+    assert default.name == "fixed-10s-optimise" and best.name == BEST_ZONED
+    cases = {(10.0, 3.0): [1, 1], (10.0, 1.0): [1, 0], (4.0, 3.0): [0, 0]}
+    for (age, std), want in cases.items():
+        assert best(_info(age, std)).tolist() == want
+    assert default(_info(10.0, 1.0)).tolist() == [1, 1]  # the case where the two rules differ
+
+
+def test_the_interval_env_refuses_another_rule_and_keeps_its_own():
+    from slam_gym.envs import INTERVAL_ENV_ID
+    from slam_gym.envs.interval import RULE_ACTION
+    from slam_gym.training.run import RuleAction
+
+    with pytest.raises(ValueError, match="rule="):
+        RuleAction(INTERVAL_ENV_ID, BEST_ZONED)
+    np.testing.assert_array_equal(RuleAction(INTERVAL_ENV_ID)(_info(0.0, 0.0)), RULE_ACTION)
+    params = validate_hyperparams("ppo", {"n_timesteps": 8, "n_envs": 1, "rule": BEST_ZONED,
+                                          "behaviour_cloning_decisions": 10})
+    with pytest.raises(ValueError, match="rule="):
+        TrainingSetup("ppo", INTERVAL_ENV_ID, 0, params)
+    with pytest.raises(ValueError, match="frame_stack=2"):
+        TrainingSetup("ppo", INTERVAL_ENV_ID, 0, {**tiny_setup().hyperparams, "frame_stack": 2})
+
+
+@pytest.mark.parametrize("extra, field", [
+    ({"rule": "no-such-rule", "behaviour_cloning_decisions": 10}, "rule"),
+    ({"rule": "lookahead", "behaviour_cloning_decisions": 10}, "rule"),  # not a feature rule
+    ({"rule": 3, "rule_anchor_weight": 1.0}, "rule"),
+    ({"rule": BEST_ZONED}, "rule"),  # nothing would clone it or be anchored to it
+    ({"frame_stack": 0}, "frame_stack"),
+    ({"frame_stack": 2.0}, "frame_stack"),
+    ({"frame_stack": True}, "frame_stack"),
+])
+def test_bad_rule_and_frame_stack_raise_naming_the_field(extra, field):
+    with pytest.raises(ValueError, match=f"{field}="):
+        validate_hyperparams("ppo", {"n_timesteps": 8, "n_envs": 1, **extra})
+    with pytest.raises(ValueError, match="frame_stack=3"):
+        validate_hyperparams("recurrent-ppo", {"n_timesteps": 8, "n_envs": 1, "frame_stack": 3})
+
+
+@pytest.mark.parametrize("hp, field", [
+    (["rule=no-such-rule", "behaviour_cloning_decisions=10"], "rule"),
+    (["frame_stack=0"], "frame_stack"),
+])
+def test_train_command_refuses_a_bad_rule_or_frame_stack_before_writing(tmp_path, capsys, hp,
+                                                                        field):
+    out = tmp_path / "out"
+    argv = ["train", "--timesteps", "8", "--n-envs", "1", "--particles", "5", "--n-steps", "20",
+            "--seeds", "0", "--baseline", "none", "--out", str(out)]
+    for item in hp:
+        argv += ["--hp", item]
+    assert main(argv) == 2
+    assert f"{field}=" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_a_stacked_run_cloned_on_a_threshold_rule_saves_a_model_that_rebuilds_its_history(
+        tmp_path):
+    """frame_stack 2 and the zoned task's best rule: the run clones that rule (and reports the
+    agreement), model.json says frame_stack 2 over a normalisation of 2 x 19 values, and the
+    loaded policy, fed only the env's infos, builds at every decision exactly the vector the
+    training env gave the network (log1p, the last two frames oldest first, VecNormalize)."""
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+    import policies
+    from slam_gym.training.run import make_env_fn
+
+    task = "SlamGym/HybridSLAM-Zones-v1"
+    params = validate_hyperparams("ppo", {
+        "n_timesteps": 64, "n_envs": 1, "normalize": True, "n_steps": 32, "batch_size": 32,
+        "n_epochs": 1, "rule": BEST_ZONED, "behaviour_cloning_decisions": 240,
+        "rule_anchor_weight": 20.0, "frame_stack": 2,
+        "env_kwargs": {"n_particles": 5, "n_steps": 120}})
+    setup = TrainingSetup("ppo", task, 0, params, clutter_levels=(0, 2), eval_seeds=(7,),
+                          eval_every=10**6, eval_workers=1, checkpoint_every=10**6)
+    config = train_run(setup, tmp_path / "run", progress=False)
+    assert config["frame_stack"] == 2 and config["hyperparams"]["rule"] == BEST_ZONED
+    cloning = config["training_setup"]["extra"]["behaviour_cloning"]
+    assert cloning["rule"] == BEST_ZONED and cloning["epochs"] >= 1
+    assert 0.9 <= cloning["agreement"] <= 1.0
+    assert json.loads((tmp_path / "run" / "behaviour_cloning.json").read_text()) == cloning
+    assert len(config["observation_normalisation"]["mean"]) == 2 * len(FEATURE_NAMES)
+
+    vec = VecNormalize.load(str(tmp_path / "run" / "checkpoints" / "vecnormalize_64.pkl"),
+                            DummyVecEnv([make_env_fn(setup, 0)]))
+    env = make_env_fn(setup, 0)()
+    policy = policies.make("learned", path=str(tmp_path / "run" / "model.zip"),
+                           deterministic=True)
+    assert policy.history.frame_stack == 2 and policy.provenance["matches"] is True
+    assert env.get_wrapper_attr("rule_action").name == BEST_ZONED  # the anchor's rule
+    seen = []
+    predict = policy.model.predict
+    policy.model.predict = lambda x, deterministic: (seen.append(x), predict(x, deterministic))[1]
+    obs, info = env.reset(seed=5)
+    policy.reset()
+    rule = policies.make(BEST_ZONED)
+    n, done = len(FEATURE_NAMES), False
+    while not done:
+        action = policy.act(None, info)
+        assert action.shape == (2,) and set(action.tolist()) <= {0, 1}
+        np.testing.assert_allclose(seen[-1], vec.normalize_obs(obs), rtol=1e-5, atol=1e-5)
+        # the first decision's history is its observation twice (padding), then it moves on
+        assert np.array_equal(obs[:n], obs[n:]) == (len(seen) == 1)
+        obs, _, terminated, truncated, info = env.step(rule.act(None, info))
+        done = terminated or truncated
+    assert len(seen) >= 5
