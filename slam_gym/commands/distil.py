@@ -30,7 +30,7 @@ def add_parser(subparsers) -> None:
         "distil", help="a task's distilled planner: DAgger from lookahead, started at a rule",
         description=(__doc__ or "").split("\n\n")[1].replace("\n", " "), epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--best-rule", required=True,
+    p.add_argument("--best-rule", default=None,
                    help="the task's best rule: cloned first, and the labels where the teacher "
                    "does not plan")
     p.add_argument("--teacher", default="lookahead", help="the planner (default lookahead)")
@@ -52,6 +52,9 @@ def add_parser(subparsers) -> None:
                    help="training-time worlds the snapshots are selected on (default 10)")
     p.add_argument("--selection-seed-start", type=int, default=900000, metavar="S",
                    help="the first of them (default 900000)")
+    p.add_argument("--select-from", nargs="+", default=None, metavar="RUN",
+                   help="run nothing: copy the best snapshot of these finished runs (the "
+                   "seeds of a learner; selection success, ties return) to --out")
     p.add_argument("--out", required=True, help="the run's folder (resumable)")
     add_env_options(p, (), levels=False)
     p.set_defaults(run=run)
@@ -61,8 +64,15 @@ def run(args) -> int:
     from filters.validation import require
     from slam_gym.commands.envargs import env_shorthands
     from slam_gym.envs.spec import parse_env_kwargs
-    from slam_gym.training.dagger import DistillSetup, distil
+    from slam_gym.training.dagger import DistillSetup, distil, select_runs
 
+    if args.select_from:
+        config = select_runs(args.select_from, args.out)
+        print(json.dumps({"model": f"{args.out}/model.zip", "selected_from":
+                          config["selected_from"], "selected_round": config["selected_round"],
+                          "selection": config["selection"]}, indent=2))
+        return 0
+    require(args.best_rule is not None, "best_rule", None, "the task's best rule's name")
     require(args.env is not None, "env", None, "a registered env id (the task), e.g. "
             "SlamGym/HybridSLAM-Zones-v1")
     require(args.selection_seeds >= 1, "selection_seeds", args.selection_seeds,

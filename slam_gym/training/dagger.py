@@ -432,12 +432,29 @@ def distil(setup: DistillSetup, run_dir: str | Path) -> dict[str, Any]:
 def choose(run_dir: Path) -> dict[str, Any]:
     """Copy the snapshot with the highest selection success (ties: mean return) to
     ``run_dir/model.zip``; its config."""
-    rounds = read_rounds(run_dir)
-    require(bool(rounds), "run_dir", str(run_dir), "a distillation run with rounds.csv")
-    best = max(rounds, key=lambda r: (r["selection_success_rate"], r["selection_mean_return"]))
-    source = Path(run_dir) / f"round_{int(best['round'])}" / "model.zip"
-    shutil.copyfile(source, Path(run_dir) / "model.zip")
+    return select_runs([run_dir], run_dir)
+
+
+def select_runs(run_dirs: list[str | Path], dest: str | Path) -> dict[str, Any]:
+    """The snapshot with the highest selection success (ties: mean return) among every round
+    of ``run_dirs`` (the seeds of a learner, issue 58's selection), copied with its config to
+    ``dest/model.zip``; the config, with ``selected_round`` and ``selected_from``."""
+    candidates = []
+    for run_dir in run_dirs:
+        rounds = read_rounds(Path(run_dir))
+        require(bool(rounds), "run_dir", str(run_dir), "a distillation run with rounds.csv")
+        candidates += [(r["selection_success_rate"], r["selection_mean_return"], str(run_dir),
+                        int(r["round"])) for r in rounds]
+    # the first of equals (the earlier seed, then the earlier round): fewer labels, same figures
+    _, _, run_dir, round_index = max(candidates, key=lambda c: (c[0], c[1]))
+    source = Path(run_dir) / f"round_{round_index}" / "model.zip"
+    dest = Path(dest)
+    dest.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(source, dest / "model.zip")
     config = json.loads(source.with_suffix(".json").read_text())
-    config["selected_round"] = int(best["round"])
-    (Path(run_dir) / "model.json").write_text(json.dumps(config, indent=2) + "\n")
+    config["selected_round"] = round_index
+    config["selected_from"] = str(run_dir)
+    config["candidates"] = [{"run": c[2], "round": c[3], "selection_success_rate": c[0],
+                             "selection_mean_return": c[1]} for c in candidates]
+    (dest / "model.json").write_text(json.dumps(config, indent=2) + "\n")
     return config

@@ -146,3 +146,28 @@ def test_the_selected_snapshot_is_the_best_by_selection_success_then_return(tiny
                                 cloning_decisions=300, rounds=1, episodes_per_round=3,
                                 selection_seeds=(900000,), command="test"), out)
     assert again["selected_round"] == config["selected_round"] and len(read_rounds(out)) == 2
+
+
+def test_the_learner_is_selected_across_its_seeds(tiny_run, tmp_path):
+    """``slam-gym distil --select-from`` copies the best snapshot among several runs."""
+    import shutil
+    import subprocess
+    import sys
+
+    _, out, _ = tiny_run
+    other = tmp_path / "seed-b"
+    shutil.copytree(out, other)
+    lines = (other / "rounds.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    col = header.index("selection_success_rate")
+    fields = lines[-1].split(",")
+    fields[col] = "1.0"  # the other run's last round is the best one
+    (other / "rounds.csv").write_text("\n".join(lines[:-1] + [",".join(fields)]) + "\n")
+    dest = tmp_path / "chosen"
+    done = subprocess.run([sys.executable, "-m", "slam_gym.cli", "distil", "--select-from",
+                           str(out), str(other), "--out", str(dest)],
+                          capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    config = json.loads((dest / "model.json").read_text())
+    assert config["selected_from"] == str(other) and config["selected_round"] == 1
+    assert len(config["candidates"]) == 4
