@@ -115,7 +115,7 @@ def summarise(rows: Sequence[Mapping], best: str, price: float) -> dict:
     """Per policy: means and paired differences with ``best`` (module docstring)."""
     by_policy: dict[str, list[Mapping]] = defaultdict(list)
     for r in rows:
-        if r.get("status") == "ok":
+        if r.get("status") == "ok" and "policy" in r:  # a baseline system's row has none
             by_policy[r["policy"]].append(r)
     reference = by_policy[best]
     out: dict = {"best_rule": best, "price": price, "policies": {}}
