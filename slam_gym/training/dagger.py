@@ -291,7 +291,7 @@ def save_snapshot(model, setup: DistillSetup, stats: dict[str, Any], path: Path,
     with the fingerprint of the system it was trained on."""
     from slam_gym.envs import system_env_id
     from slam_gym.training.provenance import system_fingerprint
-    from slam_gym.training.run import _versions, registered_kwargs
+    from slam_gym.training.run import package_versions, registered_kwargs
 
     path.parent.mkdir(parents=True, exist_ok=True)
     model.save(path)
@@ -311,7 +311,7 @@ def save_snapshot(model, setup: DistillSetup, stats: dict[str, Any], path: Path,
         "deterministic": True,
         "training_world_seeds": ">= 1000000",
         "distillation": {k: v for k, v in asdict(setup).items() if k != "extra"},
-        "versions": {"python": platform.python_version(), **_versions()},
+        "versions": {"python": platform.python_version(), **package_versions()},
         "fingerprint": system_fingerprint(system_env_id(setup.env_id), options),
         **extra,
     }

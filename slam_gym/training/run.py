@@ -322,7 +322,7 @@ def model_config(setup: TrainingSetup, vec, timesteps: int, **extra) -> dict[str
         "compute_price_range": (list(setup.price_range) if setup.price_range else None),
         "observation_transform": "log1p",
         "observation_normalisation": observation_normalisation(vec),
-        "versions": {"python": platform.python_version(), **_versions()},
+        "versions": {"python": platform.python_version(), **package_versions()},
         "fingerprint": system_fingerprint(system_env_id(setup.env_id), setup.env_options()),
         **interval_config(setup.env_id),
         **({"frame_stack": setup.frame_stack} if setup.frame_stack > 1 else {}),
@@ -342,7 +342,8 @@ def interval_config(env_id: str) -> dict[str, Any]:
     return {"fusion_intervals_s": list(FUSION_INTERVALS_S)}
 
 
-def _versions() -> dict[str, str]:
+def package_versions() -> dict[str, str]:
+    """The versions of the learning stack a model was made with (written into its config)."""
     from importlib.metadata import PackageNotFoundError, version
 
     out = {pkg: version(pkg) for pkg in ("stable-baselines3", "torch", "gymnasium", "numpy")}
