@@ -222,3 +222,26 @@ def test_a_learner_gets_the_gap_it_closes_to_each_planner_with_a_seed_bootstrap_
                              [r for r in rows if r["policy"] == "fixed-10s-optimise"], 10.0)[
         "learned"]["lookahead"]
     assert "Gap closed (learned - best) / (lookahead - best)" in headroom.markdown(doc)
+
+
+def test_rename_rows_renames_the_rows_folders_not_the_out_folders_own(tmp_path):
+    """``--rename-rows lookahead=lookahead-full`` with the fast planner's rows in ``--out``
+    (issue 57's command): both planners are reported, neither taken for the other."""
+    import json as _json
+
+    from slam_gym.cli import main
+
+    out, old = tmp_path / "out", tmp_path / "old"
+    for folder, rows in ((out, [_row("lookahead", s % 4, s, True) for s in range(8)]),
+                         (old, [_row(p, s % 4, s, s % 2 == 0) for s in range(8)
+                                for p in ("lookahead", "fixed-10s-optimise")])):
+        folder.mkdir()
+        (folder / "results.jsonl").write_text(
+            "".join(_json.dumps(r) + "\n" for r in rows))
+    code = main(["headroom", "--env", "SlamGym/HybridSLAM-Zones-v1", "--best-rule",
+                 "fixed-10s-optimise", "--report-only", "--out", str(out), "--rows", str(old),
+                 "--rename-rows", "lookahead=lookahead-full", "--seeds", "2"])
+    assert code == 0
+    doc = _json.loads((out / "headroom.json").read_text())
+    assert doc["policies"]["lookahead"]["success"] == 1.0
+    assert doc["policies"]["lookahead-full"]["success"] == 0.5

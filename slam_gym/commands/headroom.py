@@ -125,7 +125,10 @@ def run(args) -> int:
         rows = benchmark(specs, env=env, seeds=args.trials, seed_start=args.seed_start,
                          draws=args.draws, baselines=[], out=out, figures=False,
                          **run_options(args)).rows
-    rows = join_rows(rename_policies(rows, renames),
+    # --rename-rows is for the --rows folders (the help's word); --out's rows keep their names
+    # but issue 48's name of the chosen rule
+    own = {k: v for k, v in renames.items() if k == "best-threshold"}
+    rows = join_rows(rename_policies(rows, own),
                      *(rename_policies(read_results(folder), renames) for folder in args.rows))
     if args.common_worlds:
         rows = common_worlds(rows)
