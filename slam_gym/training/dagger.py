@@ -45,10 +45,8 @@ Files::
 
 from __future__ import annotations
 
-import csv
 import json
 import logging
-import math
 import platform
 import shutil
 import time
@@ -131,13 +129,10 @@ class DistillSetup:
 
     def selection_env(self):
         """The env the snapshots are selected in: the task with every feature observed (a
-        model reads its own by name), at the task's clutter levels."""
-        from slam_gym.envs.spec import ResolvedEnv, env_class, system_id
+        model reads its own by name), at the task's clutter levels (an evaluation's env)."""
+        from slam_gym.training.evaluation import evaluation_env
 
-        env = self.env()
-        env_id = system_id(env.env_id)
-        kwargs = env_class(env_id).resolved_kwargs(**{**env.kwargs, "features": None})
-        return ResolvedEnv.of(env_id, kwargs, env.levels)
+        return evaluation_env(self.env())
 
 
 def _feature_names() -> tuple[str, ...]:
@@ -329,23 +324,11 @@ def select_snapshot(setup: DistillSetup, snapshot: Path) -> dict[str, Any]:
     return evaluation_record(rows, env.levels)
 
 
-def _append_round(run_dir: Path, record: dict[str, Any]) -> None:
-    path = run_dir / "rounds.csv"
-    new = not path.is_file()
-    with path.open("a", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=ROUND_FIELDS, extrasaction="ignore")
-        if new:
-            writer.writeheader()
-        writer.writerow({k: record.get(k, "") for k in ROUND_FIELDS})
+def read_rounds(run_dir: Path) -> list[dict[str, float]]:
+    """The rows of ``rounds.csv``, oldest round first."""
+    from slam_gym.training.evaluation import read_csv_rows
 
-
-def read_rounds(run_dir: Path) -> list[dict[str, Any]]:
-    path = Path(run_dir) / "rounds.csv"
-    if not path.is_file():
-        return []
-    with path.open() as fh:
-        return [{k: (float(v) if v not in ("", None) else math.nan) for k, v in row.items()}
-                for row in csv.DictReader(fh)]
+    return read_csv_rows(Path(run_dir) / "rounds.csv")
 
 
 def distil(setup: DistillSetup, run_dir: str | Path) -> dict[str, Any]:
@@ -355,6 +338,7 @@ def distil(setup: DistillSetup, run_dir: str | Path) -> dict[str, Any]:
     from stable_baselines3 import PPO
 
     from policies.learned import LearnedPolicy
+    from slam_gym.training.evaluation import append_csv_row
     from slam_gym.training.imitation import clone_rule, fit_labels
 
     run_dir = Path(run_dir)
@@ -420,7 +404,7 @@ def distil(setup: DistillSetup, run_dir: str | Path) -> dict[str, Any]:
         config = json.loads(snapshot.with_suffix(".json").read_text())
         config["selection"] = selection
         snapshot.with_suffix(".json").write_text(json.dumps(config, indent=2) + "\n")
-        _append_round(run_dir, record)
+        append_csv_row(run_dir / "rounds.csv", list(ROUND_FIELDS), record)
         logger.warning(
             "%s round %d (beta %.3f): %d episodes, %d planner labels (%.0f s planning CPU), "
             "selection success %.3f, return %.0f", run_dir.name, i, beta,

@@ -53,6 +53,19 @@ def append_csv_row(path: Path, fields: list[str], record: Mapping[str, Any]) -> 
         writer.writerow(record)
 
 
+def read_csv_rows(path: Path) -> list[dict[str, float]]:
+    """The rows of a CSV log :func:`append_csv_row` wrote (numbers as floats, an empty cell
+    NaN), oldest first; [] when there is none yet."""
+    import csv
+    import math
+
+    if not path.is_file():
+        return []
+    with path.open() as fh:
+        return [{k: float(v) if v not in ("", None) else math.nan for k, v in row.items()}
+                for row in csv.DictReader(fh)]
+
+
 def evaluation_record(rows: Sequence[Mapping[str, Any]], levels: Iterable[int]) -> dict[str, Any]:
     """The means of :data:`EVAL_METRICS` over benchmark rows (map error over the runs that did
     not fail: a run that fails early keeps a small map with small errors) and the success rate

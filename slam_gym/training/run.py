@@ -33,7 +33,6 @@ SB3's pickles. Evaluation runs the snapshot through the benchmark's own code
 from __future__ import annotations
 
 import copy
-import csv
 import json
 import logging
 import math
@@ -48,7 +47,7 @@ from typing import Any
 import numpy as np
 
 from policies.learned import algorithm_class
-from slam_gym.training.evaluation import DEFAULT_EVAL_SEEDS, append_csv_row
+from slam_gym.training.evaluation import DEFAULT_EVAL_SEEDS, append_csv_row, read_csv_rows
 from slam_gym.training.hyperparams import ALGO_KEYS, DEFAULT_RULE
 
 logger = logging.getLogger(__name__)
@@ -425,12 +424,7 @@ def complete_evaluations(run_dir: Path, setup: TrainingSetup) -> list[dict[str, 
 
 def read_eval_log(run_dir: Path) -> list[dict[str, float]]:
     """The rows of ``eval.csv`` (numbers as floats), oldest first."""
-    path = Path(run_dir) / "eval.csv"
-    if not path.is_file():
-        return []
-    with path.open() as fh:
-        return [{k: float(v) if v not in ("", None) else math.nan for k, v in row.items()}
-                for row in csv.DictReader(fh)]
+    return read_csv_rows(Path(run_dir) / "eval.csv")
 
 
 def _append_eval(run_dir: Path, record: dict[str, Any]) -> None:
