@@ -14,6 +14,7 @@ import sys
 EPILOG = """examples:
   slam-gym distil --env SlamGym/HybridSLAM-Zones-v1 --env-kwargs w_compute:10 compute_clip_s:0.2 \\
       --best-rule 'threshold-optimise[global_position_std_m>=2]' --seed 0 --out out/distil-zones-0
+  slam-gym distil --reweigh out/distil-zones-0 --departure-weight 5 --out out/weighted-zones-0
   slam-gym compare 'threshold-optimise[global_position_std_m>=2]' \\
       learned:model_path=out/distil-zones-0/model.zip --env SlamGym/HybridSLAM-Zones-v1 ...
 """
@@ -55,6 +56,12 @@ def add_parser(subparsers) -> None:
     p.add_argument("--select-from", nargs="+", default=None, metavar="RUN",
                    help="run nothing: copy the best snapshot of these finished runs (the "
                    "seeds of a learner; selection success, ties return) to --out")
+    p.add_argument("--reweigh", default=None, metavar="RUN",
+                   help="run no planner: refit RUN's round-0 learner on RUN's DAgger labels with "
+                   "the planner's departures from its base rule weighted --departure-weight "
+                   "(the cost-weighted learner), select it, write it to --out")
+    p.add_argument("--departure-weight", type=float, default=None, metavar="W",
+                   help="with --reweigh: the weight of a departure (every other label 1)")
     p.add_argument("--out", required=True, help="the run's folder (resumable)")
     add_env_options(p, (), levels=False)
     p.set_defaults(run=run)
@@ -66,6 +73,18 @@ def run(args) -> int:
     from slam_gym.envs.spec import parse_env_kwargs
     from slam_gym.training.dagger import DistillSetup, distil, select_runs
 
+    if args.reweigh:
+        from slam_gym.training.dagger import reweigh
+
+        require(args.departure_weight is not None, "departure_weight", None,
+                "a positive number (with --reweigh)")
+        config = reweigh(args.reweigh, args.departure_weight, args.out,
+                         command=shlex.join(["slam-gym", *sys.argv[1:]]))
+        print(json.dumps({"model": f"{args.out}/model.zip", "reweighted": config["reweighted"],
+                          "selection": config["selection"]}, indent=2))
+        return 0
+    require(args.departure_weight is None, "departure_weight", args.departure_weight,
+            "given only with --reweigh")
     if args.select_from:
         config = select_runs(args.select_from, args.out)
         print(json.dumps({"model": f"{args.out}/model.zip", "selected_from":

@@ -23,6 +23,10 @@ no-regret online learning", AISTATS 2011: DAgger). One run, one seed, into one f
   benchmark's own code (policy ``learned``) on ``selection_seeds`` at the task's levels; the
   snapshot with the highest success rate (ties: mean return) is the run's ``model.zip``.
 
+* **The cost-weighted refit** (:func:`reweigh`, ``slam-gym distil --reweigh RUN``; issue 58's
+  Learner 1b): round 0's learner refitted on a finished run's DAgger labels with the planner's
+  departures from its base rule weighted, so its rare waits are not outvoted; no new labels.
+
 The learner observes what :class:`policies.learned.LearnedPolicy` gives a model: the interface
 features by name (``FEATURE_NAMES``, nothing of a task's zones), ``log1p``, the last
 ``frame_stack`` decisions stacked (:class:`policies.learned.ObservationHistory`, what
@@ -411,6 +415,103 @@ def distil(setup: DistillSetup, run_dir: str | Path) -> dict[str, Any]:
             round_stats["episodes"], round_stats["planner_labels"],
             round_stats["planning_cpu_s"], selection["success_rate"], selection["mean_return"])
     return choose(run_dir)
+
+
+TEACHER_BASE_ACTION: tuple[int, int] = (1, 1)
+"""What the teacher's base rule, ``fixed-10s-optimise``, does at every point the ``lookahead``
+plans (it plans where the best rule fuses, on the base rule's clock): fuse and optimise."""
+
+
+def departures(data: Episodes, base_action=TEACHER_BASE_ACTION) -> np.ndarray:
+    """The decisions where the teacher planned and chose other than its base rule (a wait or a
+    fusion without optimisation): the rare labels that carry the planner's gain."""
+    return data.planned & np.any(data.labels != np.asarray(base_action), axis=1)
+
+
+def setup_of(run_dir: Path) -> DistillSetup:
+    """The :class:`DistillSetup` a run was made with (from its round 0 snapshot's config)."""
+    config = json.loads((Path(run_dir) / "round_0" / "model.json").read_text())
+    fields = dict(config["distillation"])
+    for name in ("selection_seeds", "net_arch"):
+        fields[name] = tuple(fields[name])
+    return DistillSetup(**fields)
+
+
+def reweigh(run_dir: str | Path, departure_weight: float, dest: str | Path, *,
+            command: str = "") -> dict[str, Any]:
+    """Learner 1b (issue 58, amendment 2): the cost-weighted distilled planner, from a finished
+    distillation run and no new planner labels.
+
+    The learner of the run's round 0 (the cloned best rule) is refitted on the run's DAgger
+    labels (every round after 0) by :func:`~slam_gym.training.imitation.fit_labels` with each
+    :func:`departures` decision weighted ``departure_weight`` and every other decision 1 (the
+    weighted negative log-likelihood, the same held-out episodes and early stopping), so the
+    planner's rare departures are not outvoted by its majority. The snapshot goes to
+    ``dest/round_<R>/`` (R the run's last round, whose aggregate it fits), is selected on the
+    run's selection worlds, and ``dest/rounds.csv`` holds its one row, so ``--select-from``
+    compares it with any other run's snapshots; ``dest/model.zip`` is it. Resumable: a
+    finished ``dest`` is returned as is."""
+    import torch
+    from stable_baselines3 import PPO
+
+    import policies
+    from slam_gym.training.evaluation import append_csv_row
+    from slam_gym.training.imitation import fit_labels
+
+    require(isinstance(departure_weight, (int, float)) and not isinstance(departure_weight, bool)
+            and np.isfinite(departure_weight) and departure_weight > 0, "departure_weight",
+            departure_weight, "a positive number")
+    run_dir, dest = Path(run_dir), Path(dest)
+    require((run_dir / "round_0" / "model.json").is_file(), "run_dir", str(run_dir),
+            "a distillation run (with round_0/model.json)")
+    setup = setup_of(run_dir)
+    teacher_base = getattr(policies.make(setup.teacher), "base", None)
+    require(repr(teacher_base) == repr(policies.make("fixed-10s-optimise")), "teacher",
+            setup.teacher, "the lookahead on its default base rule fixed-10s-optimise (whose "
+            "action where it plans defines a departure)")
+    rounds = sorted(int(r["round"]) for r in read_rounds(run_dir) if int(r["round"]) > 0)
+    require(bool(rounds), "run_dir", str(run_dir), "a run with at least one DAgger round")
+    if read_rounds(dest):
+        logger.warning("%s: done; resumed", dest)
+        return choose(dest)
+    started = time.perf_counter()
+    torch.manual_seed(setup.seed)
+    torch.set_num_threads(1)
+    config0 = json.loads((run_dir / "round_0" / "model.json").read_text())
+    stats = config0["observation_normalisation"]
+    model = PPO.load(run_dir / "round_0" / "model.zip", device="cpu")
+    data = Episodes.concatenate(
+        [Episodes(p.observations, p.labels, p.episode + 100_000 * k, p.planned)
+         for k, p in enumerate(Episodes.load(run_dir / f"round_{i}" / "labels.npz")
+                               for i in rounds)])
+    departed = departures(data)
+    weights = np.where(departed, float(departure_weight), 1.0)
+    report = fit_labels(model, normalise(data.observations, stats), data.labels, data.episode,
+                        seed=setup.seed + rounds[-1], weights=weights)
+    fit = {"fit_epochs": report["epochs"], "fit_best_epoch": report["best_epoch"],
+           "validation_nll": report["validation_nll"],
+           "validation_agreement": report["validation_agreement"],
+           "training_agreement": report["training_agreement"]}
+    snapshot = dest / f"round_{rounds[-1]}" / "model.zip"
+    provenance = {"from": str(run_dir), "rounds": rounds,
+                  "departure_weight": float(departure_weight),
+                  "decisions": int(len(data.labels)), "departures": int(departed.sum()),
+                  "command": command}
+    save_snapshot(model, setup, stats, snapshot, rounds[-1], learner="dagger-weighted",
+                  reweighted=provenance, fit=fit)
+    selection = select_snapshot(setup, snapshot)
+    config = json.loads(snapshot.with_suffix(".json").read_text())
+    config["selection"] = selection
+    snapshot.with_suffix(".json").write_text(json.dumps(config, indent=2) + "\n")
+    record = {"round": rounds[-1], "beta": "", "decisions": len(data.labels),
+              "planner_labels": int(data.planned.sum()), "planner_deviations": "", **fit,
+              **{f"selection_{k}": v for k, v in selection.items()},
+              "wall_s": time.perf_counter() - started}
+    append_csv_row(dest / "rounds.csv", list(ROUND_FIELDS), record)
+    logger.warning("%s: %d departures of %d labels weighted %g; selection success %.3f, "
+                   "return %.0f", dest.name, provenance["departures"], provenance["decisions"],
+                   departure_weight, selection["success_rate"], selection["mean_return"])
+    return choose(dest)
 
 
 def choose(run_dir: Path) -> dict[str, Any]:

@@ -71,14 +71,19 @@ def _actor_optimiser(model, learning_rate: float):
     return torch.optim.Adam(actor, lr=learning_rate)
 
 
-def _nll_epoch(policy, optimiser, obs_t, act_t, order: np.ndarray, batch_size: int) -> float:
+def _nll_epoch(policy, optimiser, obs_t, act_t, order: np.ndarray, batch_size: int,
+               weight_t=None) -> float:
     """One pass of minibatch steps on the negative log-likelihood of the demonstrated actions
-    (``policy.evaluate_actions``, PPO's own log-likelihood); the mean loss."""
+    (``policy.evaluate_actions``, PPO's own log-likelihood), weighted per decision by
+    ``weight_t`` when given (the weighted mean over the minibatch); the mean loss."""
     losses = []
     for start in range(0, len(order), batch_size):
         batch = order[start:start + batch_size]
         _, log_prob, _ = policy.evaluate_actions(obs_t[batch], act_t[batch])
-        loss = -log_prob.mean()
+        if weight_t is None:
+            loss = -log_prob.mean()
+        else:
+            loss = -(weight_t[batch] * log_prob).sum() / weight_t[batch].sum()
         optimiser.zero_grad()
         loss.backward()
         optimiser.step()
@@ -86,23 +91,31 @@ def _nll_epoch(policy, optimiser, obs_t, act_t, order: np.ndarray, batch_size: i
     return float(np.mean(losses))
 
 
-def mean_nll(model, observations: np.ndarray, actions: np.ndarray) -> float:
-    """The mean negative log-likelihood of ``actions`` under the policy at ``observations``."""
+def mean_nll(model, observations: np.ndarray, actions: np.ndarray,
+             weights: np.ndarray | None = None) -> float:
+    """The mean negative log-likelihood of ``actions`` under the policy at ``observations``
+    (weighted by ``weights`` when given: sum w nll / sum w)."""
     import torch
 
     with torch.no_grad():
         _, log_prob, _ = model.policy.evaluate_actions(
             torch.as_tensor(observations, dtype=torch.float32),
             torch.as_tensor(actions, dtype=torch.int64))
-    return float(-log_prob.mean())
+    if weights is None:
+        return float(-log_prob.mean())
+    return float(np.average(-log_prob.numpy(), weights=weights))
 
 
 def fit_labels(model, observations: np.ndarray, actions: np.ndarray, groups: np.ndarray, *,
                validation_fraction: float = 0.15, max_epochs: int = 100, patience: int = 8,
                batch_size: int = 256, learning_rate: float = 1e-3, seed: int = 0,
-               ) -> dict[str, float]:
+               weights: np.ndarray | None = None) -> dict[str, float]:
     """Fit ``model``'s actor to labelled decisions (a teacher's, DAgger's aggregate) by the
     negative log-likelihood, with early stopping on held-out episodes.
+
+    ``weights`` (one positive number a decision; default all 1) make the fit cost-sensitive:
+    the loss and the held-out criterion are the weighted mean NLL, so a decision of weight W
+    counts as W copies of itself (issue 58's Learner 1b weights the teacher's rare departures).
 
     Labels from a planner are not a function of what the policy observes, so a fit to the
     last label overfits; the decisions of a ``validation_fraction`` of the ``groups``
@@ -119,6 +132,12 @@ def fit_labels(model, observations: np.ndarray, actions: np.ndarray, groups: np.
     if not 0.0 < validation_fraction < 1.0:
         raise ValueError(f"validation_fraction={validation_fraction!r} is invalid: must be in "
                          "(0, 1)")
+    if weights is not None:
+        weights = np.asarray(weights, dtype=np.float64)
+        if weights.shape != (len(actions),) or not np.all(np.isfinite(weights)) or not np.all(
+                weights > 0):
+            raise ValueError(f"weights (shape {weights.shape}) is invalid: must be one finite "
+                             f"positive number per decision ({len(actions)})")
     generator = np.random.default_rng(seed)
     unique = np.unique(groups)
     n_held = max(1, int(round(validation_fraction * len(unique))))
@@ -128,19 +147,23 @@ def fit_labels(model, observations: np.ndarray, actions: np.ndarray, groups: np.
     held = np.isin(groups, generator.choice(unique, size=n_held, replace=False))
     train_obs, train_act = observations[~held], actions[~held]
     val_obs, val_act = observations[held], actions[held]
+    train_w = val_w = weight_t = None
+    if weights is not None:
+        train_w, val_w = weights[~held], weights[held]
+        weight_t = torch.as_tensor(train_w, dtype=torch.float32)
     policy = model.policy
     optimiser = _actor_optimiser(model, learning_rate)
     obs_t = torch.as_tensor(train_obs, dtype=torch.float32)
     act_t = torch.as_tensor(train_act, dtype=torch.int64)
-    best = (mean_nll(model, val_obs, val_act), 0, copy.deepcopy(policy.state_dict()))
+    best = (mean_nll(model, val_obs, val_act, val_w), 0, copy.deepcopy(policy.state_dict()))
     epochs = 0
     while epochs < max_epochs and epochs - best[1] < patience:
         policy.set_training_mode(True)
         _nll_epoch(policy, optimiser, obs_t, act_t, generator.permutation(len(train_act)),
-                   batch_size)
+                   batch_size, weight_t)
         policy.set_training_mode(False)
         epochs += 1
-        held_nll = mean_nll(model, val_obs, val_act)
+        held_nll = mean_nll(model, val_obs, val_act, val_w)
         if held_nll < best[0]:
             best = (held_nll, epochs, copy.deepcopy(policy.state_dict()))
     policy.load_state_dict(best[2])

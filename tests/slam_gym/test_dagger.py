@@ -171,3 +171,89 @@ def test_the_learner_is_selected_across_its_seeds(tiny_run, tmp_path):
     config = json.loads((dest / "model.json").read_text())
     assert config["selected_from"] == str(other) and config["selected_round"] == 1
     assert len(config["candidates"]) == 4
+
+
+def test_weighted_fit_predicts_a_rare_label_the_unweighted_fit_outvotes():
+    """Cost-sensitive fitting (Learner 1b): a label that is the minority where the inputs
+    overlap is the mode after weighting it, and weights of 1 give the unweighted fit."""
+    from slam_gym.training.dagger import new_model
+
+    setup = DistillSetup(env_id=TASK, env_kwargs=SMALL, best_rule=BEST, frame_stack=1)
+    rng = np.random.default_rng(2)
+    x = rng.normal(size=(4000, len(FEATURE_NAMES))).astype(np.float32)
+    # where x0 > 0 the label is "fuse, optimise" 80 % of the time and "wait" 20 %
+    rare = (x[:, 0] > 0) & (rng.random(4000) < 0.2)
+    labels = np.where(rare[:, None], 0, 1).astype(np.int64).repeat(2, axis=1)
+    groups = np.arange(4000) // 100
+    plain, weighted, ones = (new_model(setup) for _ in range(3))
+    fit_labels(plain, x, labels, groups, seed=1)
+    fit_labels(weighted, x, labels, groups, seed=1, weights=np.where(rare, 10.0, 1.0))
+    fit_labels(ones, x, labels, groups, seed=1, weights=np.ones(4000))
+    probe = x[x[:, 0] > 0.5][:200]
+    waits = {name: float(np.mean(m.predict(probe, deterministic=True)[0][:, 0] == 0))
+             for name, m in (("plain", plain), ("weighted", weighted), ("ones", ones))}
+    assert waits["plain"] < 0.1 < 0.9 < waits["weighted"]
+    assert waits["ones"] == pytest.approx(waits["plain"], abs=0.05)
+
+
+@pytest.mark.parametrize("weights", [np.zeros(300), -np.ones(300), np.ones(299),
+                                     np.full(300, np.nan)])
+def test_fit_labels_names_bad_weights(weights):
+    from slam_gym.training.dagger import new_model
+
+    model = new_model(DistillSetup(env_id=TASK, env_kwargs=SMALL, best_rule=BEST,
+                                   frame_stack=1))
+    x = np.zeros((300, len(FEATURE_NAMES)), dtype=np.float32)
+    with pytest.raises(ValueError, match="weights"):
+        fit_labels(model, x, np.zeros((300, 2), dtype=np.int64), np.arange(300) // 10,
+                   weights=weights)
+
+
+def test_departures_are_the_planners_choices_other_than_its_base_rule():
+    from slam_gym.training.dagger import departures
+
+    labels = np.array([[1, 1], [0, 0], [1, 0], [0, 0], [1, 1]])
+    planned = np.array([True, True, True, False, False])
+    data = Episodes(np.zeros((5, 3), np.float32), labels, np.zeros(5, int), planned)
+    np.testing.assert_array_equal(departures(data), [False, True, True, False, False])
+
+
+def test_reweigh_refits_the_cloned_rule_on_the_runs_labels_and_is_selectable(tiny_run,
+                                                                              tmp_path):
+    """``slam-gym distil --reweigh``: the refit starts at round 0's learner, uses every DAgger
+    round's labels with the departures weighted, is selected on the run's worlds, resumes, and
+    ``--select-from`` takes it beside the plain run."""
+    import subprocess
+    import sys
+
+    from slam_gym.training.dagger import departures, read_rounds, reweigh
+
+    setup, out, _ = tiny_run
+    dest = tmp_path / "weighted"
+    config = reweigh(out, 7.0, dest, command="test")
+    taught = Episodes.load(out / "round_1" / "labels.npz")
+    assert config["learner"] == "dagger-weighted" and config["round"] == 1
+    assert config["reweighted"]["departures"] == int(departures(taught).sum())
+    assert config["reweighted"]["decisions"] == len(taught.labels)
+    assert config["reweighted"]["departure_weight"] == 7.0
+    assert config["observation_normalisation"] == json.loads(
+        (out / "round_0" / "model.json").read_text())["observation_normalisation"]
+    assert config["selection"]["success_rate"] == pytest.approx(
+        read_rounds(dest)[0]["selection_success_rate"])
+    assert (dest / "round_1" / "selection").is_dir()
+    assert reweigh(out, 7.0, dest)["reweighted"] == config["reweighted"]  # resumed
+    assert len(read_rounds(dest)) == 1
+    chosen = tmp_path / "chosen"
+    done = subprocess.run([sys.executable, "-m", "slam_gym.cli", "distil", "--select-from",
+                           str(out), str(dest), "--out", str(chosen)],
+                          capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert len(json.loads((chosen / "model.json").read_text())["candidates"]) == 3
+    with pytest.raises(ValueError, match="departure_weight"):
+        reweigh(out, 0.0, tmp_path / "bad")
+    with pytest.raises(ValueError, match="run_dir"):
+        reweigh(tmp_path / "missing", 5.0, tmp_path / "bad")
+    done = subprocess.run([sys.executable, "-m", "slam_gym.cli", "distil", "--reweigh",
+                           str(out), "--out", str(tmp_path / "bad")],
+                          capture_output=True, text=True)
+    assert done.returncode != 0 and "departure_weight" in done.stderr
