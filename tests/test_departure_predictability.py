@@ -1,6 +1,9 @@
 """scripts/results/departure_predictability.py: the AUC and the logistic fit written here are
 checked by simulation against what they estimate."""
 
+import csv
+from pathlib import Path
+
 import numpy as np
 import pytest
 from script_loader import load_script
@@ -89,3 +92,16 @@ def test_runs_load_the_dagger_rounds_planned_decisions_with_keys_unique_across_r
     assert len(data.labels) == 2 * 2 * 7  # rounds 1-2 of each run, 7 of 15 decisions planned
     assert data.planned.all()
     assert len(np.unique(keys)) == 2 * 2 * 3  # per run, round and episode
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_committed_labels_are_the_runs_rounds(seed):
+    """The labels committed for RESULTS' figure hold, round by round, the decisions and planner
+    labels the run's rounds.csv counts."""
+    run = Path(__file__).resolve().parents[1] / "docs/results/issue58" / f"distil-zones-{seed}"
+    rounds = {int(r["round"]): r for r in csv.DictReader((run / "rounds.csv").open())}
+    for i in (1, 2, 3, 4):
+        data = Episodes.load(run / f"round_{i}" / "labels.npz")
+        assert len(data.labels) == int(rounds[i]["decisions"])
+        assert int(data.planned.sum()) == int(rounds[i]["planner_labels"])
+        assert len(np.unique(data.episode)) == int(rounds[i]["episodes"])
