@@ -88,6 +88,7 @@ def test_runs_load_the_dagger_rounds_planned_decisions_with_keys_unique_across_r
             data.planned[::2] = False
             (tmp_path / run / f"round_{i}").mkdir(parents=True)
             data.save(tmp_path / run / f"round_{i}" / "labels.npz")
+        (tmp_path / run / "rounds.csv").write_text("round\n0\n1\n2\n")
     data, keys = module.load_runs([tmp_path / "a", tmp_path / "b"])
     assert len(data.labels) == 2 * 2 * 7  # rounds 1-2 of each run, 7 of 15 decisions planned
     assert data.planned.all()

@@ -3,12 +3,12 @@
     python scripts/results/departure_predictability.py RUN_DIR [RUN_DIR ...] \
         [--held-out 0.25] [--seed 0] [--out REPORT.json]
 
-Each ``RUN_DIR`` is a ``slam-gym distil`` run (its ``round_<i>/labels.npz``, i >= 1: the DAgger
-rounds' labelled decisions). Among the decisions where the teacher planned, a *departure* is one
-where it chose other than its base rule's fuse-and-optimise (:func:`slam_gym.training.dagger.
-departures`): a wait, or a fusion without optimising. The question is whether the learner's own
-input (the stacked ``log1p`` features, exactly what it was fitted on) ranks departures above the
-rest on episodes it was not fitted on:
+Each ``RUN_DIR`` is a ``slam-gym distil`` run: the DAgger rounds its ``rounds.csv`` lists (i >=
+1) and their ``round_<i>/labels.npz``. Among the decisions where the teacher planned, a
+*departure* is one where it chose other than its base rule's fuse-and-optimise
+(:func:`slam_gym.training.dagger.departures`): a wait, or a fusion without optimising. The
+question is whether the learner's own input (the stacked ``log1p`` features, exactly what it
+was fitted on) ranks departures above the rest on episodes it was not fitted on:
 
 * the episodes (per run and round) are split at random, ``--held-out`` of them held out;
 * an L2-penalised logistic regression is fitted on the rest (features standardised on the
@@ -31,7 +31,13 @@ from pathlib import Path
 import numpy as np
 from scipy import optimize, stats
 
-from slam_gym.training.dagger import TEACHER_BASE_ACTION, Episodes, departures
+from slam_gym.training.dagger import (
+    ROUND_EPISODE_STRIDE,
+    TEACHER_BASE_ACTION,
+    Episodes,
+    dagger_labels,
+    departures,
+)
 
 WAIT = (0, 0)
 
@@ -73,23 +79,18 @@ def fit_logistic(x: np.ndarray, y: np.ndarray, l2: float = 1.0) -> tuple[np.ndar
 
 
 def load_runs(run_dirs: list[Path]) -> tuple[Episodes, np.ndarray]:
-    """The planned decisions of every DAgger round of ``run_dirs`` and, per decision, an
-    episode key unique across runs and rounds."""
+    """The planned decisions of every DAgger round of ``run_dirs``
+    (:func:`~slam_gym.training.dagger.dagger_labels`) and, per decision, its episode's key
+    ``"<run>/<round>/<episode in the round>"``, unique across runs (the held-out draw is over
+    these keys in sorted order)."""
     parts, keys = [], []
     for r, run_dir in enumerate(run_dirs):
-        rounds = sorted(Path(run_dir).glob("round_*/labels.npz"),
-                        key=lambda p: int(p.parent.name.split("_")[1]))
-        rounds = [p for p in rounds if int(p.parent.name.split("_")[1]) >= 1]
-        if not rounds:
-            raise ValueError(f"run_dir={str(run_dir)!r} is invalid: no DAgger round's "
-                             "labels.npz (round_<i>/labels.npz, i >= 1)")
-        for path in rounds:
-            data = Episodes.load(path)
-            i = int(path.parent.name.split("_")[1])
-            mask = data.planned
-            parts.append(Episodes(data.observations[mask], data.labels[mask],
-                                  data.episode[mask], data.planned[mask]))
-            keys.append(np.array([f"{r}/{i}/{e}" for e in data.episode[mask]]))
+        rounds, data = dagger_labels(run_dir)
+        mask = data.planned
+        parts.append(Episodes(data.observations[mask], data.labels[mask], data.episode[mask],
+                              data.planned[mask]))
+        k, e = np.divmod(data.episode[mask], ROUND_EPISODE_STRIDE)
+        keys.append(np.array([f"{r}/{rounds[ki]}/{ei}" for ki, ei in zip(k, e, strict=True)]))
     return Episodes.concatenate(parts), np.concatenate(keys)
 
 

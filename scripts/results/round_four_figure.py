@@ -8,8 +8,8 @@ difference in success to the task's best rule (points, with the reports' 95 % in
 seed the cluster): the learners, ``fixed-10s-optimise``, the lookahead (``lookahead-full``, 4
 futures; ``lookahead``, the fast planner) and the privileged bound. Beside each learner its gap
 closed to ``lookahead-full`` (point and interval, from the same report), and the bar (half the
-gap to ``lookahead-full``, dashed). Nothing is recomputed:
-the figure shows the reports' numbers (``arms`` returns them, for a test to check).
+gap to ``lookahead-full``, dashed). Nothing is recomputed: the figure shows the reports'
+numbers (``arms`` returns them, for a test to check).
 """
 
 from __future__ import annotations
@@ -49,20 +49,23 @@ def arms(task: str, results: Path = RESULTS) -> list[dict]:
     and interval) or None."""
     if task not in LEARNERS:
         raise ValueError(f"task={task!r} is invalid: one of {sorted(LEARNERS)}")
-    out = []
     reports = [(label, read_report(results / folder)) for label, folder in LEARNERS[task]]
-    for label, report in reports:
-        mean, lo, hi = report["policies"]["learned"]["success_diff"]
-        gap = report["gap_closed"]["learned"]["lookahead-full"]
-        out.append({"label": label, "diff_pp": 100 * mean, "ci_pp": (100 * lo, 100 * hi),
-                    "learner": True, "gap_closed": gap["point"]["success"],
-                    "gap_closed_ci": tuple(gap["interval"]["success"])})
-    first = reports[0][1]
-    for policy, label in REFERENCES:
-        mean, lo, hi = first["policies"][policy]["success_diff"]
-        out.append({"label": label, "diff_pp": 100 * mean, "ci_pp": (100 * lo, 100 * hi),
-                    "learner": False, "gap_closed": None, "gap_closed_ci": None})
+    out = [_arm(label, report, "learned") for label, report in reports]
+    out += [_arm(label, reports[0][1], policy) for policy, label in REFERENCES]
     return out
+
+
+def _arm(label: str, report: dict, policy: str) -> dict:
+    """One arm of :func:`arms`: ``policy``'s row of ``report``, in points; a learner (the
+    report's ``learned``) with its gap closed."""
+    mean, lo, hi = report["policies"][policy]["success_diff"]
+    arm = {"label": label, "diff_pp": 100 * mean, "ci_pp": (100 * lo, 100 * hi),
+           "learner": False, "gap_closed": None, "gap_closed_ci": None}
+    if policy == "learned":
+        gap = report["gap_closed"]["learned"]["lookahead-full"]
+        arm.update(learner=True, gap_closed=gap["point"]["success"],
+                   gap_closed_ci=tuple(gap["interval"]["success"]))
+    return arm
 
 
 def best_rule(task: str, results: Path = RESULTS) -> tuple[str, float]:

@@ -335,6 +335,18 @@ def read_rounds(run_dir: Path) -> list[dict[str, float]]:
     return read_csv_rows(Path(run_dir) / "rounds.csv")
 
 
+ROUND_EPISODE_STRIDE = 100_000
+""":func:`aggregate_rounds` numbers the k-th DAgger round's episodes from ``k`` times this."""
+
+
+def aggregate_rounds(parts: list[Episodes]) -> Episodes:
+    """The DAgger rounds' labels ``parts`` (oldest first) as one set, the k-th round's episodes
+    numbered ``episode + ROUND_EPISODE_STRIDE k`` so an episode index names one episode."""
+    return Episodes.concatenate(
+        [Episodes(p.observations, p.labels, p.episode + ROUND_EPISODE_STRIDE * k, p.planned)
+         for k, p in enumerate(parts)])
+
+
 def distil(setup: DistillSetup, run_dir: str | Path) -> dict[str, Any]:
     """Run (or resume) the distillation into ``run_dir`` (module docstring); returns the
     selected snapshot's config."""
@@ -388,9 +400,7 @@ def distil(setup: DistillSetup, run_dir: str | Path) -> dict[str, Any]:
             parts.append(data)
             episodes_used += round_stats["episodes"]
             planner_labels += round_stats["planner_labels"]
-            aggregate = Episodes.concatenate(
-                [Episodes(p.observations, p.labels, p.episode + 100_000 * k, p.planned)
-                 for k, p in enumerate(parts)])
+            aggregate = aggregate_rounds(parts)
             report = fit_labels(model, normalise(aggregate.observations, stats),
                                 aggregate.labels, aggregate.episode, seed=setup.seed + i)
             fit = {"fit_epochs": report["epochs"], "fit_best_epoch": report["best_epoch"],
@@ -437,6 +447,16 @@ def setup_of(run_dir: Path) -> DistillSetup:
     return DistillSetup(**fields)
 
 
+def dagger_labels(run_dir: str | Path) -> tuple[list[int], Episodes]:
+    """The DAgger rounds of a distillation run (every round after 0, from its ``rounds.csv``)
+    and their labelled decisions, as the run aggregated them (:func:`aggregate_rounds`)."""
+    run_dir = Path(run_dir)
+    rounds = sorted(int(r["round"]) for r in read_rounds(run_dir) if int(r["round"]) > 0)
+    require(bool(rounds), "run_dir", str(run_dir), "a run with at least one DAgger round")
+    return rounds, aggregate_rounds([Episodes.load(run_dir / f"round_{i}" / "labels.npz")
+                                     for i in rounds])
+
+
 def reweigh(run_dir: str | Path, departure_weight: float, dest: str | Path, *,
             command: str = "") -> dict[str, Any]:
     """Learner 1b (issue 58, amendment 2): the cost-weighted distilled planner, from a finished
@@ -469,8 +489,7 @@ def reweigh(run_dir: str | Path, departure_weight: float, dest: str | Path, *,
     require(repr(teacher_base) == repr(policies.make("fixed-10s-optimise")), "teacher",
             setup.teacher, "the lookahead on its default base rule fixed-10s-optimise (whose "
             "action where it plans defines a departure)")
-    rounds = sorted(int(r["round"]) for r in read_rounds(run_dir) if int(r["round"]) > 0)
-    require(bool(rounds), "run_dir", str(run_dir), "a run with at least one DAgger round")
+    rounds, data = dagger_labels(run_dir)
     if read_rounds(dest):
         logger.warning("%s: done; resumed", dest)
         return choose(dest)
@@ -480,10 +499,6 @@ def reweigh(run_dir: str | Path, departure_weight: float, dest: str | Path, *,
     config0 = json.loads((run_dir / "round_0" / "model.json").read_text())
     stats = config0["observation_normalisation"]
     model = PPO.load(run_dir / "round_0" / "model.zip", device="cpu")
-    data = Episodes.concatenate(
-        [Episodes(p.observations, p.labels, p.episode + 100_000 * k, p.planned)
-         for k, p in enumerate(Episodes.load(run_dir / f"round_{i}" / "labels.npz")
-                               for i in rounds)])
     departed = departures(data)
     weights = np.where(departed, float(departure_weight), 1.0)
     report = fit_labels(model, normalise(data.observations, stats), data.labels, data.episode,
